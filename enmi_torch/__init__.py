@@ -1,0 +1,28 @@
+"""enmi_torch: noise-aware (enhanced) normalized mutual information for image matching and localization."""
+
+from enmi_torch._checks import value_checks
+from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likelihood_weights, parzen_weights
+from enmi_torch.histogram import joint_histogram
+from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
+from enmi_torch.losses import ENMILoss, NMILoss
+from enmi_torch.variance import ConstantVariance, VarianceModel
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConstantVariance",
+    "ENMILoss",
+    "NMILoss",
+    "VarianceModel",
+    "bin_centers",
+    "bin_edges",
+    "enmi",
+    "entropies",
+    "gaussian_log_prior",
+    "joint_histogram",
+    "likelihood_weights",
+    "nmi",
+    "nmi_from_joint_histogram",
+    "parzen_weights",
+    "value_checks",
+]

@@ -1,0 +1,137 @@
+"""Input checks shared by every public function: each message names the argument, what was expected and what came.
+
+Checks on tensor *values* (finiteness, positivity, empty masks) need the values on the host. They run for CPU
+tensors; on accelerators they are off by default so that the forward pass never synchronises, and can be turned on
+with :func:`value_checks` (or ``ENMI_TORCH_VALUE_CHECKS=1``) while debugging.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+_VALUE_CHECKS_ON_ACCELERATORS = os.environ.get("ENMI_TORCH_VALUE_CHECKS", "0") == "1"
+
+
+@contextlib.contextmanager
+def value_checks(enabled: bool = True) -> Iterator[None]:
+    """Turn the value checks (NaN/inf pixels, non-positive variance, empty masks) on or off on accelerators.
+
+    Value checks read tensor values on the host, which synchronises a CUDA stream; they always run on CPU tensors.
+
+    Example:
+        >>> import torch
+        >>> from enmi_torch import value_checks
+        >>> with value_checks(True):
+        ...     pass
+    """
+    global _VALUE_CHECKS_ON_ACCELERATORS
+    previous = _VALUE_CHECKS_ON_ACCELERATORS
+    _VALUE_CHECKS_ON_ACCELERATORS = enabled
+    try:
+        yield
+    finally:
+        _VALUE_CHECKS_ON_ACCELERATORS = previous
+
+
+def _values_checked(tensor: Tensor) -> bool:
+    if torch.compiler.is_compiling():
+        return False
+    return tensor.device.type == "cpu" or _VALUE_CHECKS_ON_ACCELERATORS
+
+
+def check_tensor(name: str, value: Any) -> Tensor:
+    """Raise ``TypeError`` unless ``value`` is a tensor."""
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    return value
+
+
+def check_floating(name: str, value: Any) -> Tensor:
+    """Raise ``TypeError`` unless ``value`` is a floating-point tensor."""
+    check_tensor(name, value)
+    if not value.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    return value
+
+
+def check_option(name: str, value: Any, allowed: Sequence[str]) -> str:
+    """Raise ``ValueError`` unless ``value`` is one of the ``allowed`` strings."""
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"{name} must be one of {list(allowed)}, got {value!r}")
+    return value
+
+
+def check_bins(bins: Any) -> int:
+    """Raise unless ``bins`` is an integer of at least 2."""
+    if isinstance(bins, bool) or not isinstance(bins, int):
+        raise TypeError(f"bins must be an int >= 2, got {type(bins).__name__} {bins!r}")
+    if bins < 2:
+        raise ValueError(f"bins must be an int >= 2, got {bins}")
+    return bins
+
+
+def check_value_range(value_range: Any) -> tuple[float, float]:
+    """Raise ``ValueError`` unless ``value_range`` is two finite numbers ``(low, high)`` with ``low < high``."""
+    try:
+        low, high = (float(bound) for bound in value_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"value_range must be a pair of finite numbers (low, high), got {value_range!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high)) or low >= high:
+        raise ValueError(f"value_range must be finite with low < high, got {value_range!r}")
+    return low, high
+
+
+def check_positive_number(name: str, value: Any) -> float:
+    """Raise ``ValueError`` unless ``value`` is a finite number greater than zero."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a positive number, got {type(value).__name__} {value!r}")
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(value)
+
+
+def check_finite_where(name: str, values: Tensor, valid: Tensor | None) -> None:
+    """Raise ``ValueError`` if ``values`` holds NaN or inf at a valid position (a value check)."""
+    if not _values_checked(values):
+        return
+    bad = ~torch.isfinite(values)
+    if valid is not None:
+        bad = bad & valid
+    if bool(bad.any()):
+        count = int(bad.sum())
+        raise ValueError(
+            f"{name} must be finite where valid_mask is True, got {count} NaN/inf value(s); "
+            "mask them out with valid_mask"
+        )
+
+
+def check_positive_where(name: str, values: Tensor, valid: Tensor | None) -> None:
+    """Raise ``ValueError`` if ``values`` is not finite and > 0 at a valid position (a value check)."""
+    if not _values_checked(values):
+        return
+    bad = ~(torch.isfinite(values) & (values > 0))
+    if valid is not None:
+        bad = bad & valid
+    if bool(bad.any()):
+        worst = values[bad].flatten()[0].item()
+        raise ValueError(
+            f"{name} must be finite and > 0 where valid_mask is True, got {int(bad.sum())} value(s) "
+            f"outside that (e.g. {worst})"
+        )
+
+
+def check_mask_not_empty(name: str, valid: Tensor) -> None:
+    """Raise ``ValueError`` if a sample of the ``(B, N)`` mask selects no pixel (a value check)."""
+    if not _values_checked(valid):
+        return
+    empty = ~valid.any(dim=-1)
+    if bool(empty.any()):
+        samples = torch.nonzero(empty).flatten().tolist()
+        raise ValueError(f"{name} selects no pixel in sample(s) {samples}; every sample needs at least one pixel")

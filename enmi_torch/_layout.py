@@ -1,0 +1,65 @@
+"""Image layouts: public functions accept ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)`` and work on ``(B, N)``."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from enmi_torch._checks import check_floating, check_tensor
+
+
+def spatial_shape(name: str, image: Tensor) -> tuple[int, ...]:
+    """The per-sample shape of ``image`` without batch and channel: ``(H, W)`` or ``(N,)``."""
+    if image.ndim == 4:
+        if image.shape[1] != 1:
+            raise ValueError(f"{name} must have one channel, (B, 1, H, W), got shape {tuple(image.shape)}")
+        return tuple(image.shape[2:])
+    if image.ndim in (2, 3):
+        return tuple(image.shape[1:])
+    raise ValueError(f"{name} must have shape (B, 1, H, W), (B, H, W) or (B, N), got shape {tuple(image.shape)}")
+
+
+def flatten_image(name: str, image: Tensor) -> Tensor:
+    """``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)`` to ``(B, N)``."""
+    check_floating(name, image)
+    spatial_shape(name, image)
+    if image.shape[0] == 0 or image[0].numel() == 0:
+        raise ValueError(f"{name} must hold at least one sample and one pixel, got shape {tuple(image.shape)}")
+    return image.reshape(image.shape[0], -1)
+
+
+def broadcast_map(name: str, values: Tensor, like: Tensor, like_name: str = "captured") -> Tensor:
+    """A per-pixel map (variance or mask) given per image or per sample, as ``(1, N)`` or ``(B, N)``.
+
+    Accepted: the spatial shape of ``like`` (``(H, W)`` or ``(N,)``), that shape behind leading ones
+    (``(1, 1, H, W)``), or one map per sample (``(B, 1, H, W)``, ``(B, H, W)``, ``(B, N)``).
+    """
+    check_tensor(name, values)
+    spatial = spatial_shape(like_name, like)
+    batch = like.shape[0]
+    leading = tuple(values.shape[: values.ndim - len(spatial)])
+    per_sample_ok = leading in ((batch,), (batch, 1)) if like.ndim == 4 else leading == (batch,)
+    shared_ok = all(size == 1 for size in leading)
+    if (
+        values.ndim < len(spatial)
+        or tuple(values.shape[values.ndim - len(spatial) :]) != spatial
+        or not (shared_ok or per_sample_ok)
+    ):
+        raise ValueError(
+            f"{name} must have the spatial shape of {like_name} {spatial}, optionally behind leading ones or one map "
+            f"per sample (batch {batch}), got shape {tuple(values.shape)} for {like_name} of shape {tuple(like.shape)}"
+        )
+    rows = math.prod(leading) if leading else 1
+    return values.reshape(rows, -1)
+
+
+def scalar_or_map(name: str, values: Tensor | float, like: Tensor) -> Tensor:
+    """Like :func:`broadcast_map`, but a Python number or a 0-d tensor stands for a constant map."""
+    if isinstance(values, (int, float)) and not isinstance(values, bool):
+        return torch.full((1, 1), float(values), dtype=like.dtype, device=like.device)
+    check_floating(name, values)
+    if values.ndim == 0:
+        return values.reshape(1, 1)
+    return broadcast_map(name, values, like)

@@ -1,0 +1,268 @@
+"""Joint histograms of a captured image against a reference (map) image, hard, Parzen or likelihood-weighted.
+
+The joint histogram is the streaming state of every score here: its counts add across batches, chunks and
+processes, and :func:`~enmi_torch.information.nmi_from_joint_histogram` turns the sum into a score.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from enmi_torch._checks import (
+    check_bins,
+    check_finite_where,
+    check_floating,
+    check_mask_not_empty,
+    check_option,
+    check_positive_where,
+    check_tensor,
+    check_value_range,
+)
+from enmi_torch._layout import broadcast_map, flatten_image, scalar_or_map
+from enmi_torch.binning import (
+    LIKELIHOOD_WEIGHTS,
+    PARZEN_KERNELS,
+    hard_bin_index,
+    likelihood_weights,
+    likelihood_weights_vjp,
+    parzen_weights,
+)
+
+CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
+
+# Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements (8 MiB in float64).
+_CHUNK_ELEMENTS = 1 << 20
+
+
+def joint_histogram(
+    captured: Tensor,
+    reference: Tensor,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    captured_variance: Tensor | float | None = None,
+    valid_mask: Tensor | None = None,
+    kernel: str | None = None,
+    reference_kernel: str = "hard",
+    log_prior: Tensor | None = None,
+) -> Tensor:
+    """Joint histogram (counts) of a captured image and a reference image, ``(B, bins, bins)``.
+
+    Args:
+        captured: captured (sensor) image, ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        reference: reference (map) image of the same shape.
+        bins: number of equal-width amplitude bins, >= 2.
+        value_range: ``(low, high)`` covered by the bins; values outside are clipped into the edge bins.
+        captured_variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
+            ``(1, 1, H, W)`` or ``(B, 1, H, W)`` (likewise for the other layouts). Required by the likelihood
+            kernels ``"mass"``/``"density"``, refused by the others.
+        valid_mask: bool, same broadcasting as ``captured_variance``; ``False`` pixels are left out (they may hold
+            NaN). ``None`` keeps every pixel.
+        kernel: how a captured pixel spreads its unit weight over the bins: ``"hard"``, ``"triangular"``, ``"xu"``
+            (Parzen windows, see :func:`~enmi_torch.binning.parzen_weights`) or ``"mass"``, ``"density"``
+            (Gaussian likelihood, see :func:`~enmi_torch.binning.likelihood_weights`). ``None``: ``"mass"`` when a
+            variance is given, else ``"hard"``.
+        reference_kernel: ``"hard"`` (the noiseless map, default), ``"triangular"`` or ``"xu"`` (soft, so the
+            reference gets a gradient).
+        log_prior: optional log prior of the amplitude per bin, ``(bins,)`` or ``(B, bins)``, for the likelihood
+            kernels (MAP weights). Not differentiated.
+
+    Returns:
+        Counts ``(B, bins, bins)``: captured bins on axis 1, reference bins on axis 2. Each valid pixel adds a
+        total weight of 1, so a sample's counts sum to its number of valid pixels. Same dtype as ``captured``
+        (half precision is accumulated in float32 and cast back).
+
+    Convention:
+        Gradients flow to ``captured`` and ``captured_variance`` for the differentiable kernels and to
+        ``reference`` for soft reference kernels. With a hard reference and a likelihood kernel the histogram is
+        accumulated in chunks by a custom autograd function that never stores the ``(B, N, bins)`` weights.
+
+    Example:
+        >>> captured = torch.tensor([[0.5, 1.5, 2.5, 3.5]])
+        >>> joint_histogram(captured, captured, bins=2, value_range=(0, 4))
+        tensor([[[2., 0.],
+                 [0., 2.]]])
+    """
+    check_floating("captured", captured)
+    check_tensor("reference", reference)
+    if reference.shape != captured.shape:
+        raise ValueError(
+            f"reference must have the shape of captured {tuple(captured.shape)}, got {tuple(reference.shape)}"
+        )
+    check_floating("reference", reference)
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    if kernel is None:
+        kernel = "hard" if captured_variance is None else "mass"
+    check_option("kernel", kernel, CAPTURED_KERNELS)
+    check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
+    if kernel in LIKELIHOOD_WEIGHTS and captured_variance is None:
+        raise ValueError(f"kernel={kernel!r} needs captured_variance, got None")
+    if kernel not in LIKELIHOOD_WEIGHTS and captured_variance is not None:
+        raise ValueError(f"captured_variance is only used by kernels {list(LIKELIHOOD_WEIGHTS)}, got kernel={kernel!r}")
+    if log_prior is not None and kernel not in LIKELIHOOD_WEIGHTS:
+        raise ValueError(f"log_prior is only used by kernels {list(LIKELIHOOD_WEIGHTS)}, got kernel={kernel!r}")
+
+    out_dtype = captured.dtype
+    compute_dtype = torch.float64 if out_dtype == torch.float64 else torch.float32
+    captured_flat = flatten_image("captured", captured).to(compute_dtype)
+    reference_flat = reference.reshape(captured_flat.shape).to(compute_dtype)
+    batch, pixels = captured_flat.shape
+
+    valid = None
+    if valid_mask is not None:
+        check_tensor("valid_mask", valid_mask)
+        if valid_mask.dtype != torch.bool:
+            raise TypeError(f"valid_mask must be a bool tensor, got dtype {valid_mask.dtype}")
+        valid = broadcast_map("valid_mask", valid_mask, captured).expand(batch, pixels)
+        check_mask_not_empty("valid_mask", valid)
+    check_finite_where("captured", captured_flat, valid)
+    check_finite_where("reference", reference_flat, valid)
+    if valid is not None:
+        # Masked pixels may hold NaN (out-of-range regions): replace them so 0 * NaN never reaches the counts.
+        captured_flat = torch.where(valid, captured_flat, value_range[0])
+        reference_flat = torch.where(valid, reference_flat, value_range[0])
+    pair_weight = None if valid is None else valid.to(compute_dtype)
+
+    variance = None
+    if captured_variance is not None:
+        variance = scalar_or_map("captured_variance", captured_variance, captured)
+        variance = variance.to(compute_dtype).expand(batch, pixels)
+        check_positive_where("captured_variance", variance, valid)
+        if valid is not None:
+            variance = torch.where(valid, variance, 1.0)
+    if log_prior is not None:
+        log_prior = _check_log_prior(log_prior, bins, batch).to(compute_dtype)
+
+    with torch.autocast(device_type=captured.device.type, enabled=False):
+        if kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard":
+            rows = _reference_rows(reference_flat, bins, value_range)
+            if valid is not None:
+                # Masked pixels go to a spare last row that is dropped: no multiply, and no gradient reaches them.
+                rows = torch.where(valid, rows, batch * bins)
+            counts = _LikelihoodJointHistogram.apply(
+                captured_flat, variance, rows, log_prior, bins, value_range, kernel
+            )
+            counts = counts[: batch * bins].view(batch, bins, bins).transpose(1, 2)
+        else:
+            counts = _dense_joint_histogram(
+                captured_flat,
+                reference_flat,
+                variance,
+                pair_weight,
+                log_prior,
+                bins,
+                value_range,
+                kernel,
+                reference_kernel,
+            )
+    return counts.to(out_dtype)
+
+
+def _check_log_prior(log_prior: Tensor, bins: int, batch: int) -> Tensor:
+    check_floating("log_prior", log_prior)
+    if log_prior.shape not in ((bins,), (1, bins), (batch, bins)):
+        raise ValueError(
+            f"log_prior must have shape ({bins},), (1, {bins}) or ({batch}, {bins}), got {tuple(log_prior.shape)}"
+        )
+    if log_prior.device.type == "cpu" and bool(torch.isnan(log_prior).any() | torch.isposinf(log_prior).any()):
+        raise ValueError("log_prior must hold finite values or -inf, got NaN or +inf")
+    return log_prior.reshape(-1, 1, bins)
+
+
+def _reference_rows(reference: Tensor, bins: int, value_range: tuple[float, float]) -> Tensor:
+    """Row of each pixel in the ``(B * bins, bins)`` transposed histogram: ``b * bins + reference bin``."""
+    offsets = torch.arange(reference.shape[0], device=reference.device).unsqueeze(1) * bins
+    return hard_bin_index(reference, bins, value_range) + offsets
+
+
+def _chunks(batch: int, pixels: int, bins: int):
+    step = max(1, _CHUNK_ELEMENTS // (batch * bins))
+    for start in range(0, pixels, step):
+        yield slice(start, min(start + step, pixels))
+
+
+def _pixel_weights(captured, variance, pair_weight, log_prior, bins, value_range, kernel) -> Tensor:
+    """``(B, n, bins)`` weights of the captured pixels, zero rows where masked."""
+    if kernel in LIKELIHOOD_WEIGHTS:
+        weights = likelihood_weights(captured, variance, bins, value_range, kernel, log_prior)
+    else:
+        weights = parzen_weights(captured, bins, value_range, kernel)
+    return weights if pair_weight is None else weights * pair_weight.unsqueeze(-1)
+
+
+def _dense_joint_histogram(
+    captured, reference, variance, pair_weight, log_prior, bins, value_range, kernel, reference_kernel
+) -> Tensor:
+    """Plain autograd path: ``(B, N, bins)`` weights for both images, then one batched product."""
+    if kernel == "hard" and reference_kernel == "hard":
+        return _hard_joint_histogram(captured, reference, pair_weight, bins, value_range)
+    captured_weights = _pixel_weights(captured, variance, pair_weight, log_prior, bins, value_range, kernel)
+    if reference_kernel == "hard":
+        rows = _reference_rows(reference, bins, value_range).flatten()
+        transposed = captured_weights.new_zeros(captured.shape[0] * bins, bins)
+        transposed = transposed.index_add(0, rows, captured_weights.reshape(-1, bins))
+        return transposed.view(-1, bins, bins).transpose(1, 2)
+    reference_weights = parzen_weights(reference, bins, value_range, reference_kernel)
+    return torch.bmm(captured_weights.transpose(1, 2), reference_weights)
+
+
+def _hard_joint_histogram(captured, reference, pair_weight, bins, value_range) -> Tensor:
+    """Unit counts, one ``bincount`` over ``(sample, captured bin, reference bin)`` cells (no gradient)."""
+    batch = captured.shape[0]
+    offsets = torch.arange(batch, device=captured.device).unsqueeze(1) * (bins * bins)
+    cells = hard_bin_index(captured, bins, value_range) * bins + hard_bin_index(reference, bins, value_range) + offsets
+    counts = torch.bincount(
+        cells.flatten(), weights=None if pair_weight is None else pair_weight.flatten(), minlength=batch * bins * bins
+    )
+    return counts.to(captured.dtype).view(batch, bins, bins)
+
+
+class _LikelihoodJointHistogram(torch.autograd.Function):
+    """Likelihood-weighted captured pixels added to the rows of a hard-binned reference, in chunks.
+
+    ``rows`` holds ``b * bins + reference bin`` per pixel, or the spare row ``B * bins`` for masked pixels; the
+    result is the transposed histogram ``(B * bins + 1, bins)``. Backward recomputes each chunk from the saved
+    inputs with the closed-form :func:`~enmi_torch.binning.likelihood_weights_vjp`, so memory stays at one chunk
+    whatever the image size.
+    """
+
+    @staticmethod
+    def forward(ctx, captured, variance, rows, log_prior, bins, value_range, kernel):
+        batch, pixels = captured.shape
+        transposed = captured.new_zeros(batch * bins + 1, bins)
+        for part in _chunks(batch, pixels, bins):
+            weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
+            transposed.index_add_(0, rows[:, part].reshape(-1), weights.reshape(-1, bins))
+        ctx.save_for_backward(captured, variance, rows, log_prior)
+        ctx.options = (bins, value_range, kernel)
+        return transposed
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_transposed):
+        captured, variance, rows, log_prior = ctx.saved_tensors
+        bins, value_range, kernel = ctx.options
+        want_captured, want_variance = ctx.needs_input_grad[:2]
+        if not (want_captured or want_variance):
+            return (None,) * 7
+        grad_transposed = grad_transposed.clone()
+        grad_transposed[-1] = 0
+        grad_captured = torch.empty(captured.shape, dtype=captured.dtype, device=captured.device)
+        grad_variance = torch.empty(variance.shape, dtype=variance.dtype, device=variance.device)
+        batch, pixels = captured.shape
+        for part in _chunks(batch, pixels, bins):
+            upstream = grad_transposed.index_select(0, rows[:, part].reshape(-1)).view(batch, -1, bins)
+            grad_captured[:, part], grad_variance[:, part] = likelihood_weights_vjp(
+                captured[:, part], variance[:, part], upstream, bins, value_range, kernel, log_prior
+            )
+        return (
+            grad_captured if want_captured else None,
+            grad_variance if want_variance else None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )

@@ -1,0 +1,144 @@
+"""Loss modules: ``2 - NMI`` and ``2 - ENMI``, which fall to 0 as the captured image aligns with the reference."""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from enmi_torch._checks import check_bins, check_option, check_value_range
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS
+from enmi_torch.information import enmi, nmi
+from enmi_torch.variance.base import VarianceModel
+
+REDUCTIONS = ("none", "mean", "sum")
+
+
+def _reduce(loss: Tensor, reduction: str) -> Tensor:
+    if reduction == "mean":
+        return loss.mean()
+    if reduction == "sum":
+        return loss.sum()
+    return loss
+
+
+class NMILoss(nn.Module):
+    """``2 - NMI(captured, reference)``, in ``[0, 1]``; the module form of :func:`~enmi_torch.information.nmi`.
+
+    Args:
+        bins: number of bins.
+        value_range: ``(low, high)`` of the bins.
+        kernel: ``"triangular"`` (default) or ``"xu"`` for a gradient; ``"hard"`` for evaluation only.
+        reference_kernel: ``"hard"`` (default), ``"triangular"`` or ``"xu"``.
+        reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> NMILoss(bins=4, kernel="hard")(image, image)
+        tensor(0.)
+    """
+
+    def __init__(
+        self,
+        bins: int = 32,
+        value_range: tuple[float, float] = (0.0, 256.0),
+        kernel: str = "triangular",
+        reference_kernel: str = "hard",
+        reduction: str = "mean",
+    ) -> None:
+        super().__init__()
+        self.bins = check_bins(bins)
+        self.value_range = check_value_range(value_range)
+        self.kernel = check_option("kernel", kernel, PARZEN_KERNELS)
+        self.reference_kernel = check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
+        self.reduction = check_option("reduction", reduction, REDUCTIONS)
+
+    def forward(self, captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None) -> Tensor:
+        """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)`` (or ``(B, H, W)``, ``(B, N)``)."""
+        score = nmi(
+            captured,
+            reference,
+            bins=self.bins,
+            value_range=self.value_range,
+            kernel=self.kernel,
+            reference_kernel=self.reference_kernel,
+            valid_mask=valid_mask,
+        )
+        return _reduce(2 - score, self.reduction)
+
+
+class ENMILoss(nn.Module):
+    """``2 - ENMI(captured, reference, variance)``, in ``[0, 1]``; module form of :func:`~enmi_torch.information.enmi`.
+
+    The variance comes per call (``forward(..., variance=...)``) or from a :class:`~enmi_torch.variance.VarianceModel`
+    given at construction (an analytic camera map, a learned mask): one or the other, not both. The model's
+    :meth:`~enmi_torch.variance.VarianceModel.valid_mask` is combined with the call's ``valid_mask``; its parameters
+    are this module's parameters, so the variance can be learned through the loss.
+
+    Args:
+        bins: number of bins.
+        value_range: ``(low, high)`` of the bins.
+        weights: ``"mass"`` or ``"density"`` (see :func:`~enmi_torch.information.enmi`).
+        log_prior: optional ``(bins,)`` log prior of the amplitudes (a non-persistent buffer).
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel`.
+        reference_kernel: ``"hard"`` (default), ``"triangular"`` or ``"xu"``.
+        reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+
+    Example:
+        >>> from enmi_torch.variance import ConstantVariance
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> loss = ENMILoss(bins=4, variance_model=ConstantVariance(1e-6))
+        >>> loss(image, image)
+        tensor(0.)
+    """
+
+    def __init__(
+        self,
+        bins: int = 32,
+        value_range: tuple[float, float] = (0.0, 256.0),
+        weights: str = "mass",
+        log_prior: Tensor | None = None,
+        variance_model: VarianceModel | None = None,
+        reference_kernel: str = "hard",
+        reduction: str = "mean",
+    ) -> None:
+        super().__init__()
+        self.bins = check_bins(bins)
+        self.value_range = check_value_range(value_range)
+        self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        self.reference_kernel = check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
+        self.reduction = check_option("reduction", reduction, REDUCTIONS)
+        if variance_model is not None and not isinstance(variance_model, VarianceModel):
+            raise TypeError(
+                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
+            )
+        self.variance_model = variance_model
+        self.register_buffer("log_prior", log_prior, persistent=False)
+
+    def forward(
+        self,
+        captured: Tensor,
+        reference: Tensor,
+        variance: Tensor | float | None = None,
+        valid_mask: Tensor | None = None,
+    ) -> Tensor:
+        """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`enmi`."""
+        if variance is None and self.variance_model is None:
+            raise ValueError("variance must be given per call when ENMILoss has no variance_model, got None")
+        if variance is not None and self.variance_model is not None:
+            raise ValueError("variance must be None when ENMILoss has a variance_model; pass one or the other")
+        if self.variance_model is not None:
+            variance = self.variance_model(captured)
+            model_mask = self.variance_model.valid_mask(captured)
+            if model_mask is not None:
+                valid_mask = model_mask if valid_mask is None else valid_mask & model_mask
+        score = enmi(
+            captured,
+            reference,
+            variance,
+            bins=self.bins,
+            value_range=self.value_range,
+            weights=self.weights,
+            log_prior=self.log_prior,
+            reference_kernel=self.reference_kernel,
+            valid_mask=valid_mask,
+        )
+        return _reduce(2 - score, self.reduction)
