@@ -18,7 +18,7 @@ LIKELIHOOD_WEIGHTS = ("mass", "density")
 
 # Below this standard deviation (in bin widths) a likelihood is already a unit count in float64; clamping the
 # variance here keeps (c - v)^2 / var^2 finite in gradients.
-_MIN_STD_IN_BINS = 1e-3
+_MIN_STD_IN_BINS = 1e-6
 
 
 def bin_width(bins: int, value_range: tuple[float, float]) -> float:
@@ -87,7 +87,7 @@ def parzen_weights(values: Tensor, bins: int, value_range: tuple[float, float], 
     if kernel == "triangular":
         return (1 - distance).clamp_min(0)
     inner = 1 - distance * (0.1 + 1.8 * distance)
-    outer = 1.9 - distance * (3.7 - 1.8 * distance)
+    outer = (1.9 - distance * (3.7 - 1.8 * distance)).clamp_min(0)  # rounding leaves -2e-16 at distance 1
     return torch.where(distance < 0.5, inner, torch.where(distance <= 1, outer, torch.zeros_like(distance)))
 
 

@@ -1,0 +1,121 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import integrate, stats
+
+from enmi_torch.binning import (
+    bin_centers,
+    bin_edges,
+    gaussian_log_prior,
+    hard_bin_index,
+    likelihood_weights,
+    likelihood_weights_vjp,
+    min_variance,
+    parzen_weights,
+)
+
+RANGE = (0.0, 256.0)
+
+
+def test_edges_and_centres_match_numpy():
+    np.testing.assert_allclose(bin_edges(32, RANGE, dtype=torch.float64).numpy(), np.linspace(0, 256, 33))
+    np.testing.assert_allclose(bin_centers(32, RANGE, dtype=torch.float64).numpy(), np.arange(32) * 8 + 4.0)
+
+
+def test_hard_index_matches_numpy_digitize_and_clips(generator):
+    values = torch.rand(10_000, generator=generator, dtype=torch.float64) * 300 - 20
+    edges = np.linspace(0, 256, 33)
+    expected = np.clip(np.digitize(values.numpy(), edges) - 1, 0, 31)
+    np.testing.assert_array_equal(hard_bin_index(values, 32, RANGE).numpy(), expected)
+
+
+@pytest.mark.parametrize("kernel", ["hard", "triangular", "xu"])
+def test_parzen_rows_are_probabilities(kernel, dtype, generator):
+    values = (torch.rand(500, generator=generator, dtype=torch.float64) * 300 - 20).to(dtype)
+    weights = parzen_weights(values, 16, RANGE, kernel)
+    assert weights.shape == (500, 16)
+    assert (weights >= 0).all()
+    torch.testing.assert_close(weights.sum(-1), torch.ones(500, dtype=dtype))
+
+
+def test_triangular_is_linear_interpolation_between_centres():
+    weights = parzen_weights(torch.tensor([10.0], dtype=torch.float64), 32, RANGE, "triangular")
+    # 10 lies between centres 4 (bin 0) and 12 (bin 1), a quarter of the way from 12.
+    torch.testing.assert_close(weights[0, :3], torch.tensor([0.25, 0.75, 0.0], dtype=torch.float64))
+
+
+def test_mass_weights_equal_scipy_normal_bin_probabilities(dtype, generator, tolerance):
+    values = torch.rand(200, generator=generator, dtype=torch.float64) * 256
+    variance = torch.rand(200, generator=generator, dtype=torch.float64) * 400 + 0.5
+    weights = likelihood_weights(values.to(dtype), variance.to(dtype), 32, RANGE, "mass")
+    edges = np.linspace(0, 256, 33)
+    cdf = stats.norm.cdf(edges[None, 1:-1], loc=values.numpy()[:, None], scale=np.sqrt(variance.numpy())[:, None])
+    expected = np.diff(np.concatenate([np.zeros((200, 1)), cdf, np.ones((200, 1))], axis=1), axis=1)
+    atol = 1e-6 if dtype == torch.float32 else 1e-12
+    np.testing.assert_allclose(weights.double().numpy(), expected, atol=atol)
+
+
+def test_mass_weights_equal_numerical_integration_of_the_density():
+    value, variance = 97.3, 150.0
+    weights = likelihood_weights(
+        torch.tensor([value], dtype=torch.float64), torch.tensor([variance]).double(), 8, RANGE
+    )
+    edges = [value - 40 * math.sqrt(variance), *np.linspace(0, 256, 9)[1:-1], value + 40 * math.sqrt(variance)]
+    density = stats.norm(value, math.sqrt(variance)).pdf
+    for index in range(8):
+        integral, _ = integrate.quad(density, edges[index], edges[index + 1], epsabs=1e-13, limit=200)
+        assert abs(integral - weights[0, index].item()) < 1e-9
+
+
+def test_density_weights_are_normalised_gaussian_at_centres(generator):
+    values = torch.rand(50, generator=generator, dtype=torch.float64) * 256
+    variance = torch.full((50,), 30.0, dtype=torch.float64)
+    weights = likelihood_weights(values, variance, 32, RANGE, "density")
+    centres = np.arange(32) * 8 + 4.0
+    raw = np.exp(-((centres[None] - values.numpy()[:, None]) ** 2) / 60.0)
+    np.testing.assert_allclose(weights.numpy(), raw / raw.sum(1, keepdims=True), rtol=1e-10, atol=1e-300)
+
+
+@pytest.mark.parametrize("mode", ["mass", "density"])
+def test_prior_gives_the_normalised_posterior(mode, generator):
+    values = torch.rand(40, generator=generator, dtype=torch.float64) * 256
+    variance = torch.full((40,), 200.0, dtype=torch.float64)
+    log_prior = gaussian_log_prior(128, 32, 32, RANGE, dtype=torch.float64)
+    posterior = likelihood_weights(values, variance, 32, RANGE, mode, log_prior)
+    likelihood = likelihood_weights(values, variance, 32, RANGE, mode).numpy() * np.exp(log_prior.numpy())
+    np.testing.assert_allclose(posterior.numpy(), likelihood / likelihood.sum(1, keepdims=True), rtol=1e-9, atol=1e-15)
+
+
+def test_gaussian_log_prior_matches_scipy():
+    prior = gaussian_log_prior(128, 32, 32, RANGE, dtype=torch.float64).exp().numpy()
+    cdf = stats.norm.cdf(np.linspace(0, 256, 33)[1:-1], 128, 32)
+    np.testing.assert_allclose(prior, np.diff(np.concatenate([[0], cdf, [1]])), rtol=1e-9, atol=1e-300)
+
+
+@pytest.mark.parametrize("mode", ["mass", "density"])
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_closed_form_vjp_equals_autograd(mode, with_prior, generator):
+    values = (torch.rand(64, generator=generator, dtype=torch.float64) * 300 - 20).requires_grad_()
+    variance = (torch.rand(64, generator=generator, dtype=torch.float64) * 300 + 1e-3).requires_grad_()
+    upstream = torch.randn(64, 16, generator=generator, dtype=torch.float64)
+    log_prior = gaussian_log_prior(100, 40, 16, RANGE, dtype=torch.float64) if with_prior else None
+    weights = likelihood_weights(values, variance, 16, RANGE, mode, log_prior)
+    expected = torch.autograd.grad(weights, (values, variance), upstream)
+    actual = likelihood_weights_vjp(values.detach(), variance.detach(), upstream, 16, RANGE, mode, log_prior)
+    for got, want in zip(actual, expected, strict=False):
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["mass", "density"])
+def test_tiny_variance_gives_unit_counts_and_finite_gradients(mode, dtype):
+    values = torch.tensor([3.0, 100.5, 255.9], dtype=dtype, requires_grad=True)
+    variance = torch.full((3,), 1e-30, dtype=dtype, requires_grad=True)
+    weights = likelihood_weights(values, variance, 32, RANGE, mode)
+    torch.testing.assert_close(weights, parzen_weights(values.detach(), 32, RANGE, "hard"))
+    weights.pow(2).sum().backward()
+    assert torch.isfinite(values.grad).all() and torch.isfinite(variance.grad).all()
+    grads = likelihood_weights_vjp(values.detach(), variance.detach(), torch.ones(3, 32, dtype=dtype), 32, RANGE, mode)
+    assert all(torch.isfinite(grad).all() for grad in grads)
+    assert min_variance(32, RANGE) == pytest.approx((8e-6) ** 2)

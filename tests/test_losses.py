@@ -1,0 +1,84 @@
+import itertools
+
+import pytest
+import torch
+
+from enmi_torch import ConstantVariance, ENMILoss, NMILoss, VarianceModel, enmi, gaussian_log_prior, nmi
+
+
+@pytest.fixture
+def images(generator, dtype):
+    reference = (torch.rand(3, 1, 16, 16, generator=generator, dtype=torch.float64) * 256).to(dtype)
+    captured = reference + 10 * torch.randn(3, 1, 16, 16, generator=generator, dtype=torch.float64).to(dtype)
+    return captured, reference
+
+
+class _HalfMaskedVariance(VarianceModel):
+    def forward(self, captured):
+        return torch.full((1, 1, *captured.shape[-2:]), 30.0, dtype=captured.dtype)
+
+    def valid_mask(self, captured):
+        mask = torch.zeros(1, 1, *captured.shape[-2:], dtype=torch.bool)
+        mask[..., : captured.shape[-2] // 2, :] = True
+        return mask
+
+
+@pytest.mark.parametrize("reduction", ["none", "mean", "sum"])
+def test_enmi_loss_equals_two_minus_the_function(images, reduction, tolerance):
+    captured, reference = images
+    log_prior = gaussian_log_prior(128, 32, 32, (0, 256), dtype=captured.dtype)
+    loss = ENMILoss(weights="density", log_prior=log_prior, reduction=reduction)(captured, reference, 50.0)
+    expected = 2 - enmi(captured, reference, 50.0, weights="density", log_prior=log_prior)
+    expected = {"none": expected, "mean": expected.mean(), "sum": expected.sum()}[reduction]
+    torch.testing.assert_close(loss, expected, **tolerance)
+
+
+def test_nmi_loss_equals_two_minus_the_function(images, tolerance):
+    captured, reference = images
+    loss = NMILoss(kernel="xu", reduction="none")(captured, reference)
+    torch.testing.assert_close(loss, 2 - nmi(captured, reference, kernel="xu"), **tolerance)
+
+
+def test_variance_model_and_its_mask_are_used(images, tolerance):
+    captured, reference = images
+    model = _HalfMaskedVariance()
+    loss = ENMILoss(variance_model=model, reduction="none")(captured, reference)
+    top = (slice(None), slice(None), slice(0, 8), slice(None))
+    torch.testing.assert_close(loss, 2 - enmi(captured[top], reference[top], 30.0), **tolerance)
+
+
+def test_variance_is_learned_through_the_loss(images):
+    captured, reference = images
+    model = ConstantVariance(400.0, learnable=True)
+    loss_module = ENMILoss(variance_model=model)
+    assert [name for name, _ in loss_module.named_parameters()] == ["variance_model.log_variance"]
+    loss_module(captured, reference).backward()
+    assert model.log_variance.grad is not None and torch.isfinite(model.log_variance.grad)
+
+
+def test_loss_falls_as_alignment_improves(camera_image):
+    image = torch.from_numpy(camera_image[100:228, 100:240].astype("float64"))
+    reference = image[None, None, :, :128]
+    losses = [ENMILoss()(image[None, None, :, shift : shift + 128], reference, 100.0).item() for shift in range(5)]
+    assert all(earlier < later for earlier, later in itertools.pairwise(losses)), losses
+
+
+def test_prior_is_a_non_persistent_buffer():
+    module = ENMILoss(log_prior=gaussian_log_prior(128, 32, 32, (0, 256)))
+    assert "log_prior" not in module.state_dict()
+    assert module.log_prior.dtype == torch.float32
+    assert module.double().log_prior.dtype == torch.float64
+
+
+def test_loss_errors_name_the_argument(images):
+    captured, reference = images
+    with pytest.raises(ValueError, match="variance must be given per call"):
+        ENMILoss()(captured, reference)
+    with pytest.raises(ValueError, match="variance must be None when ENMILoss has a variance_model"):
+        ENMILoss(variance_model=ConstantVariance(1.0))(captured, reference, 1.0)
+    with pytest.raises(TypeError, match=r"variance_model must be an enmi_torch\.variance\.VarianceModel"):
+        ENMILoss(variance_model=torch.nn.Identity())
+    with pytest.raises(ValueError, match=r"reduction must be one of \['none', 'mean', 'sum'\], got 'max'"):
+        NMILoss(reduction="max")
+    with pytest.raises(ValueError, match="variance must be a finite number > 0"):
+        ConstantVariance(0.0)
