@@ -255,3 +255,30 @@ def test_nmi_rejects_likelihood_kernels_and_unknown_kernels():
 def test_value_checks_can_be_enabled_for_accelerators():
     with value_checks(True), pytest.raises(ValueError, match="captured must be finite"):
         nmi(IMAGE.masked_fill(IMAGE > 100, float("nan")), IMAGE)
+
+
+@pytest.mark.slow
+def test_inductor_compiled_loss_and_gradient_agree_with_eager(generator):
+    reference = torch.rand(2, 1, 32, 32, generator=generator) * 256
+    captured = reference + 10 * torch.randn(2, 1, 32, 32, generator=generator)
+    variance = torch.rand(1, 1, 32, 32, generator=generator) * 100 + 1
+
+    def score_and_gradient(function):
+        values = captured.clone().requires_grad_()
+        score = function(values, reference, variance)
+        (gradient,) = torch.autograd.grad(score.sum(), values)
+        return score, gradient
+
+    eager = score_and_gradient(enmi)
+    compiled = score_and_gradient(torch.compile(enmi))
+    for got, want in zip(compiled, eager, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
+
+
+def test_autocast_computes_in_float32(generator):
+    reference = torch.rand(2, 1, 16, 16, generator=generator) * 256
+    captured = reference + 10 * torch.randn(2, 1, 16, 16, generator=generator)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        score = enmi(captured, reference, 50.0)
+    assert score.dtype == torch.float32
+    torch.testing.assert_close(score, enmi(captured, reference, 50.0))
