@@ -136,7 +136,8 @@ class PerspectiveVariance(VarianceModel):
     Convention:
         ``forward(captured)`` takes ``(B, 1, H_g, W_g)`` on ``grid`` and returns :func:`perspective_variance`,
         ``(1, 1, H_g, W_g)`` in the dtype of ``captured``; :meth:`valid_mask` is
-        :func:`~enmi_torch.rectify.visible_cells`. The cell areas are float64 non-persistent buffers.
+        :func:`~enmi_torch.rectify.visible_cells`. ``log(N0)`` is a float64 parameter (or buffer), the cell areas
+        float64 non-persistent buffers; the map is cast to the dtype of ``captured`` at the end.
 
     Example:
         >>> from enmi_torch.rectify import GroundGrid
@@ -150,7 +151,8 @@ class PerspectiveVariance(VarianceModel):
         self, camera: RoadCamera, grid: GroundGrid, noise_power: float = 0.01, learnable: bool = False
     ) -> None:
         super().__init__()
-        log_noise_power = torch.tensor(check_positive_number("noise_power", noise_power)).log()
+        noise_power = check_positive_number("noise_power", noise_power)
+        log_noise_power = torch.tensor(noise_power, dtype=torch.float64).log()
         if learnable:
             self.log_noise_power = nn.Parameter(log_noise_power)
         else:
