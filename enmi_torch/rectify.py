@@ -18,6 +18,7 @@ Convention:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -191,25 +192,34 @@ def visible_cells(camera: RoadCamera, grid: GroundGrid, *, device=None) -> Tenso
         [13, 13, 11, 9, 9, 7, 7, 5]
     """
     _check_grid(camera, grid)
+    return _visible_cells(camera, grid).to(device, copy=True)
+
+
+@functools.lru_cache(maxsize=32)
+def _visible_cells(camera: RoadCamera, grid: GroundGrid) -> Tensor:
     lateral, distance = grid.cell_centers()
     focal_x, focal_y = project_ground(camera, lateral[None, :], distance[:, None])
     sensor_height, sensor_width = camera.sensor_size
-    seen = (focal_x.abs() <= sensor_width / 2) & (focal_y.abs() <= sensor_height / 2)
-    return seen.to(device)
+    return (focal_x.abs() <= sensor_width / 2) & (focal_y.abs() <= sensor_height / 2)
 
 
 def pixels_on_grid(camera: RoadCamera, grid: GroundGrid, *, device=None) -> Tensor:
     """Bool ``(H, W)``: the camera pixels whose road point lies on the grid (inside its outer cell edges)."""
     _check_grid(camera, grid)
+    return _pixels_on_grid(camera, grid).to(device, copy=True)
+
+
+@functools.lru_cache(maxsize=32)
+def _pixels_on_grid(camera: RoadCamera, grid: GroundGrid) -> Tensor:
     rows, cols = camera.image_size
-    v, u = torch.meshgrid(
-        torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64), indexing="ij"
-    )
-    in_front = depth_from_focal_plane_y(camera, pixel_to_focal(camera, u, v)[1]) > 0
+    # A row of pixels sees one road distance; only the lateral position varies along it.
+    u = torch.arange(cols, dtype=torch.float64)[None, :]
+    v = torch.arange(rows, dtype=torch.float64)[:, None]
+    depth = depth_from_focal_plane_y(camera, pixel_to_focal(camera, u[:, :1], v)[1])
     lateral, distance = pixel_to_ground(camera, u, v)
     (x_min, x_max), (d_near, d_far) = grid.lateral_range, grid.distance_range
-    inside = in_front & (lateral >= x_min) & (lateral <= x_max) & (distance >= d_near) & (distance <= d_far)
-    return inside.to(device)
+    rows_inside = (depth > 0) & (distance >= d_near) & (distance <= d_far)
+    return rows_inside & (lateral >= x_min) & (lateral <= x_max)
 
 
 def _check_images(name: str, images: Tensor, size: tuple[int, int], size_name: str) -> None:

@@ -263,3 +263,14 @@ def test_projected_cell_areas_are_the_camera_tile_areas():
 def test_invalid_inputs(build, error, match):
     with pytest.raises(error, match=match):
         build()
+
+
+def test_runs_on_the_device_of_its_input(device, small_camera):
+    grid = GroundGrid((-100.0, 100.0), (40.0, 200.0), 5.0)
+    generator = torch.Generator().manual_seed(4)
+    images = torch.rand(2, 1, *small_camera.image_size, generator=generator)
+    birds_eye, valid = rectify(images.to(device), small_camera, grid, supersample=2)
+    assert birds_eye.device.type == device.type and valid.device.type == device.type
+    torch.testing.assert_close(birds_eye.cpu(), rectify(images, small_camera, grid, supersample=2)[0])
+    back, on_grid = unrectify(birds_eye, small_camera, grid)
+    assert back.device.type == device.type and on_grid.device.type == device.type

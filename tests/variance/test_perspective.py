@@ -156,3 +156,11 @@ def test_state_dict_keeps_only_the_noise_power(camera):
 def test_invalid_inputs(build, error, match):
     with pytest.raises(error, match=match):
         build()
+
+
+def test_runs_on_the_device_of_its_input(device, camera):
+    model = PerspectiveVariance(camera, TILES, 0.01).to(device)
+    captured = torch.zeros(1, 1, *TILES.shape, device=device)
+    assert model(captured).device.type == device.type and model.valid_mask(captured).device.type == device.type
+    noise_power = torch.tensor(0.01, dtype=torch.float64, device=device)
+    torch.testing.assert_close(perspective_variance(camera, TILES, noise_power).cpu(), model(captured.double()).cpu())
