@@ -2,17 +2,22 @@
 
 from enmi_torch._checks import value_checks
 from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likelihood_weights, parzen_weights
+from enmi_torch.camera import RoadCamera
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
 from enmi_torch.losses import ENMILoss, NMILoss
-from enmi_torch.variance import ConstantVariance, VarianceModel
+from enmi_torch.rectify import GroundGrid, rectify, unrectify
+from enmi_torch.variance import ConstantVariance, PerspectiveVariance, VarianceModel, perspective_variance
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ConstantVariance",
     "ENMILoss",
+    "GroundGrid",
     "NMILoss",
+    "PerspectiveVariance",
+    "RoadCamera",
     "VarianceModel",
     "bin_centers",
     "bin_edges",
@@ -24,5 +29,8 @@ __all__ = [
     "nmi",
     "nmi_from_joint_histogram",
     "parzen_weights",
+    "perspective_variance",
+    "rectify",
+    "unrectify",
     "value_checks",
 ]
