@@ -77,14 +77,14 @@ def check_bins(bins: Any) -> int:
     return bins
 
 
-def check_value_range(value_range: Any) -> tuple[float, float]:
+def check_value_range(value_range: Any, name: str = "value_range") -> tuple[float, float]:
     """Raise ``ValueError`` unless ``value_range`` is two finite numbers ``(low, high)`` with ``low < high``."""
     try:
         low, high = (float(bound) for bound in value_range)
     except (TypeError, ValueError):
-        raise ValueError(f"value_range must be a pair of finite numbers (low, high), got {value_range!r}") from None
+        raise ValueError(f"{name} must be a pair of finite numbers (low, high), got {value_range!r}") from None
     if not (math.isfinite(low) and math.isfinite(high)) or low >= high:
-        raise ValueError(f"value_range must be finite with low < high, got {value_range!r}")
+        raise ValueError(f"{name} must be finite with low < high, got {value_range!r}")
     return low, high
 
 

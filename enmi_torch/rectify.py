@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_option, check_positive_number
+from enmi_torch._checks import check_floating, check_option, check_positive_number, check_value_range
 from enmi_torch._config import check_config_keys, load_yaml_section
 from enmi_torch.camera import (
     RoadCamera,
@@ -43,16 +43,6 @@ from enmi_torch.camera import (
 )
 
 INTERPOLATIONS = ("bilinear", "nearest")
-
-
-def _check_range(name: str, value: Any) -> tuple[float, float]:
-    try:
-        low, high = (float(bound) for bound in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair of finite numbers (low, high), got {value!r}") from None
-    if not (math.isfinite(low) and math.isfinite(high)) or low >= high:
-        raise ValueError(f"{name} must be finite with low < high, got {value!r}")
-    return low, high
 
 
 def _cell_count(name: str, extent: float, cell_size: float) -> int:
@@ -87,8 +77,8 @@ class GroundGrid:
     cell_size: float
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "lateral_range", _check_range("lateral_range", self.lateral_range))
-        object.__setattr__(self, "distance_range", _check_range("distance_range", self.distance_range))
+        object.__setattr__(self, "lateral_range", check_value_range(self.lateral_range, "lateral_range"))
+        object.__setattr__(self, "distance_range", check_value_range(self.distance_range, "distance_range"))
         object.__setattr__(self, "cell_size", check_positive_number("cell_size", self.cell_size))
         _cell_count("distance_range", self.distance_range[1] - self.distance_range[0], self.cell_size)
         _cell_count("lateral_range", self.lateral_range[1] - self.lateral_range[0], self.cell_size)
