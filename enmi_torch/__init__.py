@@ -5,20 +5,31 @@ from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likel
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
 from enmi_torch.losses import ENMILoss, NMILoss
-from enmi_torch.variance import ConstantVariance, VarianceModel
+from enmi_torch.variance import (
+    ConstantVariance,
+    EmpiricalVariance,
+    LearnedVariance,
+    VarianceModel,
+    empirical_variance,
+    gaussian_nll,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ConstantVariance",
     "ENMILoss",
+    "EmpiricalVariance",
+    "LearnedVariance",
     "NMILoss",
     "VarianceModel",
     "bin_centers",
     "bin_edges",
+    "empirical_variance",
     "enmi",
     "entropies",
     "gaussian_log_prior",
+    "gaussian_nll",
     "joint_histogram",
     "likelihood_weights",
     "nmi",

@@ -1,5 +1,23 @@
 """Per-pixel noise variance maps for ENMI: the interface and its implementations."""
 
 from enmi_torch.variance.base import ConstantVariance, VarianceModel
+from enmi_torch.variance.empirical import EmpiricalVariance, empirical_variance
+from enmi_torch.variance.learned import (
+    LearnedVariance,
+    gaussian_nll,
+    perspective_basis,
+    radial_basis,
+    smoothness_penalty,
+)
 
-__all__ = ["ConstantVariance", "VarianceModel"]
+__all__ = [
+    "ConstantVariance",
+    "EmpiricalVariance",
+    "LearnedVariance",
+    "VarianceModel",
+    "empirical_variance",
+    "gaussian_nll",
+    "perspective_basis",
+    "radial_basis",
+    "smoothness_penalty",
+]
