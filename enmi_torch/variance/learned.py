@@ -2,7 +2,7 @@
 
 The residual ``r = local - prior`` of a matching pair is modelled as ``N(0, sigma^2[i, j])`` per pixel. The model
 holds ``s = log sigma^2`` — one value per pixel (``form="pixel"``), or ``s = sum_k c_k phi_k[i, j]`` over a fixed
-basis (``"radial"``: powers of the distance from the vehicle; ``"perspective"``: the log of an analytic map such as
+basis (``"radial"``: polynomials of the distance from the vehicle; ``"perspective"``: the log of an analytic map such as
 the camera's ``N0 / A~``) when few pairs are at hand — and is fitted by minimising the Gaussian negative
 log-likelihood :func:`gaussian_nll`, plus an optional Gaussian smoothness prior on neighbouring log-variances.
 
@@ -126,16 +126,18 @@ def smoothness_penalty(log_variance: Tensor, valid: Tensor | None = None) -> Ten
 
 
 def radial_basis(shape: tuple[int, int], degree: int, center: tuple[float, float] | None = None) -> Tensor:
-    """Powers ``rho^k``, ``k = 0..degree``, of the distance from ``center``, ``(degree + 1, H, W)`` float64.
+    """Shifted Legendre polynomials ``P_k(2 rho - 1)``, ``k = 0..degree``, of the distance ``rho`` from ``center``.
 
     ``rho`` is the pixel distance from ``center`` (``(row, column)``, default the image centre, where the vehicle
-    sits in the paper's masks) divided by the largest such distance in the image, so ``rho`` is in ``[0, 1]``.
+    sits in the paper's masks) divided by the largest such distance in the image, so ``rho`` is in ``[0, 1]``. The
+    polynomials span the same functions as the powers ``rho^k`` but are near-orthogonal, so gradient-based fits of
+    their coefficients converge quickly. Returns ``(degree + 1, H, W)`` float64.
 
     Example:
         >>> radial_basis((3, 3), 1)[1]
-        tensor([[1.0000, 0.7071, 1.0000],
-                [0.7071, 0.0000, 0.7071],
-                [1.0000, 0.7071, 1.0000]], dtype=torch.float64)
+        tensor([[ 1.0000,  0.4142,  1.0000],
+                [ 0.4142, -1.0000,  0.4142],
+                [ 1.0000,  0.4142,  1.0000]], dtype=torch.float64)
     """
     height, width = check_image_shape("shape", shape)
     check_non_negative_int("degree", degree)
@@ -143,8 +145,14 @@ def radial_basis(shape: tuple[int, int], degree: int, center: tuple[float, float
     rows = torch.arange(height, dtype=torch.float64).unsqueeze(1) - row0
     cols = torch.arange(width, dtype=torch.float64).unsqueeze(0) - col0
     distance = torch.sqrt(rows.square() + cols.square())
-    rho = distance / distance.max().clamp_min(1.0)
-    return torch.stack([rho**power for power in range(degree + 1)])
+    argument = 2 * distance / distance.max().clamp_min(1.0) - 1
+    # Bonnet's recursion: (k + 1) P_{k+1} = (2k + 1) x P_k - k P_{k-1}.
+    polynomials = [torch.ones_like(argument), argument][: degree + 1]
+    for order in range(1, degree):
+        polynomials.append(
+            ((2 * order + 1) * argument * polynomials[order] - order * polynomials[order - 1]) / (order + 1)
+        )
+    return torch.stack(polynomials)
 
 
 def perspective_basis(reference: Tensor, valid: Tensor) -> Tensor:
@@ -281,8 +289,17 @@ class LearnedVariance(VarianceModel):
 
     @torch.no_grad()
     def set_valid(self, valid: Tensor) -> None:
-        """Replace the valid map, e.g. by the pixels observed often enough (a ``perspective`` basis is kept)."""
-        self.valid.copy_(self._check_valid(valid).to(self.valid.device))
+        """Replace the valid map, e.g. by the pixels observed often enough; call it before fitting.
+
+        For ``form="perspective"`` the new map must lie within the one the reference was given for, and the basis
+        is centred again over it (which shifts the meaning of ``c0``).
+        """
+        valid = self._check_valid(valid).to(self.valid.device)
+        if self.form == "perspective":
+            if bool((valid & ~self.valid).any()):
+                raise ValueError("valid must lie within the pixels where the perspective reference is defined")
+            self.basis.copy_(perspective_basis(self.reference, valid).to(self.basis))
+        self.valid.copy_(valid)
 
     def log_variance_map(self) -> Tensor:
         """``log sigma^2``, ``(H, W)``, with gradient to the parameters."""

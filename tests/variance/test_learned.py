@@ -95,13 +95,13 @@ def test_smoothness_penalty_equals_loops(generator):
     assert smoothness_penalty(torch.full((3, 3), 2.0)).item() == 0
 
 
-def test_radial_basis_equals_loops():
-    basis = radial_basis((4, 6), 3, center=(1.0, 2.0))
-    distances = [[math.hypot(row - 1.0, col - 2.0) for col in range(6)] for row in range(4)]
-    largest = max(max(row) for row in distances)
-    for power in range(4):
-        expected = torch.tensor([[(value / largest) ** power for value in row] for row in distances])
-        torch.testing.assert_close(basis[power], expected.double())
+def test_radial_basis_equals_numpy_legendre_of_the_distance():
+    basis = radial_basis((4, 6), 4, center=(1.0, 2.0))
+    distances = np.array([[math.hypot(row - 1.0, col - 2.0) for col in range(6)] for row in range(4)])
+    argument = 2 * distances / distances.max() - 1
+    for order in range(5):
+        expected = np.polynomial.legendre.legval(argument, np.eye(5)[order])
+        np.testing.assert_allclose(basis[order].numpy(), expected, rtol=1e-12, atol=1e-12)
 
 
 def test_perspective_basis_reproduces_the_reference():
@@ -194,6 +194,17 @@ def test_perspective_form_recovers_the_noise_power():
     fit(model, local, prior, valid, steps=300, lr=0.1)
     assert relative_rms(model.variance_map(), truth.variance, truth.valid) < 0.05
     assert model.coefficients[1].item() == pytest.approx(1.0, abs=0.1)
+
+
+def test_set_valid_recentres_the_perspective_basis():
+    truth = camera_truth((12, 12), 1e-6)
+    model = LearnedVariance((12, 12), "perspective", valid=truth.valid, reference=truth.variance)
+    smaller = truth.valid.clone()
+    smaller[:6] = False
+    model.set_valid(smaller)
+    assert model.basis[1][smaller].mean().abs() < 1e-5 and torch.equal(model.valid, smaller)
+    with pytest.raises(ValueError, match="within the pixels where the perspective reference"):
+        model.set_valid(torch.ones(12, 12, dtype=torch.bool))
 
 
 # ----- files -------------------------------------------------------------------------------------------------------
