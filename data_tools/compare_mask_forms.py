@@ -49,7 +49,7 @@ def main() -> None:
                 errors = summary["errors"]
                 rows.append((flavour, name, errors["rel_rms_vs_truth"], errors["empirical_rel_rms_vs_truth"]))
     print(f"\n{PAIRS} pairs of 128x128, relative RMS error against the true variance")
-    print("| pairs | form | learned mask | paper's empirical mask |")
+    print("| data | form | learned mask | paper's empirical mask |")
     print("| --- | --- | --- | --- |")
     for flavour, name, learned, empirical in rows:
         print(f"| {flavour}-like | {name} | {100 * learned:.1f} % | {100 * empirical:.1f} % |")

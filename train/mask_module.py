@@ -28,11 +28,7 @@ from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.information import enmi, nmi
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
-
-try:
-    from train.mask_figure import mask_figure, masked_residual
-except ImportError:  # run as a script from train/
-    from mask_figure import mask_figure, masked_residual
+from train.mask_figure import mask_figure, masked_residual
 
 
 def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
