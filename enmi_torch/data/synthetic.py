@@ -109,6 +109,9 @@ class SyntheticPairs(Dataset):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         self.gain_std, self.offset_std = float(gain_std), float(offset_std)
+        texture_shape = gravel_texture().shape
+        if truth.shape[0] > texture_shape[0] or truth.shape[1] > texture_shape[1]:
+            raise ValueError(f"truth must be at most {texture_shape} (the gravel texture), got shape {truth.shape}")
         valid = truth.valid.numpy()
         self._valid = valid
         self._std = np.sqrt(np.where(valid, truth.variance.numpy(), 0.0)).astype(np.float32)

@@ -69,6 +69,7 @@ def test_intensity_change_is_undone_by_matching():
         (lambda: SyntheticPairs(lidar_truth((8, 8)), 4, seed=-1), ValueError, "seed"),
         (lambda: SyntheticPairs(lidar_truth((8, 8)), 4, gain_std=-0.1), ValueError, "gain_std"),
         (lambda: SyntheticPairs(lidar_truth((8, 8)), 4, offset_std=float("nan")), ValueError, "offset_std"),
+        (lambda: SyntheticPairs(lidar_truth((600, 8)), 4), ValueError, r"at most \(512, 512\)"),
     ],
 )
 def test_invalid_inputs(make, error, match):
