@@ -7,23 +7,36 @@ from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
 from enmi_torch.losses import ENMILoss, NMILoss
 from enmi_torch.rectify import GroundGrid, rectify, unrectify
-from enmi_torch.variance import ConstantVariance, PerspectiveVariance, VarianceModel, perspective_variance
+from enmi_torch.variance import (
+    ConstantVariance,
+    EmpiricalVariance,
+    LearnedVariance,
+    PerspectiveVariance,
+    VarianceModel,
+    empirical_variance,
+    gaussian_nll,
+    perspective_variance,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ConstantVariance",
     "ENMILoss",
+    "EmpiricalVariance",
     "GroundGrid",
+    "LearnedVariance",
     "NMILoss",
     "PerspectiveVariance",
     "RoadCamera",
     "VarianceModel",
     "bin_centers",
     "bin_edges",
+    "empirical_variance",
     "enmi",
     "entropies",
     "gaussian_log_prior",
+    "gaussian_nll",
     "joint_histogram",
     "likelihood_weights",
     "nmi",

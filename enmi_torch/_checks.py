@@ -97,6 +97,33 @@ def check_positive_number(name: str, value: Any) -> float:
     return float(value)
 
 
+def check_positive_int(name: str, value: Any) -> int:
+    """Raise unless ``value`` is an integer >= 1 (``bool`` is refused)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int >= 1, got {type(value).__name__} {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be an int >= 1, got {value}")
+    return value
+
+
+def check_non_negative_int(name: str, value: Any) -> int:
+    """Raise unless ``value`` is an integer >= 0 (``bool`` is refused)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int >= 0, got {type(value).__name__} {value!r}")
+    if value < 0:
+        raise ValueError(f"{name} must be an int >= 0, got {value}")
+    return value
+
+
+def check_image_shape(name: str, value: Any) -> tuple[int, int]:
+    """Raise unless ``value`` is a pair of positive integers ``(H, W)``; returns it as a tuple."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != 2:
+        raise ValueError(f"{name} must be (H, W), two positive ints, got {value!r}")
+    if any(isinstance(size, bool) or not isinstance(size, int) or size < 1 for size in value):
+        raise ValueError(f"{name} must be (H, W), two positive ints, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
 def check_finite_where(name: str, values: Tensor, valid: Tensor | None) -> None:
     """Raise ``ValueError`` if ``values`` holds NaN or inf at a valid position (a value check)."""
     if not _values_checked(values):

@@ -1,0 +1,218 @@
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lightning.pytorch import Callback, Trainer
+from lightning.pytorch.callbacks import ModelCheckpoint
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from enmi_torch.data import PairDataModule
+from enmi_torch.variance import LearnedVariance, empirical_variance
+from train.fit_mask import main
+from train.mask_module import MaskFitModule, localization_hits
+
+ROOT = Path(__file__).resolve().parents[2]
+SMOKE = str(ROOT / "configs" / "fit_mask_smoke.yaml")
+
+
+@pytest.fixture(autouse=True)
+def _command_line(monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["fit_mask.py"])  # main(args) stands for the command line, not pytest's
+    threads = torch.get_num_threads()  # the command sets torch_threads for its process
+    yield
+    torch.set_num_threads(threads)
+
+
+def run(tmp_path, *overrides):
+    return main(["--config", SMOKE, "--trainer.logger.init_args.save_dir", str(tmp_path), *overrides])
+
+
+def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
+    summary = run(tmp_path)
+    printed = capsys.readouterr().out
+    assert "relative RMS error vs the paper's empirical mask" in printed and "tensorboard --logdir" in printed
+    files = {suffix: Path(path) for suffix, path in summary["files"].items()}
+    assert all(path.is_file() for path in files.values())
+    assert json.loads((files["pt"].parent / "summary.json").read_text())["train_pairs"] == 64
+    from_pt, from_npy = LearnedVariance.load(files["pt"]), LearnedVariance.load(files["npy"])
+    torch.testing.assert_close(from_pt.variance_map().float(), from_npy.variance_map().float(), equal_nan=True)
+    assert Path(summary["last_checkpoint"]).is_file()
+
+    events = EventAccumulator(summary["log_dir"], size_guidance={"images": 0, "histograms": 0, "scalars": 0})
+    events.Reload()
+    tags = events.Tags()
+    expected_scalars = {
+        "train/nll",
+        "val/nll",
+        "mask/rel_rms_vs_empirical",
+        "mask/rel_rms_vs_truth",
+        "mask/empirical_rel_rms_vs_truth",
+        "localization/learned",
+        "localization/analytic",
+        "localization/uniform",
+        "localization/nmi",
+    }
+    assert expected_scalars <= set(tags["scalars"])
+    assert "masks" in tags["images"] and {"residuals/raw", "residuals/standardised"} <= set(tags["histograms"])
+    image = events.Images("masks")[-1]
+    assert image.width > 3 * image.height > 0  # panels side by side
+    errors = summary["errors"]
+    logged = events.Scalars("mask/rel_rms_vs_truth")[-1].value
+    assert logged == pytest.approx(errors["rel_rms_vs_truth"], rel=1e-5)
+    assert 0 <= summary["localization"]["learned"] <= 1
+
+
+@pytest.mark.parametrize(
+    ("flavour", "extra"),
+    [
+        ("lidar", []),
+        ("camera", ["--data.gain_std", "0.1", "--data.offset_std", "10", "--model.match_intensity", "true"]),
+    ],
+)
+def test_learned_mask_matches_the_empirical_mask_and_the_truth(tmp_path, flavour, extra):
+    """2,000 pairs: within 2 % of the paper's mask (ddof=1, 0.05 % above the ML optimum) and 10 % of the truth."""
+    summary = run(
+        tmp_path,
+        *("--data.flavour", flavour, "--data.train_pairs", "2000", "--data.size", "16", "--data.batch_size", "100"),
+        *("--trainer.max_epochs", "10", "--trainer.check_val_every_n_epoch", "10", *extra),
+    )
+    errors = summary["errors"]
+    assert errors["rel_rms_vs_empirical"] < 0.02
+    assert errors["rel_rms_vs_truth"] < 0.10
+    # The empirical mask's own error is the sampling error sqrt(2 / n) (more with intensity matching).
+    assert 0.5 * np.sqrt(2 / 2000) < errors["empirical_rel_rms_vs_truth"] < 2 * np.sqrt(2 / 2000)
+
+
+def test_perspective_form_from_the_camera_truth(tmp_path):
+    summary = run(tmp_path, "--data.flavour", "camera", "--model.form", "perspective", "--model.lr", "0.1")
+    mask = LearnedVariance.load(summary["files"]["pt"])
+    assert mask.form == "perspective" and summary["errors"]["rel_rms_vs_truth"] < 0.1
+
+
+def test_invalid_pixels_are_never_learned(tmp_path):
+    summary = run(tmp_path)
+    mask = np.load(summary["files"]["npy"], allow_pickle=False)
+    module = PairDataModule(train_pairs=64, val_pairs=16, size=32, batch_size=16)
+    items = [module.train_set[index] for index in range(64)]
+    _, defined = empirical_variance(
+        torch.stack([item["local"] for item in items]),
+        torch.stack([item["prior"] for item in items]),
+        torch.stack([item["valid"] for item in items]),
+    )
+    assert np.array_equal(np.isfinite(mask), defined.numpy()) and not defined.all()
+
+
+class StopAfterEpoch(Callback):
+    def __init__(self, epochs: int) -> None:
+        self.epochs = epochs
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        if trainer.current_epoch + 1 >= self.epochs:
+            trainer.should_stop = True
+
+
+def fit_directly(folder, callbacks=(), ckpt_path=None):
+    datamodule = PairDataModule(train_pairs=48, val_pairs=8, size=16, batch_size=16)
+    model = MaskFitModule(shape=datamodule.shape)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_epochs=4,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=100,
+        callbacks=[ModelCheckpoint(dirpath=folder, save_last=True), *callbacks],
+    )
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+    return model.mask.variance_map()
+
+
+def test_resume_from_checkpoint_equals_an_uninterrupted_run(tmp_path):
+    uninterrupted = fit_directly(tmp_path / "straight")
+    fit_directly(tmp_path / "first", [StopAfterEpoch(2)])
+    resumed = fit_directly(tmp_path / "second", ckpt_path=tmp_path / "first" / "last.ckpt")
+    torch.testing.assert_close(resumed, uninterrupted, equal_nan=True, rtol=1e-6, atol=0)
+    halfway = torch.load(tmp_path / "first" / "last.ckpt", weights_only=True)
+    assert halfway["global_step"] == 2 * 3 and bool(halfway["state_dict"]["statistics_ready"])
+
+
+EXECUTED = []
+
+
+def _mark_executed():
+    EXECUTED.append(True)
+    return {}
+
+
+class Payload:
+    def __reduce__(self):
+        return (_mark_executed, ())
+
+
+def test_tampered_checkpoint_is_refused(tmp_path):
+    summary = run(tmp_path)
+    checkpoint = torch.load(summary["last_checkpoint"], weights_only=True)
+    checkpoint["callbacks"]["evil"] = Payload()
+    evil = tmp_path / "evil.ckpt"
+    torch.save(checkpoint, evil)
+    with pytest.raises(ValueError, match="refused: it is not a plain checkpoint"):
+        run(tmp_path, "--ckpt_path", str(evil))
+    assert EXECUTED == []
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(Path(summary["last_checkpoint"]).read_bytes()[:500])
+    with pytest.raises(ValueError, match="refused"):
+        run(tmp_path, "--ckpt_path", str(truncated))
+
+
+def test_cli_resume_continues_the_run(tmp_path):
+    first = run(tmp_path)
+    second = run(tmp_path, "--ckpt_path", first["last_checkpoint"], "--trainer.max_epochs", "4")
+    assert second["epochs"] == 4
+    checkpoint = torch.load(second["last_checkpoint"], weights_only=True)
+    assert checkpoint["global_step"] == 2 * torch.load(first["last_checkpoint"], weights_only=True)["global_step"]
+
+
+def test_localization_hits_count_the_right_shift():
+    generator = torch.Generator().manual_seed(0)
+    prior = torch.rand(3, 1, 20, 20, generator=generator) * 255
+    valid = torch.ones(3, 1, 20, 20, dtype=torch.bool)
+    variances = {"exact": 1e-4, "hard": None}
+    hits, trials = localization_hits(
+        prior.clone(), prior, valid, variances, torch.arange(3), pixels=40, max_shift=2, bins=16, value_range=(0, 256)
+    )
+    assert trials == 3 and hits == {"exact": 3, "hard": 3}
+    shifted = prior.roll(1, dims=-1)  # the local image sits one pixel off: the zero shift must lose
+    hits, _ = localization_hits(
+        shifted, prior, valid, variances, torch.arange(3), pixels=40, max_shift=2, bins=16, value_range=(0, 256)
+    )
+    assert hits == {"exact": 0, "hard": 0}
+    few = valid.clone()
+    few[0] = False
+    _, trials = localization_hits(
+        prior, prior, few, variances, torch.arange(3), pixels=40, max_shift=2, bins=16, value_range=(0, 256)
+    )
+    assert trials == 2
+
+
+def fit_in_subprocess(tmp_path, name, *overrides):
+    environment = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
+    command = [sys.executable, str(ROOT / "train" / "fit_mask.py"), "--config", SMOKE]
+    command += ["--trainer.logger.init_args.save_dir", str(tmp_path / name)]
+    command += ["--output_dir", str(tmp_path / name / "out"), *overrides]
+    subprocess.run(command, check=True, env=environment, cwd=tmp_path, capture_output=True, timeout=300)
+    return np.load(tmp_path / name / "out" / "variance_mask.npy", allow_pickle=False)
+
+
+@pytest.mark.slow
+def test_two_process_ddp_gives_the_same_mask(tmp_path):
+    single = fit_in_subprocess(tmp_path, "single")
+    ddp = fit_in_subprocess(tmp_path, "ddp", "--trainer.devices", "2", "--trainer.strategy", "ddp")
+    assert np.array_equal(np.isfinite(single), np.isfinite(ddp))
+    np.testing.assert_allclose(ddp, single, rtol=1e-5)

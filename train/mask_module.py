@@ -1,0 +1,368 @@
+"""``MaskFitModule``: fits a :class:`~enmi_torch.variance.LearnedVariance` to local/prior pairs with Lightning.
+
+Before the first step one pass over the training pairs (each seen once over all processes, sums all-reduced) gives
+the paper's empirical mask, the pixels that can be learned (observed valid at least twice) and a constant start.
+Training minimises the Gaussian NLL of the residuals ``local - prior`` per pixel, averaged over pairs, plus the
+mask's smoothness prior divided by the number of training pairs. Each step's loss is normalised by a constant (the
+pairs in the process's batch times the pixels per image), so the gradient averaged by DDP over processes equals the
+single-process gradient of the same global batch: the fitted mask does not depend on the number of processes.
+
+Dashboards (TensorBoard): ``train/nll``, ``val/nll``; ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth``,
+``mask/empirical_rel_rms_vs_truth``; ``localization/{learned,analytic,uniform,nmi}`` (share of held-out pairs
+located at the right shift); ``speed/pairs_per_second``; the mask figure; histograms of raw and standardised
+residuals.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from lightning.pytorch import LightningModule
+from torch import Tensor
+
+from enmi_torch.data import match_intensity
+from enmi_torch.data.truth import FLAVOURS
+from enmi_torch.information import enmi, nmi
+from enmi_torch.variance import EmpiricalVariance, LearnedVariance
+from train.mask_figure import mask_figure, masked_residual
+
+
+def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
+    """``sqrt(mean((estimate / reference - 1)^2))`` over ``valid`` pixels of two ``(H, W)`` maps."""
+    ratio = estimate[valid].double() / reference[valid].double()
+    return float((ratio - 1).square().mean().sqrt())
+
+
+def localization_hits(
+    local: Tensor,
+    prior: Tensor,
+    valid: Tensor,
+    variances: dict[str, Tensor | float | None],
+    seeds: Tensor,
+    *,
+    pixels: int,
+    max_shift: int,
+    bins: int,
+    value_range: tuple[float, float],
+) -> tuple[dict[str, int], int]:
+    """How many pairs each variance map locates at the right shift with ENMI (``None``: hard NMI), and how many tried.
+
+    For each pair, ``pixels`` valid pixels are drawn (seeded by ``seeds``, away from the border by ``max_shift``)
+    across the whole image, like the tiles of the paper's simulation; the local values there are scored against the
+    prior at every shift in ``[-max_shift, max_shift]^2`` and the pair counts as located when the zero shift scores
+    highest. Pairs with fewer valid pixels are skipped.
+
+    Args:
+        local: ``(B, 1, H, W)``.
+        prior: ``(B, 1, H, W)``.
+        valid: bool ``(B, 1, H, W)``, pixels usable by every map.
+        variances: name -> ``(H, W)`` map, a number (uniform variance) or ``None`` (hard NMI).
+        seeds: ``(B,)`` integers, one per pair.
+        pixels: pixels drawn per pair.
+        max_shift: largest shift in pixels.
+        bins: histogram bins.
+        value_range: histogram range.
+    """
+    height, width = local.shape[-2:]
+    shifts = [(dy, dx) for dy in range(-max_shift, max_shift + 1) for dx in range(-max_shift, max_shift + 1)]
+    offsets = torch.tensor([dy * width + dx for dy, dx in shifts], device=local.device)
+    inner = torch.zeros(height, width, dtype=torch.bool, device=local.device)
+    inner[max_shift : height - max_shift, max_shift : width - max_shift] = True
+    chosen = []
+    for pair in range(local.shape[0]):
+        candidates = torch.nonzero((valid[pair, 0] & inner).flatten()).flatten()
+        if candidates.numel() < pixels:
+            continue
+        generator = torch.Generator().manual_seed(int(seeds[pair]) + 7919)
+        pick = torch.randperm(candidates.numel(), generator=generator)[:pixels].to(local.device)
+        chosen.append((pair, candidates[pick]))
+    if not chosen:
+        return dict.fromkeys(variances, 0), 0
+    pairs = torch.tensor([pair for pair, _ in chosen], device=local.device)
+    where = torch.stack([index for _, index in chosen])  # (P, K)
+    flat_local, flat_prior = local.flatten(1)[pairs], prior.flatten(1)[pairs]
+    candidates = len(shifts)
+    captured = torch.gather(flat_local, 1, where).repeat_interleave(candidates, 0)
+    shifted = where.unsqueeze(1) + offsets.view(1, -1, 1)  # (P, C, K)
+    reference = torch.gather(flat_prior.unsqueeze(1).expand(-1, candidates, -1), 2, shifted).flatten(0, 1)
+    zero = shifts.index((0, 0))
+    hits = {}
+    for name, variance in variances.items():
+        if variance is None:
+            scores = nmi(captured, reference, bins=bins, value_range=value_range)
+        else:
+            if isinstance(variance, Tensor):
+                variance = variance.to(captured.dtype).flatten()[where].repeat_interleave(candidates, 0)
+            scores = enmi(captured, reference, variance, bins=bins, value_range=value_range)
+        hits[name] = int((scores.view(-1, candidates).argmax(dim=1) == zero).sum())
+    return hits, len(chosen)
+
+
+class MaskFitModule(LightningModule):
+    """Learns a variance mask from the pairs of a :class:`~enmi_torch.data.PairDataModule`.
+
+    Args:
+        shape: ``(H, W)`` of the images (``fit_mask.py`` links it to the data's).
+        form: ``"pixel"``, ``"radial"`` or ``"perspective"`` (see :class:`~enmi_torch.variance.LearnedVariance`).
+        smoothness: precision of the smoothness prior, in units of the summed log-likelihood of all pairs.
+        degree: polynomial degree of the ``"radial"`` form.
+        reference: ``.npy`` analytic variance map for the ``"perspective"`` form; ``None`` takes the data's known
+            field (synthetic camera-like pairs).
+        match_intensity: fit a gain and offset per pair before taking residuals (for intensity changes).
+        lr: Adam learning rate, annealed to 0 by a cosine over the run.
+        localization_pixels: pixels drawn per held-out pair for the localization score.
+        localization_shift: the shifts searched are ``[-s, s]^2`` pixels.
+        bins: ENMI/NMI bins for the localization score.
+        value_range: ENMI/NMI bin range.
+    """
+
+    def __init__(
+        self,
+        shape: tuple[int, int] = (128, 128),
+        form: str = "pixel",
+        smoothness: float = 0.0,
+        degree: int = 4,
+        reference: str | None = None,
+        match_intensity: bool = False,
+        lr: float = 0.05,
+        localization_pixels: int = 32,
+        localization_shift: int = 2,
+        bins: int = 32,
+        value_range: tuple[float, float] = (0.0, 256.0),
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.mask: LearnedVariance | None = None
+        self.statistics = EmpiricalVariance(self.shape)
+        self.register_buffer("statistics_ready", torch.tensor(False))
+        self._hits: dict[str, int] = {}
+        self._trials = 0
+        self._histogram_batch: tuple[Tensor, Tensor] | None = None
+        self._epoch_start, self._epoch_pairs = 0.0, 0
+        self.epoch_seconds: list[float] = []
+        self._figure_pair: tuple[Tensor, Tensor, Tensor] | None = None
+
+    # ----- set-up -------------------------------------------------------------------------------------------------
+    @property
+    def truth(self):
+        """The data's known noise field, or ``None``."""
+        datamodule = self.trainer.datamodule if self._trainer is not None else None
+        return getattr(datamodule, "truth", None)
+
+    def configure_model(self) -> None:
+        """Build the mask (its perspective reference may come from the data)."""
+        if self.mask is not None:
+            return
+        hparams = self.hparams
+        reference = valid = None
+        if hparams.form == "perspective":
+            reference = self._reference_map()
+            valid = torch.isfinite(reference) & (reference > 0)
+        self.mask = LearnedVariance(
+            self.shape,
+            hparams.form,
+            degree=hparams.degree,
+            reference=reference,
+            valid=valid,
+            smoothness=hparams.smoothness,
+        )
+
+    def _reference_map(self) -> Tensor:
+        path = self.hparams.reference
+        if path is not None:
+            reference = torch.from_numpy(np.load(Path(path), allow_pickle=False).astype(np.float64))
+        elif self.truth is not None:
+            reference = self.truth.variance
+        else:
+            raise ValueError(
+                "form='perspective' needs reference (an .npy analytic map) when the data has no known field"
+            )
+        if tuple(reference.shape) != self.shape:
+            raise ValueError(f"reference must be an {self.shape} map, got shape {tuple(reference.shape)}")
+        return reference
+
+    def configure_optimizers(self):
+        """Adam on the mask, learning rate annealed to 0 by a cosine over the run's steps."""
+        optimizer = torch.optim.Adam(self.mask.parameters(), lr=self.hparams.lr)
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+
+        def cosine(step: int) -> float:
+            return 0.5 * (1 + math.cos(math.pi * min(step / total, 1.0)))
+
+        # A function (not a stored object): a resumed run anneals over its own length, from the restored step.
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+    def on_fit_start(self) -> None:
+        """One pass over the training pairs: empirical mask, learnable pixels, starting variance."""
+        if bool(self.statistics_ready):
+            return
+        self.statistics.reset()
+        with torch.no_grad():
+            for batch in self.trainer.datamodule.statistics_dataloader():
+                local, prior, valid = self._pair(batch)
+                self.statistics.update(local, prior, valid)
+        self.statistics.all_reduce()
+        _, observed = self.statistics.compute()
+        learnable = observed & self.mask.valid
+        if not bool(learnable.any()):
+            raise ValueError("no pixel is valid in two training pairs or more: nothing to learn a variance from")
+        self.mask.set_valid(learnable)
+        sum_squares, count = self.statistics.sum_squares[learnable].sum(), self.statistics.count[learnable].sum()
+        self.mask.reset_parameters(max(float(sum_squares / count), 1e-12))
+        self.statistics_ready.fill_(True)
+
+    def _pair(self, batch: dict) -> tuple[Tensor, Tensor, Tensor]:
+        local, prior, valid = batch["local"].to(self.device), batch["prior"].to(self.device), batch["valid"]
+        valid = valid.to(self.device)
+        if self.hparams.match_intensity:
+            prior = match_intensity(prior, local, valid)
+        return local, prior, valid
+
+    # ----- steps --------------------------------------------------------------------------------------------------
+    def _step(self, batch: dict, stage: str) -> Tensor:
+        local, prior, valid = self._pair(batch)
+        terms = self.mask.nll(local, prior, valid, reduction="none")
+        batch_size, pixels = local.shape[0], self.shape[0] * self.shape[1]
+        valid_pixels = (valid & self.mask.valid_mask(local)).sum().clamp_min(1)
+        self.log(
+            f"{stage}/nll",
+            terms.sum() / valid_pixels,
+            on_epoch=True,
+            on_step=False,
+            sync_dist=True,
+            batch_size=batch_size,
+            prog_bar=stage == "val",
+        )
+        loss = terms.sum() / (batch_size * pixels)
+        if stage == "train":
+            pairs = self.trainer.datamodule.num_train_pairs
+            loss = loss + self.mask.penalty() / (pairs * pixels)
+            if self._histogram_batch is None:
+                self._histogram_batch = self._residuals(local, prior, valid)
+            self._epoch_pairs += batch_size * self.trainer.world_size
+        else:
+            self._localize(local, prior, valid, batch["index"])
+            if self._figure_pair is None:
+                self._figure_pair = (local[0].detach(), prior[0].detach(), valid[0].detach())
+        return loss
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        """NLL of a batch (plus the prior's share); logs ``train/nll`` and ``train/loss``."""
+        loss = self._step(batch, "train")
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["local"].shape[0])
+        return loss
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        """Held-out NLL and localization hits."""
+        self._step(batch, "val")
+
+    def _residuals(self, local: Tensor, prior: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+        with torch.no_grad():
+            keep = valid & self.mask.valid_mask(local)
+            residual = (local - prior)[keep]
+            standardised = residual / self.mask(local).expand_as(local)[keep].sqrt()
+        return residual.detach().cpu(), standardised.detach().cpu()
+
+    def _localize(self, local: Tensor, prior: Tensor, valid: Tensor, seeds: Tensor) -> None:
+        with torch.no_grad():
+            learned = self.mask.variance_map().to(local.device)
+            usable = valid & self.mask.valid_mask(local)
+            variances: dict[str, Tensor | float | None] = {"learned": learned}
+            truth = self.truth
+            if truth is not None:
+                usable = usable & truth.valid.to(local.device)
+                variances["analytic"] = truth.variance.to(local.device)
+            variances["uniform"] = float(learned[self.mask.valid].mean())
+            variances["nmi"] = None
+            hits, trials = localization_hits(
+                local,
+                prior,
+                usable,
+                variances,
+                seeds,
+                pixels=self.hparams.localization_pixels,
+                max_shift=self.hparams.localization_shift,
+                bins=self.hparams.bins,
+                value_range=tuple(self.hparams.value_range),
+            )
+        for name, count in hits.items():
+            self._hits[name] = self._hits.get(name, 0) + count
+        self._trials += trials
+
+    # ----- epoch ends: dashboards ---------------------------------------------------------------------------------
+    def mask_errors(self) -> dict[str, float]:
+        """Relative RMS errors of the learned mask against the paper's empirical mask and the truth (when known)."""
+        empirical, observed = self.statistics.compute()
+        valid = observed & self.mask.valid.to(observed.device)
+        learned = self.mask.variance_map().to(empirical.device)
+        errors = {"rel_rms_vs_empirical": relative_rms(learned, empirical, valid)}
+        truth = self.truth
+        if truth is not None:
+            both = valid & truth.valid.to(valid.device)
+            reference = truth.variance.to(empirical.device)
+            errors["rel_rms_vs_truth"] = relative_rms(learned, reference, both)
+            errors["empirical_rel_rms_vs_truth"] = relative_rms(empirical, reference, both)
+        return errors
+
+    def on_train_epoch_start(self) -> None:
+        """Keep the first batch of the epoch for the residual histograms; start the epoch's clock."""
+        self._histogram_batch = None
+        self._epoch_start, self._epoch_pairs = time.perf_counter(), 0
+
+    def on_train_epoch_end(self) -> None:
+        """Log the mask errors, the training speed and the residual histograms."""
+        seconds = time.perf_counter() - self._epoch_start
+        self.epoch_seconds.append(seconds)
+        self.log("speed/pairs_per_second", self._epoch_pairs / seconds, sync_dist=True)
+        for name, value in self.mask_errors().items():
+            self.log(f"mask/{name}", value, sync_dist=True)
+        if self._histogram_batch is not None and self.trainer.is_global_zero and self.logger is not None:
+            residual, standardised = self._histogram_batch
+            self.logger.experiment.add_histogram("residuals/raw", residual, self.global_step)
+            self.logger.experiment.add_histogram("residuals/standardised", standardised, self.global_step)
+
+    def on_validation_epoch_start(self) -> None:
+        """Reset the localization counts."""
+        self._hits, self._trials, self._figure_pair = {}, 0, None
+
+    def on_validation_epoch_end(self) -> None:
+        """Sum the localization counts over processes, log the accuracies and the mask figure."""
+        if self.trainer.sanity_checking:
+            return
+        names = sorted(self._hits)
+        totals = torch.tensor([self._hits[name] for name in names] + [self._trials], dtype=torch.float64)
+        totals = self.trainer.strategy.reduce(totals.to(self.device), reduce_op="sum")
+        if totals[-1] > 0:
+            for name, hits in zip(names, totals[:-1], strict=True):
+                self.log(f"localization/{name}", float(hits / totals[-1]), sync_dist=True)
+        if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
+            figure = self.figure()
+            self.logger.experiment.add_figure("masks", figure, self.global_step)
+
+    def figure(self):
+        """The mask figure (learned, empirical, truth, one held-out residual) at the current state."""
+        empirical, _ = self.statistics.compute()
+        truth = self.truth
+        residual = masked_residual(*self._figure_pair) if self._figure_pair is not None else None
+        errors = self.mask_errors()
+        labels = {
+            "rel_rms_vs_empirical": "learned vs empirical",
+            "rel_rms_vs_truth": "learned vs truth",
+            "empirical_rel_rms_vs_truth": "empirical vs truth",
+        }
+        scores = ", ".join(f"{labels[name]} {100 * value:.2f} %" for name, value in errors.items())
+        source = f"{truth.flavour}-like pairs, " if truth is not None and truth.flavour in FLAVOURS else ""
+        title = f"{source}{self.statistics.count.max()} pairs; relative RMS error: {scores}"
+        return mask_figure(
+            self.mask.variance_map(),
+            empirical,
+            None if truth is None else truth.variance,
+            residual,
+            title=title,
+        )
