@@ -11,14 +11,15 @@ Convention:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_image_shape, check_option, check_positive_number
-from enmi_torch.camera import RoadCamera, projected_area
+from enmi_torch._checks import check_image_shape, check_option, check_positive_number, check_value_range
+from enmi_torch.camera import RoadCamera
+from enmi_torch.rectify import GroundGrid, visible_cells
+from enmi_torch.variance.perspective import perspective_variance
 
 FLAVOURS = ("lidar", "camera")
 
@@ -101,16 +102,14 @@ def camera_truth(
     noise_power: float,
     *,
     camera: RoadCamera | None = None,
-    lateral_range: tuple[float, float] = (-150.0, 150.0),
     distance_range: tuple[float, float] = (30.0, 210.0),
 ) -> VarianceTruth:
-    """Camera-like field: ``sigma^2 = N0 / A~`` of each cell of a rectified bird's-eye grid (paper eq. TildeA).
+    """Camera-like field: the analytic :func:`~enmi_torch.variance.perspective_variance` on a bird's-eye grid.
 
-    Row ``i`` of the ``(H, W)`` grid covers road distances between ``distance_range`` (far edge at row 0) and
-    column ``j`` lateral offsets in ``lateral_range``; a cell's noise variance is ``noise_power`` over the
-    focal-plane area :func:`~enmi_torch.camera.projected_area` of its ground rectangle. Cells not wholly inside the
-    camera's view (nearer or farther than :meth:`~enmi_torch.camera.RoadCamera.visible_distance_range`, or wider
-    than :meth:`~enmi_torch.camera.RoadCamera.visible_half_width` at their near edge) are invalid.
+    The ``(H, W)`` grid has square cells of side ``(d_far - d_near) / H``: rows cover ``distance_range`` (far edge
+    at row 0), columns are centred laterally. A cell's variance is ``noise_power / A~`` with ``A~`` the exact
+    focal-plane area of its visible part (paper eq. TildeA); cells whose centre the camera does not see
+    (:func:`~enmi_torch.rectify.visible_cells`) are invalid.
 
     Example:
         >>> truth = camera_truth((8, 8), 1e-5)
@@ -120,21 +119,14 @@ def camera_truth(
     height, width = check_image_shape("shape", shape)
     noise_power = check_positive_number("noise_power", noise_power)
     camera = RoadCamera.paper() if camera is None else camera
-    for name, (low, high) in (("lateral_range", lateral_range), ("distance_range", distance_range)):
-        if not (math.isfinite(low) and math.isfinite(high) and low < high):
-            raise ValueError(f"{name} must be (low, high) with finite low < high, got {(low, high)!r}")
-    if distance_range[0] <= 0:
+    near, far = check_value_range(distance_range, "distance_range")
+    if near <= 0:
         raise ValueError(f"distance_range must be ahead of the camera (> 0), got {distance_range!r}")
-    distance_edges = torch.linspace(distance_range[1], distance_range[0], height + 1, dtype=torch.float64)
-    lateral_edges = torch.linspace(lateral_range[0], lateral_range[1], width + 1, dtype=torch.float64)
-    far, near = distance_edges[:-1].unsqueeze(1), distance_edges[1:].unsqueeze(1)
-    left, right = lateral_edges[:-1].unsqueeze(0), lateral_edges[1:].unsqueeze(0)
-    area = projected_area(camera, left, right, near, far)
-    nearest, farthest = camera.visible_distance_range()
-    in_depth = (near >= nearest * (1 - 1e-9)) & (far <= farthest * (1 + 1e-9))
-    in_width = torch.maximum(left.abs(), right.abs()) <= camera.visible_half_width(near)
-    valid = in_depth & in_width
-    return VarianceTruth(torch.where(valid, noise_power / area, torch.nan), valid, "camera")
+    cell_size = (far - near) / height
+    grid = GroundGrid((-width * cell_size / 2, width * cell_size / 2), (near, far), cell_size)
+    variance = perspective_variance(camera, grid, noise_power)[0, 0]
+    valid = visible_cells(camera, grid)
+    return VarianceTruth(torch.where(valid, variance, torch.nan), valid, "camera")
 
 
 def make_truth(flavour: str, shape: tuple[int, int], noise_std: float) -> VarianceTruth:

@@ -33,23 +33,24 @@ def numeric_cell_area(camera, left, right, near, far, steps=2000):
 
 def test_camera_truth_is_noise_power_over_integrated_area_and_view():
     camera = RoadCamera.paper()
-    truth = camera_truth((6, 5), 2e-6, lateral_range=(-120.0, 120.0), distance_range=(20.0, 230.0))
+    truth = camera_truth((6, 5), 2e-6, distance_range=(20.0, 230.0))
     distance_edges = np.linspace(230.0, 20.0, 7)
-    lateral_edges = np.linspace(-120.0, 120.0, 6)
+    lateral_edges = np.linspace(-87.5, 87.5, 6)  # square 35 cm cells, centred
     half_width, half_height = (
         camera.focal_length * math.tan(math.radians(camera.horizontal_fov_deg) / 2),
         camera.focal_length * math.tan(math.radians(camera.vertical_fov_deg) / 2),
     )
+
+    def on_sensor(x, d):
+        u, v = project_ground(camera, x, d)
+        return abs(float(u)) <= half_width + 1e-12 and abs(float(v)) <= half_height + 1e-12
+
     for row in range(6):
         far, near = distance_edges[row], distance_edges[row + 1]
         for col in range(5):
             left, right = lateral_edges[col], lateral_edges[col + 1]
-            corners = [project_ground(camera, x, d) for x in (left, right) for d in (near, far)]
-            inside = all(
-                abs(float(u)) <= half_width + 1e-12 and abs(float(v)) <= half_height + 1e-12 for u, v in corners
-            )
-            assert bool(truth.valid[row, col]) == inside, (row, col)
-            if inside:
+            assert bool(truth.valid[row, col]) == on_sensor((left + right) / 2, (near + far) / 2), (row, col)
+            if all(on_sensor(x, d) for x in (left, right) for d in (near, far)):
                 expected = 2e-6 / numeric_cell_area(camera, left, right, near, far)
                 assert truth.variance[row, col].item() == pytest.approx(expected, rel=1e-6)
     assert truth.valid.any() and not truth.valid.all()
@@ -76,7 +77,7 @@ def test_make_truth_sets_the_rms_noise(flavour):
         (lambda: lidar_truth((8, 8), range_fraction=1.5), "range_fraction"),
         (lambda: lidar_truth((8, -1)), "shape must be"),
         (lambda: camera_truth((8, 8), -1.0), "noise_power"),
-        (lambda: camera_truth((8, 8), 1.0, lateral_range=(5.0, -5.0)), "lateral_range"),
+        (lambda: camera_truth((8, 8), 1.0, distance_range=(5.0, -5.0)), "distance_range"),
         (lambda: camera_truth((8, 8), 1.0, distance_range=(-10.0, 50.0)), "ahead of the camera"),
         (lambda: VarianceTruth(torch.ones(3, 3), torch.ones(3, 3), "x"), "bool map"),
         (lambda: VarianceTruth(-torch.ones(3, 3), torch.ones(3, 3, dtype=torch.bool), "x"), "finite and > 0"),
