@@ -6,6 +6,8 @@ processes, and :func:`~enmi_torch.information.nmi_from_joint_histogram` turns th
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -53,7 +55,10 @@ def joint_histogram(
 
     Args:
         captured: captured (sensor) image, ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
-        reference: reference (map) image of the same shape.
+        reference: reference (map) image of the same shape, or ``C`` candidate references per captured image,
+            ``(C, *captured.shape)``: each captured image is then histogrammed against each candidate, its pixel
+            weights computed once (the costly part of the likelihood kernels), and the result is
+            ``(C, B, bins, bins)``.
         bins: number of equal-width amplitude bins, >= 2.
         value_range: ``(low, high)`` covered by the bins; values outside are clipped into the edge bins.
         captured_variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
@@ -71,7 +76,8 @@ def joint_histogram(
             kernels (MAP weights). Not differentiated.
 
     Returns:
-        Counts ``(B, bins, bins)``: captured bins on axis 1, reference bins on axis 2. Each valid pixel adds a
+        Counts ``(B, bins, bins)`` (``(C, B, bins, bins)`` for candidates): captured bins on axis -2, reference
+        bins on axis -1. Each valid pixel adds a
         total weight of 1, so a sample's counts sum to its number of valid pixels. Same dtype as ``captured``
         (half precision is accumulated in float32 and cast back).
 
@@ -85,12 +91,123 @@ def joint_histogram(
         >>> joint_histogram(captured, captured, bins=2, value_range=(0, 4))
         tensor([[[2., 0.],
                  [0., 2.]]])
+        >>> candidates = torch.stack([captured, captured.flip(-1)])
+        >>> joint_histogram(captured, candidates, bins=2, value_range=(0, 4))[1]
+        tensor([[[0., 2.],
+                 [2., 0.]]])
     """
+    inputs = _prepare(
+        captured, reference, bins, value_range, captured_variance, valid_mask, kernel, reference_kernel, log_prior
+    )
+    with torch.autocast(device_type=captured.device.type, enabled=False):
+        if inputs.kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard":
+            batch, pixels = inputs.captured.shape
+            rows = _reference_rows(inputs.reference, inputs.bins, inputs.value_range)
+            spare_row = rows.numel() // pixels * inputs.bins
+            if inputs.valid is not None:
+                # Masked pixels go to a spare last row that is dropped: no multiply, and no gradient reaches them.
+                rows = torch.where(inputs.valid, rows, spare_row)
+            counts = _LikelihoodJointHistogram.apply(
+                inputs.captured, inputs.variance, rows, inputs.log_prior, inputs.bins, inputs.value_range, inputs.kernel
+            )
+            counts = counts[:spare_row].view(-1, batch, inputs.bins, inputs.bins).transpose(-1, -2)
+        else:
+            counts = _dense_joint_histogram(
+                inputs.captured,
+                inputs.reference,
+                inputs.variance,
+                inputs.pair_weight,
+                inputs.log_prior,
+                inputs.bins,
+                inputs.value_range,
+                inputs.kernel,
+                reference_kernel,
+            )
+    return (counts if inputs.with_candidates else counts[0]).to(inputs.out_dtype)
+
+
+def hard_entropies(
+    captured: Tensor,
+    reference: Tensor,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    valid_mask: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Entropies ``(H[A], H[B], H[A, B])`` in nats of the hard joint histogram, read at the pixels, ``(B,)`` each.
+
+    The same values as :func:`~enmi_torch.information.entropies` of the hard :func:`joint_histogram`, computed as
+    the mean surprisal of the pixels, ``H = sum_pixels log(n / c(pixel)) / n`` with ``c(pixel)`` the count of the
+    pixel's cell and ``n`` the number of valid pixels: ``O(pixels)`` logarithms per sample instead of ``O(bins^2)``,
+    which matters when images are small and samples many.
+
+    Args:
+        captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        reference: same shape as ``captured``, or ``(C, *captured.shape)`` for ``C`` candidates.
+        bins: number of equal-width bins over ``value_range``.
+        value_range: ``(low, high)``; values outside are clipped into the edge bins.
+        valid_mask: bool, broadcast like in :func:`joint_histogram`; ``False`` pixels are left out.
+
+    Returns:
+        Three tensors ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``; no gradient (hard bins).
+
+    Example:
+        >>> captured = torch.tensor([[0.5, 1.5, 2.5, 3.5]])
+        >>> [round(h.item(), 4) for h in hard_entropies(captured, captured.flip(-1), bins=2, value_range=(0, 4))]
+        [0.6931, 0.6931, 0.6931]
+    """
+    inputs = _prepare(captured, reference, bins, value_range, None, valid_mask, "hard", "hard", None)
+    captured_bins = hard_bin_index(inputs.captured, inputs.bins, inputs.value_range)
+    reference_bins = hard_bin_index(inputs.reference, inputs.bins, inputs.value_range)
+    weight = inputs.captured.new_ones(inputs.captured.shape) if inputs.pair_weight is None else inputs.pair_weight
+    captured_entropy = _mean_surprisal(captured_bins, inputs.bins, weight).expand(inputs.reference.shape[:-1])
+    reference_entropy = _mean_surprisal(reference_bins, inputs.bins, weight)
+    joint_entropy = _mean_surprisal(captured_bins * inputs.bins + reference_bins, inputs.bins**2, weight)
+    entropies = (captured_entropy, reference_entropy, joint_entropy)
+    return tuple((entropy if inputs.with_candidates else entropy[0]).to(inputs.out_dtype) for entropy in entropies)
+
+
+def _mean_surprisal(cells: Tensor, cell_count: int, weight: Tensor) -> Tensor:
+    """Entropy of the cells ``(..., N)`` (in ``[0, cell_count)``) of each sample, pixels weighted by ``weight``."""
+    weight = weight.expand(cells.shape)
+    samples = cells.shape[:-1]
+    offsets = torch.arange(samples.numel(), device=cells.device).view(*samples, 1) * cell_count
+    flat = (cells + offsets).flatten()
+    counts = weight.new_zeros(samples.numel() * cell_count).index_add_(0, flat, weight.flatten())
+    total = weight.sum(dim=-1, keepdim=True)
+    # log n - log c: exactly 0 when c = n. Masked pixels weigh 0; the clamp keeps their log finite in empty cells.
+    pixel_counts = counts.index_select(0, flat).view(cells.shape).clamp_min(torch.finfo(weight.dtype).tiny)
+    surprisal = total.log() - pixel_counts.log_()
+    return torch.linalg.vecdot(weight, surprisal) / total.squeeze(-1)
+
+
+class _Inputs(NamedTuple):
+    """Checked inputs in the compute dtype: ``captured`` ``(B, N)``, ``reference`` ``(C, B, N)``."""
+
+    captured: Tensor
+    reference: Tensor
+    valid: Tensor | None
+    pair_weight: Tensor | None
+    variance: Tensor | None
+    log_prior: Tensor | None
+    bins: int
+    value_range: tuple[float, float]
+    kernel: str
+    with_candidates: bool
+    out_dtype: torch.dtype
+
+
+def _prepare(
+    captured, reference, bins, value_range, captured_variance, valid_mask, kernel, reference_kernel, log_prior
+) -> _Inputs:
+    """Check the arguments of :func:`joint_histogram` and bring them to the flat layout and compute dtype."""
     check_floating("captured", captured)
     check_tensor("reference", reference)
-    if reference.shape != captured.shape:
+    with_candidates = reference.ndim == captured.ndim + 1 and reference.shape[1:] == captured.shape
+    if reference.shape != captured.shape and not with_candidates:
         raise ValueError(
-            f"reference must have the shape of captured {tuple(captured.shape)}, got {tuple(reference.shape)}"
+            f"reference must have the shape of captured {tuple(captured.shape)} or (C, *that shape) for C candidates, "
+            f"got {tuple(reference.shape)}"
         )
     check_floating("reference", reference)
     bins = check_bins(bins)
@@ -109,8 +226,10 @@ def joint_histogram(
     out_dtype = captured.dtype
     compute_dtype = torch.float64 if out_dtype == torch.float64 else torch.float32
     captured_flat = flatten_image("captured", captured).to(compute_dtype)
-    reference_flat = reference.reshape(captured_flat.shape).to(compute_dtype)
     batch, pixels = captured_flat.shape
+    reference_flat = reference.reshape(-1, batch, pixels).to(compute_dtype)
+    if reference_flat.shape[0] == 0:
+        raise ValueError(f"reference must hold at least one candidate, got shape {tuple(reference.shape)}")
 
     valid = None
     if valid_mask is not None:
@@ -137,29 +256,19 @@ def joint_histogram(
     if log_prior is not None:
         log_prior = _check_log_prior(log_prior, bins, batch).to(compute_dtype)
 
-    with torch.autocast(device_type=captured.device.type, enabled=False):
-        if kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard":
-            rows = _reference_rows(reference_flat, bins, value_range)
-            if valid is not None:
-                # Masked pixels go to a spare last row that is dropped: no multiply, and no gradient reaches them.
-                rows = torch.where(valid, rows, batch * bins)
-            counts = _LikelihoodJointHistogram.apply(
-                captured_flat, variance, rows, log_prior, bins, value_range, kernel
-            )
-            counts = counts[: batch * bins].view(batch, bins, bins).transpose(1, 2)
-        else:
-            counts = _dense_joint_histogram(
-                captured_flat,
-                reference_flat,
-                variance,
-                pair_weight,
-                log_prior,
-                bins,
-                value_range,
-                kernel,
-                reference_kernel,
-            )
-    return counts.to(out_dtype)
+    return _Inputs(
+        captured_flat,
+        reference_flat,
+        valid,
+        pair_weight,
+        variance,
+        log_prior,
+        bins,
+        value_range,
+        kernel,
+        with_candidates,
+        out_dtype,
+    )
 
 
 def _check_log_prior(log_prior: Tensor, bins: int, batch: int) -> Tensor:
@@ -174,8 +283,12 @@ def _check_log_prior(log_prior: Tensor, bins: int, batch: int) -> Tensor:
 
 
 def _reference_rows(reference: Tensor, bins: int, value_range: tuple[float, float]) -> Tensor:
-    """Row of each pixel in the ``(B * bins, bins)`` transposed histogram: ``b * bins + reference bin``."""
-    offsets = torch.arange(reference.shape[0], device=reference.device).unsqueeze(1) * bins
+    """Row of each pixel of a ``(..., B, N)`` reference in the transposed histogram ``(... * B * bins, bins)``.
+
+    The row is ``s * bins + reference bin``, ``s`` the flat index of the sample (candidate-major).
+    """
+    samples = reference.shape[:-1].numel()
+    offsets = torch.arange(samples, device=reference.device).view(*reference.shape[:-1], 1) * bins
     return hard_bin_index(reference, bins, value_range) + offsets
 
 
@@ -197,30 +310,35 @@ def _pixel_weights(captured, variance, pair_weight, log_prior, bins, value_range
 def _dense_joint_histogram(
     captured, reference, variance, pair_weight, log_prior, bins, value_range, kernel, reference_kernel
 ) -> Tensor:
-    """Plain autograd path: ``(B, N, bins)`` weights for both images, then one batched product."""
+    """Plain autograd path: ``(B, N, bins)`` captured weights, then a product with each ``(..., B, N)`` reference.
+
+    Returns ``(..., B, bins, bins)``, the leading dimensions those of ``reference`` (candidates).
+    """
     if kernel == "hard" and reference_kernel == "hard":
         return _hard_joint_histogram(captured, reference, pair_weight, bins, value_range)
     captured_weights = _pixel_weights(captured, variance, pair_weight, log_prior, bins, value_range, kernel)
     if reference_kernel == "hard":
         rows = _reference_rows(reference, bins, value_range).flatten()
-        transposed = captured_weights.new_zeros(captured.shape[0] * bins, bins)
-        transposed = transposed.index_add(0, rows, captured_weights.reshape(-1, bins))
-        return transposed.view(-1, bins, bins).transpose(1, 2)
+        source = captured_weights.expand(*reference.shape, bins).reshape(-1, bins)
+        transposed = captured_weights.new_zeros(reference.shape[:-1].numel() * bins, bins).index_add(0, rows, source)
+        return transposed.view(*reference.shape[:-1], bins, bins).transpose(-1, -2)
     reference_weights = parzen_weights(reference, bins, value_range, reference_kernel)
-    return torch.bmm(captured_weights.transpose(1, 2), reference_weights)
+    return torch.matmul(captured_weights.transpose(-1, -2), reference_weights)
 
 
 def _hard_joint_histogram(captured, reference, pair_weight, bins, value_range) -> Tensor:
     """Unit counts added into ``(sample, captured bin, reference bin)`` cells (no gradient).
 
-    ``index_add_`` rather than ``bincount``: on CUDA ``bincount`` reads the largest index back to the host.
+    ``captured`` is ``(B, N)``, ``reference`` ``(..., B, N)``; returns ``(..., B, bins, bins)``. ``index_add_``
+    rather than ``bincount``: on CUDA ``bincount`` reads the largest index back to the host.
     """
-    batch = captured.shape[0]
-    offsets = torch.arange(batch, device=captured.device).unsqueeze(1) * (bins * bins)
+    samples = reference.shape[:-1]
+    offsets = torch.arange(samples.numel(), device=captured.device).view(*samples, 1) * (bins * bins)
     cells = hard_bin_index(captured, bins, value_range) * bins + hard_bin_index(reference, bins, value_range) + offsets
-    weights = torch.ones_like(captured) if pair_weight is None else pair_weight.expand_as(captured)
-    counts = captured.new_zeros(batch * bins * bins)
-    return counts.index_add_(0, cells.flatten(), weights.flatten()).view(batch, bins, bins)
+    weights = captured.new_ones(()) if pair_weight is None else pair_weight
+    counts = captured.new_zeros(samples.numel() * bins * bins)
+    counts.index_add_(0, cells.flatten(), weights.expand(reference.shape).flatten())
+    return counts.view(*samples, bins, bins)
 
 
 def _twice_mass_weights(values: Tensor, variance: Tensor, bins: int, value_range: tuple[float, float]) -> Tensor:
@@ -240,24 +358,28 @@ def _twice_mass_weights(values: Tensor, variance: Tensor, bins: int, value_range
 
 
 class _LikelihoodJointHistogram(torch.autograd.Function):
-    """Likelihood-weighted captured pixels added to the rows of a hard-binned reference, in chunks.
+    """Likelihood-weighted captured pixels added to the rows of hard-binned references, in chunks.
 
-    ``rows`` holds ``b * bins + reference bin`` per pixel, or the spare row ``B * bins`` for masked pixels; the
-    result is the transposed histogram ``(B * bins + 1, bins)``. Backward recomputes each chunk from the saved
-    inputs with the closed-form :func:`~enmi_torch.binning.likelihood_weights_vjp`, so memory stays at one chunk
-    whatever the image size.
+    ``rows`` ``(C, B, N)`` holds ``(c * B + b) * bins + reference bin`` per pixel of each of ``C`` references, or
+    the spare row ``C * B * bins`` for masked pixels; the result is the transposed histogram
+    ``(C * B * bins + 1, bins)``. Each chunk's captured weights are computed once and added for every reference.
+    Backward recomputes each chunk from the saved inputs with the closed-form
+    :func:`~enmi_torch.binning.likelihood_weights_vjp` (linear in the upstream gradient, so the references'
+    upstreams are summed first), so memory stays at one chunk whatever the image size.
     """
 
     @staticmethod
     def forward(ctx, captured, variance, rows, log_prior, bins, value_range, kernel):
         batch, pixels = captured.shape
-        transposed = captured.new_zeros(batch * bins + 1, bins)
+        transposed = captured.new_zeros(rows.shape[0] * batch * bins + 1, bins)
         for part in _chunks(batch, pixels, bins):
             if kernel == "mass" and log_prior is None:
                 weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
             else:
                 weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
-            transposed.index_add_(0, rows[:, part].reshape(-1), weights.reshape(-1, bins))
+            weights = weights.reshape(-1, bins)
+            for candidate_rows in rows:
+                transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)
         if kernel == "mass" and log_prior is None:
             transposed.mul_(0.5)
         ctx.save_for_backward(captured, variance, rows, log_prior)
@@ -278,7 +400,10 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
         grad_variance = torch.empty(variance.shape, dtype=variance.dtype, device=variance.device)
         batch, pixels = captured.shape
         for part in _chunks(batch, pixels, bins):
-            upstream = grad_transposed.index_select(0, rows[:, part].reshape(-1)).view(batch, -1, bins)
+            upstream = grad_transposed.index_select(0, rows[0, :, part].reshape(-1))
+            for candidate_rows in rows[1:]:
+                upstream += grad_transposed.index_select(0, candidate_rows[:, part].reshape(-1))
+            upstream = upstream.view(batch, -1, bins)
             grad_captured[:, part], grad_variance[:, part] = likelihood_weights_vjp(
                 captured[:, part], variance[:, part], upstream, bins, value_range, kernel, log_prior
             )

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from enmi_torch._checks import check_floating, check_option
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
-from enmi_torch.histogram import joint_histogram
+from enmi_torch.histogram import hard_entropies, joint_histogram
 
 
 def entropies(counts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -37,7 +37,7 @@ def _entropy(probability: Tensor, dims: tuple[int, ...]) -> Tensor:
 
 
 def nmi_from_joint_histogram(counts: Tensor) -> Tensor:
-    """Studholme NMI ``(H[A] + H[B]) / H[A, B]`` of joint histograms ``(B, K, K)``, ``(B,)``, in ``[1, 2]``.
+    """Studholme NMI ``(H[A] + H[B]) / H[A, B]`` of joint histograms ``(..., B, K, K)``, ``(..., B)``, in ``[1, 2]``.
 
     Convention:
         When the joint entropy is 0 (both images fall in a single bin) the mutual information is 0 and the score
@@ -49,10 +49,13 @@ def nmi_from_joint_histogram(counts: Tensor) -> Tensor:
         tensor([2., 1.])
     """
     check_floating("counts", counts)
-    if counts.ndim != 3 or counts.shape[-1] != counts.shape[-2]:
-        raise ValueError(f"counts must have shape (B, K, K), got {tuple(counts.shape)}")
-    captured_entropy, reference_entropy, joint_entropy = entropies(counts)
-    informative = joint_entropy > torch.finfo(counts.dtype).eps
+    if counts.ndim < 3 or counts.shape[-1] != counts.shape[-2]:
+        raise ValueError(f"counts must have shape (B, K, K) or (..., B, K, K), got {tuple(counts.shape)}")
+    return _nmi_from_entropies(*entropies(counts))
+
+
+def _nmi_from_entropies(captured_entropy: Tensor, reference_entropy: Tensor, joint_entropy: Tensor) -> Tensor:
+    informative = joint_entropy > torch.finfo(joint_entropy.dtype).eps
     safe_joint = torch.where(informative, joint_entropy, torch.ones_like(joint_entropy))
     return torch.where(informative, (captured_entropy + reference_entropy) / safe_joint, torch.ones_like(safe_joint))
 
@@ -71,7 +74,8 @@ def nmi(
 
     Args:
         captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
-        reference: same shape as ``captured``.
+        reference: same shape as ``captured``, or ``(C, *captured.shape)`` to score each captured image against
+            ``C`` candidates (the captured bins are computed once).
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``; values outside are clipped into the edge bins.
         kernel: ``"hard"`` (unit counts, as scikit-image; no gradient), ``"triangular"`` or ``"xu"`` (Parzen
@@ -81,7 +85,7 @@ def nmi(
 
     Returns:
         ``(H[A] + H[B]) / H[A, B]`` in ``[1, 2]``: 2 for images that determine each other, about 1 for independent
-        ones. Same dtype as ``captured``.
+        ones; ``(B,)``, or ``(C, B)`` for candidates. Same dtype as ``captured``.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
@@ -91,6 +95,11 @@ def nmi(
         tensor([1.])
     """
     check_option("kernel", kernel, ("hard", "triangular", "xu"))
+    if kernel == "hard" and reference_kernel == "hard":
+        # Same score as the hard joint histogram's, with O(pixels) logarithms per sample instead of O(bins^2).
+        return _nmi_from_entropies(
+            *hard_entropies(captured, reference, bins=bins, value_range=value_range, valid_mask=valid_mask)
+        )
     counts = joint_histogram(
         captured,
         reference,
@@ -123,7 +132,8 @@ def enmi(
 
     Args:
         captured: noisy image ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
-        reference: noiseless map section, same shape.
+        reference: noiseless map section, same shape; or ``(C, *captured.shape)``, ``C`` candidate sections per
+            captured image, scored against likelihood weights computed once (the costly part).
         variance: per-pixel noise variance (> 0 where valid): a number, ``(H, W)``, ``(1, 1, H, W)`` or
             ``(B, 1, H, W)``.
         bins: number of equal-width bins over ``value_range``.
@@ -136,8 +146,8 @@ def enmi(
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
 
     Returns:
-        ENMI in ``[1, 2]``, ``(B,)``, same dtype as ``captured``; it tends to hard :func:`nmi` as the variance
-        tends to 0.
+        ENMI in ``[1, 2]``, ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``; it tends to hard
+        :func:`nmi` as the variance tends to 0.
 
     Convention:
         Differentiable in ``captured`` and ``variance`` (and ``reference`` with a soft reference kernel).
@@ -150,6 +160,9 @@ def enmi(
         tensor([1.5003])
         >>> enmi(captured, reference.roll(1, -1), 64.0, bins=8)
         tensor([1.0179])
+        >>> enmi(captured, torch.stack([reference, reference.roll(1, -1)]), 64.0, bins=8)
+        tensor([[1.5003],
+                [1.0179]])
     """
     check_option("weights", weights, LIKELIHOOD_WEIGHTS)
     if variance is None:
