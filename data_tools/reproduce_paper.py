@@ -63,7 +63,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--scores", type=list[str], default=list(SCORES))
     parser.add_argument("--paper_points", type=str, default="data_tools/paper_points.csv")
     parser.add_argument("--output_dir", type=str, default="data_tools/figures")
-    parser.add_argument("--chunk_trials", type=int, default=500)
+    parser.add_argument("--chunk_trials", type=int, default=128)
     parser.add_argument("--dtype", type=str, default="float32", choices=["float32", "float64"])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1)

@@ -231,7 +231,7 @@ def error_rates(
     amplitude_std: float = 32.0,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    chunk_trials: int = 500,
+    chunk_trials: int = 128,
     dtype: torch.dtype = torch.float32,
     workers: int = 1,
     progress: Callable[[int, dict[str, float], float], None] | None = None,

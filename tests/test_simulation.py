@@ -294,3 +294,23 @@ def test_reproduce_paper_command_writes_csv_figure_and_tensorboard(tmp_path, mon
     assert set(SCORES) <= set(rows[0])
     assert (tmp_path / "out" / "paper_simulation.png").stat().st_size > 10_000
     assert any((tmp_path / "tb").rglob("events.out.tfevents.*"))
+
+
+@pytest.mark.slow
+def test_full_figure_against_the_papers_points(paper_tiles):
+    """The issue's full-run criteria at the config's settings (10,000 trials, seed 0, every N0 of the plot).
+
+    ENMI must be at or below the paper's ENMI within 2 standard errors at every N0. The paper's NMI points scatter
+    about a smooth curve with a standard deviation of about 0.013 (a 100,000-trial run puts 10 of them more than
+    0.03 from the converged curve), so NMI is held to 0.03 at 125 of the 141 points and to 0.045 at all.
+    """
+    with (REPO / "data_tools" / "paper_points.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    paper = {key: torch.tensor([float(row[key]) for row in rows], dtype=torch.float64) for key in rows[0]}
+    result = error_rates(paper_tiles.area, paper["noise_power"], trials=10_000, scores=["nmi", "enmi_mass"])
+    deviation = (result.rates["nmi"] - paper["nmi"]).abs()
+    assert int((deviation <= 0.03).sum()) >= 125
+    assert float(deviation.max()) <= 0.045
+    paper_stderr = (paper["enmi"] * (1 - paper["enmi"]) / 10_000).sqrt()
+    stderr = (result.standard_error("enmi_mass") ** 2 + paper_stderr**2).sqrt()
+    assert bool((result.rates["enmi_mass"] <= paper["enmi"] + 2 * stderr).all())
