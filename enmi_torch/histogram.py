@@ -138,8 +138,9 @@ def hard_entropies(
 
     The same values as :func:`~enmi_torch.information.entropies` of the hard :func:`joint_histogram`, computed as
     the mean surprisal of the pixels, ``H = sum_pixels log(n / c(pixel)) / n`` with ``c(pixel)`` the count of the
-    pixel's cell and ``n`` the number of valid pixels: ``O(pixels)`` logarithms per sample instead of ``O(bins^2)``,
-    which matters when images are small and samples many.
+    pixel's cell and ``n`` the number of valid pixels: ``O(pixels)`` logarithms per sample instead of ``O(bins^2)``.
+    That pays for small images and many samples (fewer pixels than ``bins^2 / 4``, e.g. the paper's 66 road tiles
+    and 32 bins), where :func:`~enmi_torch.information.nmi` uses it.
 
     Args:
         captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.

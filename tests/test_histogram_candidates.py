@@ -174,3 +174,21 @@ def test_invalid_candidate_shapes_raise_clear_errors(images, reference, message)
             call()
     with pytest.raises(ValueError, match=r"counts must have shape \(B, K, K\) or \(\.\.\., B, K, K\)"):
         nmi_from_joint_histogram(torch.ones(4, 4))
+
+
+@pytest.mark.parametrize(("bins", "pixel_wise"), [(32, True), (8, False)])
+def test_nmi_reads_hard_entropies_at_the_pixels_only_for_small_images(images, bins, pixel_wise, monkeypatch):
+    import enmi_torch.information as information_module
+
+    captured, candidates, _, valid = images
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return hard_entropies(*args, **kwargs)
+
+    monkeypatch.setattr(information_module, "hard_entropies", spy)
+    score = nmi(captured, candidates, bins=bins, value_range=RANGE, valid_mask=valid)
+    assert bool(calls) == pixel_wise  # 35 pixels: fewer than 32^2 / 4, more than 8^2 / 4
+    counts = joint_histogram(captured, candidates, bins=bins, value_range=RANGE, valid_mask=valid)
+    torch.testing.assert_close(score, nmi_from_joint_histogram(counts), rtol=0, atol=1e-12)
