@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import math
+import statistics
 import time
 from pathlib import Path
 
@@ -65,7 +66,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--output_dir", type=str, default="data_tools/figures")
     parser.add_argument("--chunk_trials", type=int, default=128)
     parser.add_argument("--dtype", type=str, default="float32", choices=["float32", "float64"])
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--tensorboard", type=str | None, default=None, help="log to this TensorBoard directory")
     return parser
@@ -106,7 +107,7 @@ def deviation_rows(result: ErrorRates, paper: dict[str, list[float]]) -> list[li
                     f"{n0[worst]:g}",
                     f"{ours[worst]:.4f}",
                     f"{paper['nmi'][worst]:.4f}",
-                    f"mean abs {sum(map(abs, deviation)) / len(deviation):.4f}",
+                    f"mean {statistics.fmean(deviation):+.4f}, sd {statistics.pstdev(deviation):.4f}",
                     f"within ±{NMI_TOLERANCE} at {inside}/{len(n0)}",
                 ]
             )
