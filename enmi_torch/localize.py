@@ -495,9 +495,12 @@ class _Search:
         if height < factor or width < factor:
             raise ValueError(f"coarse_factor must not exceed the local image size {(height, width)}, got {factor}")
         radius_y, radius_x = self.radius
-        full = self.local.new_full((self.local.shape[0], len(self.yaws), 2 * radius_y + 1, 2 * radius_x + 1), -math.inf)
+        shape = (self.local.shape[0], len(self.yaws), 2 * radius_y + 1, 2 * radius_x + 1)
+        full = self.local.new_full(shape, -math.inf)
+        evaluated = torch.zeros(shape, dtype=torch.bool)
         for sample in range(self.local.shape[0]):
-            local, variance, valid = self._rotations(sample, self.yaws)
+            rotations = self._rotations(sample, self.yaws)
+            local, variance, valid = rotations
             coarse_local = _pooled(local * valid, factor)
             coarse_valid = _pooled(valid.to(local.dtype), factor) >= _FULL_SUPPORT
             coarse_variance = (
@@ -517,29 +520,47 @@ class _Search:
             )
             coarse = self._surface(coarse_local, coarse_variance, coarse_valid, window, window_valid, min_overlap)
             for yaw_index, row, col in _separated_peaks(coarse, peaks, max(1, exclusion_radius // factor)):
-                center_row = (first_row + row) * factor - top
-                center_col = (first_col + col) * factor - left
-                row_low, row_high = max(center_row - factor, 0), min(center_row + factor, 2 * radius_y)
-                col_low, col_high = max(center_col - factor, 0), min(center_col + factor, 2 * radius_x)
-                yaw_indices = [k for k in (yaw_index - 1, yaw_index, yaw_index + 1) if 0 <= k < len(self.yaws)]
-                fine_window, fine_valid = self._window(
-                    sample,
-                    top + row_low,
-                    left + col_low,
-                    row_high - row_low + height,
-                    col_high - col_low + width,
-                )
-                fine = self._surface(
-                    local[yaw_indices],
-                    None if variance is None else variance[yaw_indices],
-                    valid[yaw_indices],
-                    fine_window,
-                    fine_valid,
-                    min_overlap,
-                )
-                region = full[sample, yaw_indices, row_low : row_high + 1, col_low : col_high + 1]
-                full[sample, yaw_indices, row_low : row_high + 1, col_low : col_high + 1] = torch.maximum(region, fine)
+                fine_row, fine_col = (first_row + row) * factor - top, (first_col + col) * factor - left
+                self._refine(full, evaluated, sample, rotations, yaw_index, fine_row, fine_col, factor, min_overlap)
+            # The fine peak needs its 3 x 3 shifts and both neighbouring yaws for the sub-cell fit: fill them in.
+            for _ in range(len(self.yaws) + 1):
+                if not bool(torch.isfinite(full[sample]).any()):
+                    break
+                yaw_index, rest = divmod(int(full[sample].flatten().argmax()), shape[2] * shape[3])
+                row, col = divmod(rest, shape[3])
+                if not self._refine(full, evaluated, sample, rotations, yaw_index, row, col, 1, min_overlap):
+                    break
         return full
+
+    def _refine(self, full, evaluated, sample, rotations, yaw_index, row, col, reach, min_overlap) -> bool:
+        """Evaluate every shift within ``reach`` of ``(row, col)`` at a yaw and its neighbours; False if all were."""
+        height, width = self.local.shape[2:]
+        row_low, row_high = max(row - reach, 0), min(row + reach, full.shape[2] - 1)
+        col_low, col_high = max(col - reach, 0), min(col + reach, full.shape[3] - 1)
+        region = (slice(row_low, row_high + 1), slice(col_low, col_high + 1))
+        yaw_indices = [
+            k
+            for k in (yaw_index - 1, yaw_index, yaw_index + 1)
+            if 0 <= k < full.shape[1] and not bool(evaluated[(sample, k, *region)].all())
+        ]
+        if not yaw_indices:
+            return False
+        top, left = self.origins[sample].tolist()
+        window, window_valid = self._window(
+            sample, top + row_low, left + col_low, row_high - row_low + height, col_high - col_low + width
+        )
+        local, variance, valid = rotations
+        fine = self._surface(
+            local[yaw_indices],
+            None if variance is None else variance[yaw_indices],
+            valid[yaw_indices],
+            window,
+            window_valid,
+            min_overlap,
+        )
+        full[(sample, yaw_indices, *region)] = fine
+        evaluated[(sample, yaw_indices, *region)] = True
+        return True
 
 
 def _separated_peaks(surface: Tensor, count: int, radius: int) -> list[tuple[int, int, int]]:
@@ -655,7 +676,7 @@ def _read_array(path: str, name: str):
             from PIL import Image
         except ImportError as error:
             raise SystemExit(f"--{name}: reading PNG needs Pillow (pip install 'enmi_torch[train]')") from error
-        return np.asarray(Image.open(path).convert("L"))
+        return np.array(Image.open(path).convert("L"))
     raise SystemExit(f"--{name} must be a .npy or .png file, got {path!r}")
 
 
