@@ -42,7 +42,7 @@ from enmi_torch._checks import (
 from enmi_torch._layout import broadcast_map, scalar_or_map
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights
 from enmi_torch.histogram import _check_log_prior, joint_histogram
-from enmi_torch.information import _entropy, nmi_from_joint_histogram
+from enmi_torch.information import nmi_from_joint_histogram
 
 METRICS = ("enmi", "nmi", "ncc")
 
@@ -366,11 +366,13 @@ def fft_size(length: int) -> int:
 
 
 class _Correlator:
-    """All pairwise cross-correlations of captured planes with reference planes, placements only, by FFT.
+    """All pairwise cross-correlations of captured planes with reference planes, at the placements only, by FFT.
 
-    ``correlations(captured_spectra, reference_spectra)`` yields ``(start, block)`` with ``block[c, j, u, v] =
-    sum_n captured[start + c][n] reference[j][n + (u, v)]`` for a chunk of captured planes; the block is a view into
-    a buffer reused by the next chunk.
+    Spectra are kept transposed, ``(..., Q, P)`` (column frequencies, then row frequencies), so that each inverse
+    transform runs along a contiguous or sliced axis without a copy: rows first (``ifft``, cropped to the row
+    placements), then columns (``irfft``, cropped). ``correlations`` yields ``(start, block)`` with ``block[c, j, v,
+    u] = sum_n captured[start + c][n] reference[j][n + (u, v)]``, transposed like the spectra, over chunks of the
+    captured planes.
     """
 
     def __init__(self, local_shape: tuple[int, int], window_shape: tuple[int, int]) -> None:
@@ -378,48 +380,42 @@ class _Correlator:
         self.cols = window_shape[1] - local_shape[1] + 1
         # Circular correlation is exact for these placements once the FFT covers the window (no wrap-around).
         self.shape = (fft_size(window_shape[0]), fft_size(window_shape[1]))
-        self._buffers: dict[str, Tensor] = {}
+        self._product: Tensor | None = None
 
     def spectra(self, planes: Tensor) -> Tensor:
-        """Half spectra ``(..., P, Q)`` of planes ``(..., h, w)`` zero-padded to the FFT shape."""
-        return torch.fft.rfft2(planes, s=self.shape)
-
-    def _buffer(self, name: str, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
-        size = math.prod(shape)
-        buffer = self._buffers.get(name)
-        if buffer is None or buffer.numel() < size or buffer.dtype != dtype or buffer.device != device:
-            buffer = torch.empty(size, dtype=dtype, device=device)
-            self._buffers[name] = buffer
-        return buffer[:size].view(shape)
+        """Transposed half spectra ``(..., Q, P)`` of planes ``(..., h, w)`` zero-padded to the FFT shape."""
+        return torch.fft.rfft2(planes, s=self.shape).transpose(-1, -2).contiguous()
 
     def correlations(self, captured_spectra: Tensor, reference_spectra: Tensor):
-        """Yield ``(start, (c, J, rows, cols))`` blocks over chunks of the ``I`` captured spectra ``(I, P, Q)``."""
-        planes = reference_spectra.shape[0]
-        height, half = self.shape[0], reference_spectra.shape[-1]
+        """Yield ``(start, (c, J, cols, rows))`` blocks over chunks of the ``I`` captured spectra ``(I, Q, P)``."""
+        planes, half, height = reference_spectra.shape
         chunk = max(1, _CHUNK_ELEMENTS // (planes * height * half))
-        complex_dtype, device = reference_spectra.dtype, reference_spectra.device
-        real_dtype = torch.float64 if complex_dtype == torch.complex128 else torch.float32
         conjugate = torch.conj_physical(captured_spectra)
         for start in range(0, captured_spectra.shape[0], chunk):
             count = min(chunk, captured_spectra.shape[0] - start)
-            product = self._buffer("product", (count, planes, height, half), complex_dtype, device)
+            size = count * planes * half * height
+            # One product buffer for all chunks: fresh multi-megabyte tensors cost page faults on every chunk.
+            if self._product is None or self._product.numel() < size or self._product.dtype != conjugate.dtype:
+                self._product = torch.empty(size, dtype=conjugate.dtype, device=conjugate.device)
+            product = self._product[:size].view(count, planes, half, height)
             torch.mul(conjugate[start : start + count, None], reference_spectra[None], out=product)
-            rows = self._buffer("rows", (count, planes, height, half), complex_dtype, device)
-            torch.fft.ifft(product, dim=-2, out=rows)
-            real = self._buffer("real", (count, planes, self.rows, self.shape[1]), real_dtype, device)
-            torch.fft.irfft(rows[:, :, : self.rows], n=self.shape[1], dim=-1, out=real)
-            yield start, real[..., : self.cols]
+            rows = torch.fft.ifft(product, dim=-1)[..., : self.rows]
+            yield start, torch.fft.irfft(rows, n=self.shape[1], dim=-2)[:, :, : self.cols]
 
 
 def _information_surface(
     plane_weights: Tensor, inputs: _Inputs, bins: int, value_range: tuple[float, float]
 ) -> Surface:
-    """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard window."""
+    """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard window.
+
+    The captured planes get the local mask as one more plane and the reference planes the window mask, so that one
+    batch of correlations holds the joint counts, both marginals (each pixel's weights sum to 1) and the overlap.
+    Entropies come from ``H = log T - sum(c log c) / T`` with ``T`` the overlap, one pass over the counts.
+    """
     batch, height, width = inputs.local.shape
     windows = inputs.window.shape[0]
     correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
     dtype = inputs.local.dtype
-    tiny = torch.finfo(dtype).tiny
     # FFT round-off leaves a joint entropy of order eps where the overlap is constant: score it 1, as the core does.
     informative_above = math.sqrt(torch.finfo(dtype).eps)
     plane_weights = (plane_weights * inputs.local_valid.unsqueeze(-1)).permute(0, 3, 1, 2)
@@ -430,36 +426,36 @@ def _information_surface(
         window_index = sample if windows > 1 else 0
         if reference is None or windows > 1:
             present = torch.bincount(window_bins[window_index].flatten(), minlength=bins + 1)[:bins].nonzero()[:, 0]
-            indicators = window_bins[window_index] == present[:, None, None]
+            indicators = torch.cat(
+                [window_bins[window_index] == present[:, None, None], inputs.window_valid[[window_index]]]
+            )
             reference = correlator.spectra(indicators.to(dtype))
-            window_valid_spectrum = correlator.spectra(inputs.window_valid[window_index].to(dtype))
-        local_valid_spectrum = correlator.spectra(inputs.local_valid[sample].to(dtype))
-        overlap = _correlate_one(correlator, local_valid_spectrum, window_valid_spectrum).round()
-        total = overlap.clamp_min(1)
         captured_planes = plane_weights[sample]
         occupied = captured_planes.flatten(1).amax(1).nonzero()[:, 0]
-        captured = correlator.spectra(captured_planes[occupied])
-        joint_entropy = overlap.new_zeros(overlap.shape)
-        captured_entropy = overlap.new_zeros(overlap.shape)
-        reference_counts = overlap.new_zeros(reference.shape[0], *overlap.shape)
-        for _, block in correlator.correlations(captured, reference):
-            counts = block.clamp_min_(0)
-            probability = counts / total
-            joint_entropy += _entropy(probability, dims=(0, 1))
-            captured_entropy += _entropy(probability.sum(1), dims=(0,))
-            reference_counts += counts.sum(0)
-        reference_entropy = _entropy(reference_counts / total, dims=(0,))
+        captured = correlator.spectra(torch.cat([captured_planes[occupied], inputs.local_valid[[sample]].to(dtype)]))
+        last = captured.shape[0] - 1
+        joint_sum = captured_sum = reference_sum = overlap = None
+        for start, block in correlator.correlations(captured, reference):
+            block = block.clamp_min_(0)
+            planes = block[: last - start] if start + block.shape[0] > last else block
+            joint = torch.special.xlogy(planes[:, :-1], planes[:, :-1]).sum((0, 1))
+            captured_part = torch.special.xlogy(planes[:, -1], planes[:, -1]).sum(0)
+            joint_sum = joint if joint_sum is None else joint_sum + joint
+            captured_sum = captured_part if captured_sum is None else captured_sum + captured_part
+            if start + block.shape[0] > last:
+                reference_counts, overlap = block[-1, :-1], block[-1, -1].round()
+                reference_sum = torch.special.xlogy(reference_counts, reference_counts).sum(0)
+        total = overlap.clamp_min(1)
+        log_total = total.log()
+        joint_entropy = log_total - joint_sum / total
+        captured_entropy = log_total - captured_sum / total
+        reference_entropy = log_total - reference_sum / total
         informative = (joint_entropy > informative_above) & (overlap > 0)
-        safe_joint = torch.where(informative, joint_entropy, 1.0).clamp_min(tiny)
-        scores.append(torch.where(informative, (captured_entropy + reference_entropy) / safe_joint, 1.0))
-        overlaps.append(overlap)
+        safe_joint = torch.where(informative, joint_entropy, 1.0)
+        score = torch.where(informative, (captured_entropy + reference_entropy) / safe_joint, 1.0)
+        scores.append(score.transpose(0, 1))
+        overlaps.append(overlap.transpose(0, 1))
     return Surface(torch.stack(scores), torch.stack(overlaps))
-
-
-def _correlate_one(correlator: _Correlator, captured_spectrum: Tensor, reference_spectrum: Tensor) -> Tensor:
-    """One correlation ``(rows, cols)`` from two half spectra ``(P, Q)``."""
-    full = torch.fft.irfft2(captured_spectrum.conj() * reference_spectrum, s=correlator.shape)
-    return full[: correlator.rows, : correlator.cols]
 
 
 def _ncc_surface(inputs: _Inputs) -> Surface:
@@ -479,9 +475,8 @@ def _ncc_surface(inputs: _Inputs) -> Surface:
     scores, overlaps = [], []
     for sample in range(batch):
         window_index = sample if windows > 1 else 0
-        block = torch.cat(
-            [part.clone() for _, part in correlator.correlations(captured[sample], reference[window_index])]
-        )
+        parts = correlator.correlations(captured[sample], reference[window_index])
+        block = torch.cat([part for _, part in parts]).transpose(-1, -2)
         count = block[0, 0].round()
         local_sum, window_sum = block[1, 0], block[0, 1]
         local_square, window_square, cross = block[2, 0], block[0, 2], block[1, 1]
