@@ -13,9 +13,9 @@ Convention:
     ``(row + dy, col + dx)`` (``dx`` along columns, ``dy`` along rows) and says that the local image is the map
     section there rotated by ``yaw`` degrees about its centre, counter-clockwise as displayed (kornia's
     :func:`~kornia.geometry.transform.rotate`, y axis down). Each yaw is searched by rotating the local image, its
-    variance (bilinear) and its valid mask (a pixel stays valid only where all four of its bilinear neighbours are)
-    by ``-yaw``; corners that rotate out of the ``(h, w)`` frame are lost. Map cells outside the map are invalid.
-    Searches run without gradient.
+    variance and its valid mask by ``-yaw`` (nearest neighbour by default; with ``resample="bilinear"`` a pixel
+    stays valid only where all four of its neighbours are); corners that rotate out of the ``(h, w)`` frame are
+    lost. Map cells outside the map are invalid. Searches run without gradient.
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ def localize(
     exclusion_radius: int = 3,
     coarse_factor: int = 1,
     coarse_peaks: int = 3,
+    resample: str = "nearest",
 ) -> Localization:
     """Find the pose of each local image in the prior map: the best of a window of shifts and a set of yaws.
 
@@ -115,6 +116,10 @@ def localize(
             candidates and searches every shift within ``f`` cells of each at full resolution (at its yaw and the
             two next ones): for windows much larger than the local image.
         coarse_peaks: coarse candidates refined when ``coarse_factor > 1``.
+        resample: how the local image, its variance and mask are rotated for a yaw: ``"nearest"`` (default: every
+            pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
+            geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
+            noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
 
     Returns:
         :class:`Localization`.
@@ -132,6 +137,7 @@ def localize(
         ([[3.0, -2.0, 0.0]], torch.Size([1, 1, 13, 13]))
     """
     check_option("metric", metric, METRICS)
+    check_option("resample", resample, RESAMPLING)
     check_floating("local", local)
     if local.ndim != 4 or local.shape[1] != 1 or 0 in local.shape:
         raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
@@ -174,7 +180,9 @@ def localize(
         variance_map = _variance_map(local, variance)
         map_valid = _map_valid(prior_map, map_mask)
         score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior)
-        search = _Search(local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn)
+        search = _Search(
+            local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
+        )
         if coarse_factor == 1:
             surface = search.exhaustive(min_overlap)
         else:
@@ -198,6 +206,7 @@ class Localizer(nn.Module):
         exclusion_radius: see :func:`localize`.
         coarse_factor: see :func:`localize`.
         coarse_peaks: see :func:`localize`.
+        resample: see :func:`localize`.
 
     Example:
         >>> from enmi_torch.variance import ConstantVariance
@@ -222,6 +231,7 @@ class Localizer(nn.Module):
         exclusion_radius: int = 3,
         coarse_factor: int = 1,
         coarse_peaks: int = 3,
+        resample: str = "nearest",
     ) -> None:
         super().__init__()
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
@@ -240,6 +250,7 @@ class Localizer(nn.Module):
             "exclusion_radius": exclusion_radius,
             "coarse_factor": coarse_factor,
             "coarse_peaks": coarse_peaks,
+            "resample": check_option("resample", resample, RESAMPLING),
         }
 
     def forward(
@@ -405,7 +416,10 @@ class _ScoreFunction:
         )
 
 
-def _rotated(local: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float]):
+RESAMPLING = ("nearest", "bilinear")
+
+
+def _rotated(local: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float], resample: str):
     """Image, variance and mask of one sample ``(1, 1, h, w)`` rotated by ``-yaw`` for each yaw: ``(Y, 1, h, w)``."""
     count = len(yaws)
     local = torch.where(valid, local, 0.0)
@@ -416,12 +430,26 @@ def _rotated(local: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[f
         return local.expand(expand), None if variance is None else variance.expand(expand), valid.expand(expand)
     angles = -torch.tensor(yaws, dtype=local.dtype, device=local.device)
     zero = angles == 0
-    stacked = torch.cat([local, valid.to(local.dtype)] + ([] if variance is None else [variance]), dim=1)
-    turned = rotate(stacked.expand(count, -1, -1, -1), angles)
+    channels = [local, valid.to(local.dtype)]
+    if variance is not None:
+        channels.append(variance)
+        if resample == "bilinear":
+            # Bilinear resampling of a linear ramp gives back the source coordinates: their fractions give the weights.
+            rows, cols = torch.meshgrid(
+                *(torch.arange(size, dtype=local.dtype, device=local.device) for size in local.shape[2:]), indexing="ij"
+            )
+            channels += [cols.expand_as(local), rows.expand_as(local)]
+    stacked = torch.cat(channels, dim=1)
+    turned = rotate(stacked.expand(count, -1, -1, -1), angles, mode=resample)
     # Yaw 0 keeps the exact pixels (no resampling round-off).
     turned = torch.where(zero[:, None, None, None], stacked, turned)
-    rotated_valid = turned[:, 1:2] >= _FULL_SUPPORT
+    rotated_valid = turned[:, 1:2] >= (_FULL_SUPPORT if resample == "bilinear" else 0.5)
     rotated_variance = None if variance is None else turned[:, 2:3]
+    if variance is not None and resample == "bilinear":
+        # A bilinear mix sum_k w_k v_k of independent noise has variance sum_k w_k^2 sigma_k^2 (sigma locally even).
+        fraction = turned[:, 3:5] - turned[:, 3:5].floor()
+        squares = fraction.square() + (1 - fraction).square()
+        rotated_variance = rotated_variance * squares[:, :1] * squares[:, 1:]
     return turned[:, :1], rotated_variance, rotated_valid
 
 
@@ -432,8 +460,11 @@ def _pooled(images: Tensor, factor: int) -> Tensor:
 class _Search:
     """Windows around the prior poses and the surfaces over them."""
 
-    def __init__(self, local, variance, local_valid, prior_map, map_valid, centers, radius, yaws, score_fn) -> None:
+    def __init__(
+        self, local, variance, local_valid, prior_map, map_valid, centers, radius, yaws, score_fn, resample
+    ) -> None:
         self.local, self.variance, self.local_valid = local, variance, local_valid
+        self.resample = resample
         self.prior_map, self.map_valid = prior_map, map_valid
         self.radius, self.yaws, self.score_fn = radius, yaws, score_fn
         height, width = local.shape[2:]
@@ -462,7 +493,9 @@ class _Search:
 
     def _rotations(self, sample: int, yaws: list[float]):
         variance = None if self.variance is None else self.variance[sample : sample + 1]
-        return _rotated(self.local[sample : sample + 1], variance, self.local_valid[sample : sample + 1], yaws)
+        return _rotated(
+            self.local[sample : sample + 1], variance, self.local_valid[sample : sample + 1], yaws, self.resample
+        )
 
     def _surface(self, local, variance, valid, window, window_valid, min_overlap) -> Tensor:
         """``(Y, Sy, Sx)`` scores; ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows."""
@@ -712,6 +745,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--min-overlap", type=float, default=0.5)
     parser.add_argument("--exclusion-radius", type=int, default=3)
     parser.add_argument("--coarse-factor", type=int, default=1)
+    parser.add_argument("--resample", choices=RESAMPLING, default="nearest", help="how the local image is rotated")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--output", help="PNG of the score surface at the best yaw, peak marked")
     return parser
@@ -752,6 +786,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             min_overlap=args.min_overlap,
             exclusion_radius=args.exclusion_radius,
             coarse_factor=args.coarse_factor,
+            resample=args.resample,
             **masks,
         )
     except (ValueError, TypeError) as error:
