@@ -128,6 +128,11 @@ def localize(
         ValueError: on inconsistent shapes, empty masks, a local image larger than the map, or when no candidate of
             a sample passes ``min_overlap``.
 
+    Convention:
+        No gradient (a search). Scores are computed in float64 for float64 ``local`` and in float32 otherwise;
+        results have the dtype and device of ``local``. Cost: one FFT surface per
+        sample and yaw, dominated by ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window.
+
     Example:
         >>> generator = torch.Generator().manual_seed(0)
         >>> prior_map = torch.rand(1, 1, 48, 48, generator=generator) * 256
@@ -629,6 +634,7 @@ _FIT = torch.linalg.pinv(_DESIGN)
 
 def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int) -> Localization:
     """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces."""
+    device, surface = surface.device, surface.cpu()
     batch, yaw_count, rows, cols = surface.shape
     flat = surface.flatten(1)
     best, index = flat.max(1)
@@ -660,12 +666,12 @@ def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion
         runner_up = others.max()
         margins.append(best[sample] - runner_up if torch.isfinite(runner_up) else best.new_tensor(math.inf))
     return Localization(
-        torch.stack(poses).to(surface.dtype),
-        best,
-        surface,
-        torch.stack(covariances).to(surface.dtype),
-        torch.stack(margins),
-        yaws,
+        torch.stack(poses).to(device, surface.dtype),
+        best.to(device),
+        surface.to(device),
+        torch.stack(covariances).to(device, surface.dtype),
+        torch.stack(margins).to(device),
+        yaws.to(device),
     )
 
 
