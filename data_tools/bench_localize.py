@@ -11,11 +11,12 @@ one process each (medians of repeated runs, best run in brackets):
 * the other fast path considered: ``conv2d`` with the 32 captured weight planes as kernels over the 32 reference
   indicator planes (timed on a few output rows and scaled).
 
-The parent process runs the measurement twice in child processes, once as is and once with
-``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_`` set high, and prints both side by side.
+The parent process runs the measurements in child processes, alternately as is and with
+``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_`` set high, and prints both side by side; the ratio to the
+direct loop is the median of ratios taken within each round, which shared-machine load bursts affect least.
 
-    python data_tools/bench_localize.py            # about 1-2 minutes on 2 CPU cores
-    python data_tools/bench_localize.py --quick    # fewer repeats
+    python data_tools/bench_localize.py                          # about 1.5 minutes on 2 CPU cores
+    python data_tools/bench_localize.py --rounds 8 --children 3  # steadier medians
 """
 
 from __future__ import annotations
@@ -56,13 +57,10 @@ def _case(dtype=torch.float32):
     return gravel.to(dtype), local.to(dtype), variance.to(dtype), window.to(dtype), center
 
 
-def _timed(function, repeats):
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), min(times), result
+def _timed(function):
+    start = time.perf_counter()
+    result = function()
+    return time.perf_counter() - start, result
 
 
 def _best_direct_loop(local, window, variance, rows):
@@ -87,116 +85,132 @@ def _conv2d_surface_rows(local, window, variance, rows):
     return torch.nn.functional.conv2d(indicators, weights.unsqueeze(1))
 
 
-def measure(repeats: int, loop_rows: int) -> dict:
-    """All timings of one process, as a dict."""
+def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
+    """Timings of one process: lists of per-round seconds, measured in interleaved rounds."""
     prior_map, local, variance, window, center = _case()
     candidates = (2 * RADIUS + 1) ** 2
-    results = {"threads": torch.get_num_threads(), "candidates": candidates}
-    enmi_median, enmi_best, fast = _timed(lambda: enmi_surface(local, window, variance, bins=BINS), repeats)
-    results["enmi_surface_s"] = (enmi_median, enmi_best)
-    results["nmi_surface_s"] = _timed(lambda: nmi_surface(local, window, bins=BINS), repeats)[:2]
-    results["ncc_surface_s"] = _timed(lambda: ncc_surface(local, window), repeats)[:2]
-    peak = divmod(int(fast.score[0].flatten().argmax()), 2 * RADIUS + 1)
-    results["enmi_peak_shift"] = (peak[0] - RADIUS, peak[1] - RADIUS)
-
-    single = _timed(lambda: enmi_surface(local.double(), window.double(), variance.double(), bins=BINS), 1)
-    results["enmi_surface_float64_s"] = single[0]
-    results["float32_vs_float64_max_abs"] = float((fast.score.double() - single[2].score).abs().max())
-
-    loop_median, loop_best, looped = _timed(lambda: _best_direct_loop(local, window, variance, loop_rows), repeats)
     scale = candidates / (loop_rows * (2 * RADIUS + 1))
-    results["best_direct_loop_s"] = (loop_median * scale, loop_best * scale)
-    results["best_direct_loop_vs_fft_max_abs"] = float((looped - fast.score[0, :loop_rows]).abs().max())
-
+    times = {key: [] for key in ("enmi", "nmi", "ncc", "enmi_float64", "best_direct_loop")}
+    double = (local.double(), window.double(), variance.double())
+    for _ in range(rounds):
+        # Interleaved rounds: a burst of load from other processes hits every method of the round alike.
+        seconds, fast = _timed(lambda: enmi_surface(local, window, variance, bins=BINS))
+        times["enmi"].append(seconds)
+        times["nmi"].append(_timed(lambda: nmi_surface(local, window, bins=BINS))[0])
+        times["ncc"].append(_timed(lambda: ncc_surface(local, window))[0])
+        seconds, exact = _timed(lambda: enmi_surface(*double, bins=BINS))
+        times["enmi_float64"].append(seconds)
+        seconds, looped = _timed(lambda: _best_direct_loop(local, window, variance, loop_rows))
+        times["best_direct_loop"].append(seconds * scale)
+    peak = divmod(int(fast.score[0].flatten().argmax()), 2 * RADIUS + 1)
+    checks = {
+        "enmi_peak_shift": (peak[0] - RADIUS, peak[1] - RADIUS),
+        "float32_vs_float64_max_abs": float((fast.score.double() - exact.score).abs().max()),
+        "best_direct_loop_vs_fft_max_abs": float((looped - fast.score[0, :loop_rows]).abs().max()),
+    }
     few = window[..., : LOCAL + 1, : LOCAL + 2]
-    reference_loop = _timed(lambda: direct_surface(local, few, variance, bins=BINS), 1)
-    results["direct_surface_s"] = reference_loop[0] * candidates / 6
-    results["direct_surface_vs_fft_max_abs"] = float((reference_loop[2].score[0] - fast.score[0, :2, :3]).abs().max())
-
+    seconds, reference = _timed(lambda: direct_surface(local, few, variance, bins=BINS))
+    times["direct_surface"] = [seconds * candidates / 6]
+    checks["direct_surface_vs_fft_max_abs"] = float((reference.score[0] - fast.score[0, :2, :3]).abs().max())
     conv_rows = 2
-    conv = _timed(lambda: _conv2d_surface_rows(local, window, variance, conv_rows), 1)
-    results["conv2d_correlations_s"] = conv[0] * (2 * RADIUS + 1) / conv_rows
-
+    times["conv2d_correlations"] = [
+        _timed(lambda: _conv2d_surface_rows(local, window, variance, conv_rows))[0] * (2 * RADIUS + 1) / conv_rows
+    ]
     yaws = [float(angle) for angle in range(-35, 36, 2)]
-    yaw_repeats = max(1, repeats // 3)
-    yaw_median, yaw_best, located = _timed(
-        lambda: localize(local, prior_map, variance, shifts=RADIUS, center=center, yaws=yaws, bins=BINS), yaw_repeats
-    )
-    results["yaws"] = len(yaws)
-    results["localize_36_yaws_s"] = (yaw_median, yaw_best)
-    results["localize_pose"] = [round(value, 2) for value in located.pose[0].tolist()]
-    return results
+    times["localize_36_yaws"] = []
+    for _ in range(yaw_rounds):
+        seconds, located = _timed(
+            lambda: localize(local, prior_map, variance, shifts=RADIUS, center=center, yaws=yaws, bins=BINS)
+        )
+        times["localize_36_yaws"].append(seconds)
+    checks["localize_pose"] = [round(value, 2) for value in located.pose[0].tolist()]
+    return {"threads": torch.get_num_threads(), "candidates": candidates, "yaws": len(yaws), **checks, "times": times}
 
 
-def _child(environment: dict, repeats: int, loop_rows: int) -> dict:
-    command = [sys.executable, __file__, "--child", "--repeats", str(repeats), "--loop-rows", str(loop_rows)]
+def _child(environment: dict, rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
+    command = [sys.executable, __file__, "--child", "--rounds", str(rounds), "--loop-rows", str(loop_rows)]
+    command += ["--yaw-rounds", str(yaw_rounds)]
     inherited = {key: value for key, value in os.environ.items() if key not in MALLOC_ENV}
     completed = subprocess.run(command, env={**inherited, **environment}, capture_output=True, text=True, check=True)
     return json.loads(completed.stdout.strip().splitlines()[-1])
 
 
-def _report(runs: dict[str, dict]) -> None:
+def _merge(runs: list[dict]) -> dict:
+    merged = {**runs[0], "times": {key: [] for key in runs[0]["times"]}}
+    for run in runs:
+        for key, values in run["times"].items():
+            merged["times"][key] += values
+    return merged
+
+
+LABELS = {
+    "enmi": "ENMI surface, FFT",
+    "nmi": "NMI surface, FFT",
+    "ncc": "NCC surface, FFT",
+    "enmi_float64": "ENMI surface, FFT, float64",
+    "best_direct_loop": "best direct loop: weights once, one `index_add_` per candidate (timed on {rows} rows, scaled)",
+    "direct_surface": "`direct_surface`: one `joint_histogram` per candidate (timed on 6, scaled)",
+    "conv2d_correlations": "`conv2d`, weight planes over indicator planes (correlations only; 2 rows, scaled)",
+    "localize_36_yaws": "`localize`, ENMI, 36 yaws (rotations, 36 surfaces, peak)",
+}
+
+
+def _report(runs: dict[str, dict], loop_rows: int) -> None:
     names = list(runs)
     first = runs[names[0]]
     print(
-        f"128 x 128 local, {first['candidates']} candidates (101 x 101 shifts), {BINS} bins, float32, "
-        f"{first['threads']} torch threads; median [best] of repeated runs\n"
+        f"128 x 128 local, {first['candidates']:,} candidates (101 x 101 shifts), {BINS} bins, float32, "
+        f"{first['threads']} torch threads; median [best] seconds over interleaved rounds\n"
     )
-    header = "| | " + " | ".join(names) + " |"
-    print(header)
+    print("| | " + " | ".join(names) + " |")
     print("|" + " --- |" * (len(names) + 1))
-
-    def row(label, key, per_candidate=True):
+    for key, label in LABELS.items():
         cells = []
         for name in names:
-            median, best = runs[name][key] if isinstance(runs[name][key], (list, tuple)) else (runs[name][key],) * 2
-            rate = f", {first['candidates'] / median:,.0f} cand/s" if per_candidate else ""
-            cells.append(f"{median:.3f} s [{best:.3f}]{rate}")
-        print(f"| {label} | " + " | ".join(cells) + " |")
-
-    row("ENMI surface, FFT", "enmi_surface_s")
-    row("NMI surface, FFT", "nmi_surface_s")
-    row("NCC surface, FFT", "ncc_surface_s")
-    row("ENMI surface, FFT, float64", "enmi_surface_float64_s")
-    row("best direct loop (weights once, one index_add per candidate; scaled from a few rows)", "best_direct_loop_s")
-    row("direct_surface (one joint_histogram per candidate; scaled from 6)", "direct_surface_s")
-    row(
-        "conv2d of weight planes over indicator planes (correlations only; scaled from 2 rows)", "conv2d_correlations_s"
-    )
-    row(f"localize, ENMI, {first['yaws']} yaws (rotation, surfaces, peak)", "localize_36_yaws_s", per_candidate=False)
+            values = runs[name]["times"][key]
+            median = statistics.median(values)
+            rate = "" if key == "localize_36_yaws" else f", {first['candidates'] / median:,.0f} candidates/s"
+            cells.append(f"{median:.3f} [{min(values):.3f}]{rate}")
+        print(f"| {label.format(rows=loop_rows)} | " + " | ".join(cells) + " |")
     print()
     for name in names:
-        run = runs[name]
-        fft = run["enmi_surface_s"][0]
+        run, times = runs[name], runs[name]["times"]
+        paired = [loop / fft for loop, fft in zip(times["best_direct_loop"], times["enmi"], strict=True)]
+        fft = statistics.median(times["enmi"])
         print(
-            f"{name}: best direct loop / FFT = {run['best_direct_loop_s'][0] / fft:.1f}x, "
-            f"direct_surface / FFT = {run['direct_surface_s'] / fft:.0f}x, conv2d / FFT = "
-            f"{run['conv2d_correlations_s'] / fft:.1f}x; per yaw {run['localize_36_yaws_s'][0] / run['yaws']:.3f} s; "
-            f"max |FFT - loop| = {run['best_direct_loop_vs_fft_max_abs']:.1e}, "
-            f"max |FFT - direct_surface| = {run['direct_surface_vs_fft_max_abs']:.1e}, "
-            f"max |float32 - float64| = {run['float32_vs_float64_max_abs']:.1e}; "
-            f"peak {run['enmi_peak_shift']} (true (7, -12)), pose {run['localize_pose']}"
+            f"{name}: best direct loop / FFT = {statistics.median(paired):.1f}x (median of per-round ratios), "
+            f"direct_surface / FFT = {times['direct_surface'][0] / fft:.0f}x, conv2d / FFT = "
+            f"{times['conv2d_correlations'][0] / fft:.1f}x; 36 yaws: "
+            f"{statistics.median(times['localize_36_yaws']) / run['yaws']:.3f} s per yaw"
         )
-    base, raised = (runs[name]["enmi_surface_s"][0] for name in names[:2])
-    print(f"\nraising the malloc thresholds: ENMI surface {base / raised:.2f}x faster")
+    print(
+        f"\nchecks: max |FFT - loop| = {first['best_direct_loop_vs_fft_max_abs']:.1e}, "
+        f"max |FFT - direct_surface| = {first['direct_surface_vs_fft_max_abs']:.1e}, "
+        f"max |float32 - float64| = {first['float32_vs_float64_max_abs']:.1e}; "
+        f"surface peak (dy, dx) = {tuple(first['enmi_peak_shift'])} (true (7, -12)); "
+        f"36-yaw pose (dx, dy, yaw) = {first['localize_pose']}"
+    )
+    base, raised = (statistics.median(runs[name]["times"]["enmi"]) for name in names[:2])
+    print(f"raising the malloc thresholds: ENMI surface median {base:.3f} s -> {raised:.3f} s ({base / raised:.2f}x)")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--loop-rows", type=int, default=3, help="rows of candidates the direct loop is timed on")
-    parser.add_argument("--quick", action="store_true", help="3 repeats")
+    parser.add_argument("--rounds", type=int, default=4, help="interleaved rounds per child process")
+    parser.add_argument("--children", type=int, default=2, help="child processes per malloc setting, alternated")
+    parser.add_argument("--yaw-rounds", type=int, default=1, help="36-yaw searches per child process")
+    parser.add_argument("--loop-rows", type=int, default=5, help="rows of candidates the direct loop is timed on")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    repeats = 3 if args.quick else args.repeats
     if args.child:
-        print(json.dumps(measure(repeats, args.loop_rows)))
+        print(json.dumps(measure(args.rounds, args.loop_rows, args.yaw_rounds)))
         return
-    runs = {
-        "glibc defaults": _child({}, repeats, args.loop_rows),
-        "MALLOC_MMAP_THRESHOLD_ = MALLOC_TRIM_THRESHOLD_ = 2^30": _child(MALLOC_ENV, repeats, args.loop_rows),
-    }
-    _report(runs)
+    settings = {"glibc defaults": {}, "MALLOC_MMAP_THRESHOLD_=MALLOC_TRIM_THRESHOLD_=2^30": MALLOC_ENV}
+    collected = {name: [] for name in settings}
+    for _ in range(args.children):
+        for name, environment in settings.items():
+            collected[name].append(_child(environment, args.rounds, args.loop_rows, args.yaw_rounds))
+    _report({name: _merge(runs) for name, runs in collected.items()}, args.loop_rows)
 
 
 if __name__ == "__main__":
