@@ -28,7 +28,7 @@ matched against a map made by another sensor: the case mutual information is for
 Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model and writes
 ``data_tools/figures/localization_success.png`` (``localization_success_nonmonotonic.png``).
 
-    python data_tools/localization_benchmark.py                 # about a minute on 2 CPU cores
+    python data_tools/localization_benchmark.py                 # 30 s to 2 minutes on 2 CPU cores
     python data_tools/localization_benchmark.py --response nonmonotonic
     python data_tools/localization_benchmark.py --trials 100    # tighter rates
     python data_tools/localization_benchmark.py --example /tmp/enmi_example   # files for the command line tool
@@ -212,7 +212,7 @@ def plot(rates: dict, trials: int, bins: int, response: str, path: Path) -> None
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--trials", type=int, default=12, help="trials per map, sensor model and N0")
+    parser.add_argument("--trials", type=int, default=24, help="trials per map, sensor model and N0")
     parser.add_argument("--pairs", type=int, default=200, help="pairs behind the learned mask")
     parser.add_argument("--bins", type=int, default=16, help="bins of ENMI and NMI (16 suit ~3000 valid cells)")
     parser.add_argument("--response", choices=("identity", "nonmonotonic"), default="identity")
