@@ -130,8 +130,8 @@ def localize(
 
     Convention:
         No gradient (a search). Scores are computed in float64 for float64 ``local`` and in float32 otherwise;
-        results have the dtype and device of ``local``. Cost: one FFT surface per
-        sample and yaw, dominated by ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window.
+        results have the dtype and device of ``local``. Cost: one FFT surface per sample and yaw, dominated by
+        ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
