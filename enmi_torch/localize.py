@@ -1,0 +1,851 @@
+"""Localization: search a prior map for the pose (x/y shift and yaw) of a local image with dense score surfaces.
+
+The vehicle's local image (a rectified camera view or a lidar intensity grid, on the map's cell grid) is compared
+with the map at every integer shift of a window around the prior pose and at a few yaw angles; the best candidate is
+refined below one cell by a quadratic fit of the surface, and the surface's curvature and its second peak say how
+sure the estimate is. Surfaces come from :mod:`enmi_torch.score_surface` (ENMI, NMI or NCC by FFT).
+
+Run ``python -m enmi_torch.localize --help`` for the command-line tool.
+
+Convention:
+    Poses are in map cells and degrees. ``center = (row, col)`` is the map cell under the local image's centre
+    pixel ``(h // 2, w // 2)`` at the prior pose; a pose ``(dx, dy, yaw)`` puts that pixel on map cell
+    ``(row + dy, col + dx)`` (``dx`` along columns, ``dy`` along rows) and says that the local image is the map
+    section there rotated by ``yaw`` degrees about its centre, counter-clockwise as displayed (kornia's
+    :func:`~kornia.geometry.transform.rotate`, y axis down). Each yaw is searched by rotating the local image, its
+    variance and its valid mask by ``-yaw`` (nearest neighbour by default; with ``resample="bilinear"`` a pixel
+    stays valid only where all four of its neighbours are); corners that rotate out of the ``(h, w)`` frame are
+    lost. Map cells outside the map are invalid. Searches run without gradient.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from kornia.geometry.transform import rotate
+from torch import Tensor, nn
+
+from enmi_torch._checks import check_bins, check_floating, check_option, check_tensor, check_value_range
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS
+from enmi_torch.score_surface import METRICS, Surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.variance.base import VarianceModel
+
+# A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
+_FULL_SUPPORT = 1 - 1e-3
+
+
+class Localization(NamedTuple):
+    """The result of :func:`localize`.
+
+    Attributes:
+        pose: ``(B, 3)``: ``dx``, ``dy`` (map cells, refined below one cell) and ``yaw`` (degrees, refined below one
+            yaw step when the yaws are evenly spaced), relative to the prior pose.
+        score: ``(B,)`` score of the best searched candidate.
+        surface: ``(B, Y, 2 ry + 1, 2 rx + 1)`` score per yaw and shift (``[b, k, ry + dy, rx + dx]``); ``-inf``
+            where the candidate was excluded by ``min_overlap`` or not evaluated by the coarse-to-fine search.
+        covariance: ``(B, 2, 2)`` covariance of ``(dx, dy)`` in cells², ``inverse(-H)`` of the Hessian ``H`` of the
+            quadratic fitted to the 3 x 3 surface around the peak: the spread of ``exp(score)`` near the peak.
+            Scale the scores first if they are not log-likelihoods. ``inf`` on the diagonal when the peak is on the
+            window's edge, next to an excluded candidate, or not a maximum of the fit.
+        margin: ``(B,)`` best score minus the best score farther than ``exclusion_radius`` cells (both axes) from
+            the peak (over all yaws); ``inf`` when no such candidate exists. Small margins mean ambiguous maps.
+        yaws: ``(Y,)`` the yaws searched, in degrees.
+    """
+
+    pose: Tensor
+    score: Tensor
+    surface: Tensor
+    covariance: Tensor
+    margin: Tensor
+    yaws: Tensor
+
+
+def localize(
+    local: Tensor,
+    prior_map: Tensor,
+    variance: Tensor | float | VarianceModel | None = None,
+    *,
+    shifts: int | tuple[int, int] = 16,
+    center: tuple[int, int] | Tensor | None = None,
+    yaws: Sequence[float] | Tensor | None = None,
+    metric: str = "enmi",
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    weights: str = "mass",
+    log_prior: Tensor | None = None,
+    local_mask: Tensor | None = None,
+    map_mask: Tensor | None = None,
+    min_overlap: float = 0.5,
+    exclusion_radius: int = 3,
+    coarse_factor: int = 1,
+    coarse_peaks: int = 3,
+    resample: str = "nearest",
+) -> Localization:
+    """Find the pose of each local image in the prior map: the best of a window of shifts and a set of yaws.
+
+    Args:
+        local: local images ``(B, 1, h, w)``, floating point, on the map's cell grid.
+        prior_map: ``(1, 1, Hm, Wm)`` (one map for all) or ``(B, 1, Hm, Wm)``, floating point.
+        variance: for ``metric="enmi"``: the local images' per-pixel noise variance (a number, ``(h, w)``,
+            ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel` (its
+            ``valid_mask`` is used too). Must be ``None`` for the other metrics.
+        shifts: search radius in cells, ``r`` or ``(ry, rx)``: shifts ``dy`` in ``[-ry, ry]``, ``dx`` in
+            ``[-rx, rx]``.
+        center: prior pose: map cell ``(row, col)`` under the local centre pixel, or ``(B, 2)`` integers, one per
+            sample; ``None`` for the map's centre cell ``(Hm // 2, Wm // 2)``.
+        yaws: yaw angles to search, in degrees; ``None`` for ``[0]``.
+        metric: ``"enmi"``, ``"nmi"`` (hard bins) or ``"ncc"``.
+        bins: number of equal-width bins over ``value_range`` (ENMI, NMI).
+        value_range: ``(low, high)`` of the bins.
+        weights: ``"mass"`` or ``"density"`` likelihood weights (ENMI).
+        log_prior: optional log prior of the amplitudes per bin (ENMI).
+        local_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
+        map_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
+        min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) local image's
+            valid pixels land on valid map cells; the others score ``-inf``.
+        exclusion_radius: cells around the peak (Chebyshev distance) left out when looking for the second peak.
+        coarse_factor: ``1`` searches every shift exhaustively. ``f > 1`` searches first on images averaged over
+            ``f x f`` cells (variance divided by ``f^2``), keeps the ``coarse_peaks`` best separated coarse
+            candidates and searches every shift within ``f`` cells of each at full resolution (at its yaw and the
+            two next ones): for windows much larger than the local image.
+        coarse_peaks: coarse candidates refined when ``coarse_factor > 1``.
+        resample: how the local image, its variance and mask are rotated for a yaw: ``"nearest"`` (default: every
+            pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
+            geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
+            noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
+
+    Returns:
+        :class:`Localization`.
+
+    Raises:
+        ValueError: on inconsistent shapes, empty masks, a local image larger than the map, or when no candidate of
+            a sample passes ``min_overlap``.
+
+    Convention:
+        No gradient (a search). Scores are computed in float64 for float64 ``local`` and in float32 otherwise;
+        results have the dtype and device of ``local``. Cost: one FFT surface per sample and yaw, dominated by
+        ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window.
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> prior_map = torch.rand(1, 1, 48, 48, generator=generator) * 256
+        >>> local = prior_map[..., 14:30, 19:35] + 8 * torch.randn(1, 1, 16, 16, generator=generator)
+        >>> result = localize(local, prior_map, 64.0, shifts=6, bins=16)
+        >>> result.pose.round().tolist(), result.surface.shape
+        ([[3.0, -2.0, 0.0]], torch.Size([1, 1, 13, 13]))
+    """
+    check_option("metric", metric, METRICS)
+    check_option("resample", resample, RESAMPLING)
+    check_floating("local", local)
+    if local.ndim != 4 or local.shape[1] != 1 or 0 in local.shape:
+        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
+    check_floating("prior_map", prior_map)
+    batch, _, height, width = local.shape
+    if prior_map.ndim != 4 or prior_map.shape[1] != 1 or prior_map.shape[0] not in (1, batch):
+        raise ValueError(
+            f"prior_map must have shape (1, 1, Hm, Wm) or ({batch}, 1, Hm, Wm) for local of batch {batch}, "
+            f"got {tuple(prior_map.shape)}"
+        )
+    if prior_map.shape[2] < height or prior_map.shape[3] < width:
+        raise ValueError(
+            f"local must not be larger than prior_map, got local {(height, width)} and prior_map "
+            f"{tuple(prior_map.shape[2:])}"
+        )
+    radius = _check_shifts(shifts)
+    centers = _check_center(center, batch, tuple(prior_map.shape[2:]), local.device)
+    yaw_list = _check_yaws(yaws)
+    if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
+        raise ValueError(f"min_overlap must be a fraction in (0, 1], got {min_overlap!r}")
+    if isinstance(exclusion_radius, bool) or not isinstance(exclusion_radius, int) or exclusion_radius < 0:
+        raise ValueError(f"exclusion_radius must be an int >= 0, got {exclusion_radius!r}")
+    for name, value in (("coarse_factor", coarse_factor), ("coarse_peaks", coarse_peaks)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    if metric != "ncc":
+        check_bins(bins)
+        check_value_range(value_range)
+    if metric == "enmi":
+        check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        if variance is None:
+            raise ValueError("variance must be given for metric='enmi' (a number, a tensor or a VarianceModel)")
+    elif variance is not None:
+        raise ValueError(f"variance is only used by metric='enmi', got metric={metric!r}; pass variance=None")
+    elif log_prior is not None:
+        raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
+
+    with torch.no_grad():
+        local_valid = _local_valid(local, local_mask, variance)
+        variance_map = _variance_map(local, variance)
+        map_valid = _map_valid(prior_map, map_mask)
+        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior)
+        search = _Search(
+            local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
+        )
+        if coarse_factor == 1:
+            surface = search.exhaustive(min_overlap)
+        else:
+            surface = search.coarse_to_fine(min_overlap, coarse_factor, coarse_peaks, exclusion_radius)
+        return _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
+
+
+class Localizer(nn.Module):
+    """Module form of :func:`localize`: stores the search settings and an optional variance model.
+
+    Args:
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel` for ``metric="enmi"`` (else give the
+            variance per call).
+        shifts: search radius (see :func:`localize`).
+        yaws: yaws in degrees (stored as a non-persistent buffer).
+        metric: ``"enmi"``, ``"nmi"`` or ``"ncc"``.
+        bins: number of bins.
+        value_range: ``(low, high)`` of the bins.
+        weights: ``"mass"`` or ``"density"``.
+        min_overlap: see :func:`localize`.
+        exclusion_radius: see :func:`localize`.
+        coarse_factor: see :func:`localize`.
+        coarse_peaks: see :func:`localize`.
+        resample: see :func:`localize`.
+
+    Example:
+        >>> from enmi_torch.variance import ConstantVariance
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> prior_map = torch.rand(1, 1, 40, 40, generator=generator) * 256
+        >>> localizer = Localizer(ConstantVariance(16.0), shifts=5, bins=16)
+        >>> localizer(prior_map[..., 15:31, 14:30], prior_map).pose.round(decimals=2).tolist()
+        [[2.0, 3.0, 0.0]]
+    """
+
+    def __init__(
+        self,
+        variance_model: VarianceModel | None = None,
+        *,
+        shifts: int | tuple[int, int] = 16,
+        yaws: Sequence[float] | Tensor | None = None,
+        metric: str = "enmi",
+        bins: int = 32,
+        value_range: tuple[float, float] = (0.0, 256.0),
+        weights: str = "mass",
+        min_overlap: float = 0.5,
+        exclusion_radius: int = 3,
+        coarse_factor: int = 1,
+        coarse_peaks: int = 3,
+        resample: str = "nearest",
+    ) -> None:
+        super().__init__()
+        if variance_model is not None and not isinstance(variance_model, VarianceModel):
+            raise TypeError(
+                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
+            )
+        self.variance_model = variance_model
+        self.metric = check_option("metric", metric, METRICS)
+        self.shifts = _check_shifts(shifts)
+        self.register_buffer("yaws", torch.tensor(_check_yaws(yaws), dtype=torch.float64), persistent=False)
+        self.bins = check_bins(bins)
+        self.value_range = check_value_range(value_range)
+        self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        self.options = {
+            "min_overlap": min_overlap,
+            "exclusion_radius": exclusion_radius,
+            "coarse_factor": coarse_factor,
+            "coarse_peaks": coarse_peaks,
+            "resample": check_option("resample", resample, RESAMPLING),
+        }
+
+    def forward(
+        self,
+        local: Tensor,
+        prior_map: Tensor,
+        variance: Tensor | float | None = None,
+        *,
+        center: tuple[int, int] | Tensor | None = None,
+        local_mask: Tensor | None = None,
+        map_mask: Tensor | None = None,
+    ) -> Localization:
+        """Localize ``local`` ``(B, 1, h, w)`` in ``prior_map``; ``variance`` per call unless a model is stored."""
+        if variance is not None and self.variance_model is not None:
+            raise ValueError("variance must be None when Localizer has a variance_model; pass one or the other")
+        return localize(
+            local,
+            prior_map,
+            self.variance_model if variance is None else variance,
+            shifts=self.shifts,
+            center=center,
+            yaws=self.yaws.tolist(),
+            metric=self.metric,
+            bins=self.bins,
+            value_range=self.value_range,
+            weights=self.weights,
+            local_mask=local_mask,
+            map_mask=map_mask,
+            **self.options,
+        )
+
+
+def _check_shifts(shifts) -> tuple[int, int]:
+    pair = (shifts, shifts) if isinstance(shifts, int) and not isinstance(shifts, bool) else shifts
+    if (
+        not isinstance(pair, (tuple, list))
+        or len(pair) != 2
+        or not all(isinstance(value, int) and not isinstance(value, bool) and value >= 0 for value in pair)
+    ):
+        raise ValueError(f"shifts must be an int >= 0 or a pair (ry, rx) of them, got {shifts!r}")
+    return int(pair[0]), int(pair[1])
+
+
+def _check_yaws(yaws) -> list[float]:
+    if yaws is None:
+        return [0.0]
+    values = yaws.flatten().tolist() if isinstance(yaws, Tensor) else list(yaws)
+    if not values or not all(isinstance(value, (int, float)) and math.isfinite(value) for value in values):
+        raise ValueError(f"yaws must be a non-empty sequence of finite angles in degrees, got {yaws!r}")
+    return [float(value) for value in values]
+
+
+def _check_center(center, batch: int, map_shape: tuple[int, int], device: torch.device) -> Tensor:
+    """``(B, 2)`` int64 map cells of the local centre at the prior pose."""
+    if center is None:
+        return torch.tensor([[map_shape[0] // 2, map_shape[1] // 2]], device=device).expand(batch, 2)
+    if isinstance(center, Tensor):
+        if center.is_floating_point() or center.is_complex() or center.shape not in ((2,), (batch, 2)):
+            raise ValueError(
+                f"center must be (row, col) or an integer tensor of shape (2,) or ({batch}, 2), got "
+                f"{center.dtype} {tuple(center.shape)}"
+            )
+        return center.to(device=device, dtype=torch.int64).reshape(-1, 2).expand(batch, 2)
+    if (
+        not isinstance(center, (tuple, list))
+        or len(center) != 2
+        or not all(isinstance(value, int) and not isinstance(value, bool) for value in center)
+    ):
+        raise ValueError(f"center must be (row, col) integers or a (B, 2) integer tensor, got {center!r}")
+    return torch.tensor([list(center)], device=device).expand(batch, 2)
+
+
+def _local_valid(local: Tensor, local_mask: Tensor | None, variance) -> Tensor:
+    """``(B, 1, h, w)`` bool: the given mask and the variance model's."""
+    valid = torch.ones_like(local, dtype=torch.bool)
+    masks = [("local_mask", local_mask)]
+    if isinstance(variance, VarianceModel):
+        masks.append(("variance.valid_mask", variance.valid_mask(local)))
+    for name, mask in masks:
+        if mask is None:
+            continue
+        check_tensor(name, mask)
+        if mask.dtype != torch.bool:
+            raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
+        valid = valid & _as_local_map(name, mask, local)
+    empty = ~valid.flatten(1).any(1)
+    if bool(empty.any()):
+        raise ValueError(f"local_mask selects no pixel in sample(s) {empty.nonzero()[:, 0].tolist()}")
+    return valid
+
+
+def _as_local_map(name: str, values: Tensor, local: Tensor) -> Tensor:
+    """A per-pixel map given as ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``, as ``(B, 1, h, w)``."""
+    batch, _, height, width = local.shape
+    if values.shape == (height, width):
+        values = values.reshape(1, 1, height, width)
+    if values.ndim != 4 or values.shape[1:] != (1, height, width) or values.shape[0] not in (1, batch):
+        raise ValueError(
+            f"{name} must have shape ({height}, {width}), (1, 1, {height}, {width}) or ({batch}, 1, {height}, "
+            f"{width}) to match local, got {tuple(values.shape)}"
+        )
+    return values.to(local.device).expand(batch, 1, height, width)
+
+
+def _variance_map(local: Tensor, variance) -> Tensor | None:
+    """``(B, 1, h, w)`` variance in the local dtype, or ``None`` for the metrics without one."""
+    if variance is None:
+        return None
+    if isinstance(variance, VarianceModel):
+        variance = variance(local)
+    if isinstance(variance, (int, float)) and not isinstance(variance, bool):
+        return torch.full_like(local, float(variance))
+    check_floating("variance", variance)
+    if variance.ndim == 0:
+        return variance.to(local).expand_as(local)
+    return _as_local_map("variance", variance, local).to(local.dtype)
+
+
+def _map_valid(prior_map: Tensor, map_mask: Tensor | None) -> Tensor:
+    """``(1 or B, 1, Hm, Wm)`` bool."""
+    if map_mask is None:
+        return torch.ones_like(prior_map, dtype=torch.bool)
+    check_tensor("map_mask", map_mask)
+    if map_mask.dtype != torch.bool:
+        raise TypeError(f"map_mask must be a bool tensor, got dtype {map_mask.dtype}")
+    shape = tuple(prior_map.shape[2:])
+    if map_mask.shape == shape:
+        map_mask = map_mask.reshape(1, 1, *shape)
+    if map_mask.ndim != 4 or tuple(map_mask.shape[1:]) != (1, *shape):
+        raise ValueError(
+            f"map_mask must have shape {shape}, (1, 1, *{shape}) or (B, 1, *{shape}) to match prior_map, "
+            f"got {tuple(map_mask.shape)}"
+        )
+    if map_mask.shape[0] not in (1, prior_map.shape[0]):
+        raise ValueError(f"map_mask must hold 1 or {prior_map.shape[0]} masks, got {map_mask.shape[0]}")
+    if not bool(map_mask.any()):
+        raise ValueError("map_mask selects no cell; the map needs at least one valid cell")
+    return map_mask.to(prior_map.device)
+
+
+class _ScoreFunction:
+    """The chosen surface function with its settings."""
+
+    def __init__(self, metric, bins, value_range, weights, log_prior) -> None:
+        self.metric, self.bins, self.value_range = metric, bins, value_range
+        self.weights, self.log_prior = weights, log_prior
+
+    def __call__(self, local, window, variance, local_mask, window_mask) -> Surface:
+        masks = {"local_mask": local_mask, "window_mask": window_mask}
+        if self.metric == "ncc":
+            return ncc_surface(local, window, **masks)
+        if self.metric == "nmi":
+            return nmi_surface(local, window, bins=self.bins, value_range=self.value_range, **masks)
+        return enmi_surface(
+            local,
+            window,
+            variance,
+            bins=self.bins,
+            value_range=self.value_range,
+            weights=self.weights,
+            log_prior=self.log_prior,
+            **masks,
+        )
+
+
+RESAMPLING = ("nearest", "bilinear")
+
+
+def _rotated(local: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float], resample: str):
+    """Image, variance and mask of one sample ``(1, 1, h, w)`` rotated by ``-yaw`` for each yaw: ``(Y, 1, h, w)``."""
+    count = len(yaws)
+    local = torch.where(valid, local, 0.0)
+    if variance is not None:
+        variance = torch.where(valid, variance, 1.0)
+    if all(yaw == 0 for yaw in yaws):
+        expand = (count, 1, *local.shape[2:])
+        return local.expand(expand), None if variance is None else variance.expand(expand), valid.expand(expand)
+    angles = -torch.tensor(yaws, dtype=local.dtype, device=local.device)
+    zero = angles == 0
+    channels = [local, valid.to(local.dtype)]
+    if variance is not None:
+        channels.append(variance)
+        if resample == "bilinear":
+            # Bilinear resampling of a linear ramp gives back the source coordinates: their fractions give the weights.
+            rows, cols = torch.meshgrid(
+                *(torch.arange(size, dtype=local.dtype, device=local.device) for size in local.shape[2:]), indexing="ij"
+            )
+            channels += [cols.expand_as(local), rows.expand_as(local)]
+    stacked = torch.cat(channels, dim=1)
+    turned = rotate(stacked.expand(count, -1, -1, -1), angles, mode=resample)
+    # Yaw 0 keeps the exact pixels (no resampling round-off).
+    turned = torch.where(zero[:, None, None, None], stacked, turned)
+    rotated_valid = turned[:, 1:2] >= (_FULL_SUPPORT if resample == "bilinear" else 0.5)
+    rotated_variance = None if variance is None else turned[:, 2:3]
+    if variance is not None and resample == "bilinear":
+        # A bilinear mix sum_k w_k v_k of independent noise has variance sum_k w_k^2 sigma_k^2 (sigma locally even).
+        fraction = turned[:, 3:5] - turned[:, 3:5].floor()
+        squares = fraction.square() + (1 - fraction).square()
+        rotated_variance = rotated_variance * squares[:, :1] * squares[:, 1:]
+    return turned[:, :1], rotated_variance, rotated_valid
+
+
+def _pooled(images: Tensor, factor: int) -> Tensor:
+    return torch.nn.functional.avg_pool2d(images, factor, factor)
+
+
+class _Search:
+    """Windows around the prior poses and the surfaces over them."""
+
+    def __init__(
+        self, local, variance, local_valid, prior_map, map_valid, centers, radius, yaws, score_fn, resample
+    ) -> None:
+        self.local, self.variance, self.local_valid = local, variance, local_valid
+        self.resample = resample
+        self.prior_map, self.map_valid = prior_map, map_valid
+        self.radius, self.yaws, self.score_fn = radius, yaws, score_fn
+        height, width = local.shape[2:]
+        # Map cell of the local top-left pixel at shift (-ry, -rx), per sample.
+        self.origins = centers - torch.tensor([height // 2 + radius[0], width // 2 + radius[1]], device=local.device)
+
+    def _window(self, sample: int, top: int, left: int, rows: int, cols: int, factor: int = 1):
+        """Map section ``(1, 1, rows, cols)`` at ``(top, left)`` on the map pooled by ``factor``, and its mask."""
+        index = sample if self.prior_map.shape[0] > 1 else 0
+        mask_index = sample if self.map_valid.shape[0] > 1 else 0
+        prior_map = self.prior_map[index : index + 1]
+        map_valid = self.map_valid[mask_index : mask_index + 1]
+        if factor > 1:
+            map_valid = _pooled(map_valid.to(prior_map.dtype), factor) >= _FULL_SUPPORT
+            prior_map = _pooled(torch.where(self.map_valid[mask_index : mask_index + 1], prior_map, 0.0), factor)
+        window = prior_map.new_zeros(1, 1, rows, cols)
+        valid = torch.zeros(1, 1, rows, cols, dtype=torch.bool, device=prior_map.device)
+        map_rows, map_cols = prior_map.shape[2:]
+        row_low, row_high = max(top, 0), min(top + rows, map_rows)
+        col_low, col_high = max(left, 0), min(left + cols, map_cols)
+        if row_low < row_high and col_low < col_high:
+            target = (..., slice(row_low - top, row_high - top), slice(col_low - left, col_high - left))
+            window[target] = prior_map[..., row_low:row_high, col_low:col_high]
+            valid[target] = map_valid[..., row_low:row_high, col_low:col_high]
+        return window, valid
+
+    def _rotations(self, sample: int, yaws: list[float]):
+        variance = None if self.variance is None else self.variance[sample : sample + 1]
+        return _rotated(
+            self.local[sample : sample + 1], variance, self.local_valid[sample : sample + 1], yaws, self.resample
+        )
+
+    def _surface(self, local, variance, valid, window, window_valid, min_overlap) -> Tensor:
+        """``(Y, Sy, Sx)`` scores; ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows."""
+        rows, cols = window.shape[2] - local.shape[2] + 1, window.shape[3] - local.shape[3] + 1
+        result = local.new_full((local.shape[0], rows, cols), -math.inf, dtype=self.local.dtype)
+        kept = valid.flatten(1).any(1)
+        if not bool(window_valid.any()) or not bool(kept.any()):
+            return result
+        local, valid = local[kept], valid[kept]
+        surface = self.score_fn(local, window, None if variance is None else variance[kept], valid, window_valid)
+        needed = min_overlap * valid.flatten(1).sum(1).to(surface.overlap.dtype)
+        enough = surface.overlap >= needed[:, None, None] - 0.5
+        result[kept] = torch.where(enough, surface.score, -math.inf).to(result.dtype)
+        return result
+
+    def exhaustive(self, min_overlap: float) -> Tensor:
+        """``(B, Y, 2 ry + 1, 2 rx + 1)`` surface over every shift and yaw."""
+        height, width = self.local.shape[2:]
+        rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
+        surfaces = []
+        for sample in range(self.local.shape[0]):
+            window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
+            local, variance, valid = self._rotations(sample, self.yaws)
+            surfaces.append(self._surface(local, variance, valid, window, window_valid, min_overlap))
+        return torch.stack(surfaces)
+
+    def coarse_to_fine(self, min_overlap: float, factor: int, peaks: int, exclusion_radius: int) -> Tensor:
+        """Coarse surface on ``factor``-pooled images, then full-resolution surfaces around its best peaks."""
+        height, width = self.local.shape[2:]
+        if height < factor or width < factor:
+            raise ValueError(f"coarse_factor must not exceed the local image size {(height, width)}, got {factor}")
+        radius_y, radius_x = self.radius
+        shape = (self.local.shape[0], len(self.yaws), 2 * radius_y + 1, 2 * radius_x + 1)
+        full = self.local.new_full(shape, -math.inf)
+        evaluated = torch.zeros(shape, dtype=torch.bool)
+        for sample in range(self.local.shape[0]):
+            rotations = self._rotations(sample, self.yaws)
+            local, variance, valid = rotations
+            coarse_local = _pooled(local * valid, factor)
+            coarse_valid = _pooled(valid.to(local.dtype), factor) >= _FULL_SUPPORT
+            coarse_variance = (
+                None if variance is None else _pooled(torch.where(valid, variance, 1.0), factor) / factor**2
+            )
+            # Coarse candidates are the shifts whose local top-left lands on a multiple of the factor.
+            top, left = self.origins[sample].tolist()
+            first_row, first_col = -(-top // factor), -(-left // factor)
+            last_row, last_col = (top + 2 * radius_y) // factor, (left + 2 * radius_x) // factor
+            window, window_valid = self._window(
+                sample,
+                first_row,
+                first_col,
+                last_row - first_row + coarse_local.shape[2],
+                last_col - first_col + coarse_local.shape[3],
+                factor,
+            )
+            coarse = self._surface(coarse_local, coarse_variance, coarse_valid, window, window_valid, min_overlap)
+            for yaw_index, row, col in _separated_peaks(coarse, peaks, max(1, exclusion_radius // factor)):
+                fine_row, fine_col = (first_row + row) * factor - top, (first_col + col) * factor - left
+                self._refine(full, evaluated, sample, rotations, yaw_index, fine_row, fine_col, factor, min_overlap)
+            # The fine peak needs its 3 x 3 shifts and both neighbouring yaws for the sub-cell fit: fill them in.
+            for _ in range(len(self.yaws) + 1):
+                if not bool(torch.isfinite(full[sample]).any()):
+                    break
+                yaw_index, rest = divmod(int(full[sample].flatten().argmax()), shape[2] * shape[3])
+                row, col = divmod(rest, shape[3])
+                if not self._refine(full, evaluated, sample, rotations, yaw_index, row, col, 1, min_overlap):
+                    break
+        return full
+
+    def _refine(self, full, evaluated, sample, rotations, yaw_index, row, col, reach, min_overlap) -> bool:
+        """Evaluate every shift within ``reach`` of ``(row, col)`` at a yaw and its neighbours; False if all were."""
+        height, width = self.local.shape[2:]
+        row_low, row_high = max(row - reach, 0), min(row + reach, full.shape[2] - 1)
+        col_low, col_high = max(col - reach, 0), min(col + reach, full.shape[3] - 1)
+        region = (slice(row_low, row_high + 1), slice(col_low, col_high + 1))
+        yaw_indices = [
+            k
+            for k in (yaw_index - 1, yaw_index, yaw_index + 1)
+            if 0 <= k < full.shape[1] and not bool(evaluated[(sample, k, *region)].all())
+        ]
+        if not yaw_indices:
+            return False
+        top, left = self.origins[sample].tolist()
+        window, window_valid = self._window(
+            sample, top + row_low, left + col_low, row_high - row_low + height, col_high - col_low + width
+        )
+        local, variance, valid = rotations
+        fine = self._surface(
+            local[yaw_indices],
+            None if variance is None else variance[yaw_indices],
+            valid[yaw_indices],
+            window,
+            window_valid,
+            min_overlap,
+        )
+        full[(sample, yaw_indices, *region)] = fine
+        evaluated[(sample, yaw_indices, *region)] = True
+        return True
+
+
+def _separated_peaks(surface: Tensor, count: int, radius: int) -> list[tuple[int, int, int]]:
+    """Up to ``count`` ``(yaw, row, col)`` maxima of a ``(Y, Sy, Sx)`` surface, each ``radius`` cells from the rest."""
+    best_over_yaws, best_yaw = surface.max(0)
+    remaining = best_over_yaws.clone()
+    peaks = []
+    for _ in range(count):
+        flat = int(remaining.flatten().argmax())
+        row, col = divmod(flat, remaining.shape[1])
+        if not math.isfinite(float(remaining[row, col])):
+            break
+        peaks.append((int(best_yaw[row, col]), row, col))
+        remaining[max(row - radius, 0) : row + radius + 1, max(col - radius, 0) : col + radius + 1] = -math.inf
+    return peaks
+
+
+# Least squares fit of f(x, y) = a + b x + c y + d x^2 + e x y + g y^2 on the 3 x 3 grid x, y in {-1, 0, 1}.
+_GRID_Y, _GRID_X = torch.meshgrid(torch.arange(-1.0, 2.0), torch.arange(-1.0, 2.0), indexing="ij")
+_DESIGN = torch.stack(
+    [
+        torch.ones(9),
+        _GRID_X.flatten(),
+        _GRID_Y.flatten(),
+        _GRID_X.flatten() ** 2,
+        (_GRID_X * _GRID_Y).flatten(),
+        _GRID_Y.flatten() ** 2,
+    ],
+    dim=1,
+).double()
+_FIT = torch.linalg.pinv(_DESIGN)
+
+
+def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int) -> Localization:
+    """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces."""
+    device, surface = surface.device, surface.cpu()
+    batch, yaw_count, rows, cols = surface.shape
+    flat = surface.flatten(1)
+    best, index = flat.max(1)
+    lost = ~torch.isfinite(best)
+    if bool(lost.any()):
+        raise ValueError(
+            f"no candidate passes min_overlap in sample(s) {lost.nonzero()[:, 0].tolist()}: lower min_overlap, move "
+            "center, or check the masks"
+        )
+    poses, covariances, margins = [], [], []
+    step = yaws[1:] - yaws[:-1]
+    even_yaws = yaw_count >= 3 and bool(torch.allclose(step, step[0].expand_as(step)))
+    for sample in range(batch):
+        yaw_index, rest = divmod(int(index[sample]), rows * cols)
+        row, col = divmod(rest, cols)
+        plane = surface[sample, yaw_index]
+        offset, covariance = _quadratic_peak(plane, row, col)
+        yaw = yaws[yaw_index]
+        if even_yaws and 0 < yaw_index < yaw_count - 1:
+            profile = surface[sample].flatten(1).amax(1)
+            yaw = yaw + step[0] * _parabola_offset(profile[yaw_index - 1 : yaw_index + 2])
+        poses.append(torch.stack([offset[0] + col - radius[1], offset[1] + row - radius[0], yaw.to(offset.dtype)]))
+        covariances.append(covariance)
+        others = surface[sample].amax(0).clone()
+        others[
+            max(row - exclusion_radius, 0) : row + exclusion_radius + 1,
+            max(col - exclusion_radius, 0) : col + exclusion_radius + 1,
+        ] = -math.inf
+        runner_up = others.max()
+        margins.append(best[sample] - runner_up if torch.isfinite(runner_up) else best.new_tensor(math.inf))
+    return Localization(
+        torch.stack(poses).to(device, surface.dtype),
+        best.to(device),
+        surface.to(device),
+        torch.stack(covariances).to(device, surface.dtype),
+        torch.stack(margins).to(device),
+        yaws.to(device),
+    )
+
+
+def _quadratic_peak(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor]:
+    """Sub-cell ``(dx, dy)`` offset and covariance ``inverse(-H)`` from the 3 x 3 neighbourhood of a grid peak."""
+    unknown = (torch.zeros(2, dtype=torch.float64), torch.diag(torch.full((2,), math.inf, dtype=torch.float64)))
+    if not (0 < row < plane.shape[0] - 1 and 0 < col < plane.shape[1] - 1):
+        return unknown
+    values = plane[row - 1 : row + 2, col - 1 : col + 2].double().flatten()
+    if not bool(torch.isfinite(values).all()):
+        return unknown
+    _, slope_x, slope_y, curve_xx, curve_xy, curve_yy = (_FIT @ values).unbind()
+    hessian = torch.stack([torch.stack([2 * curve_xx, curve_xy]), torch.stack([curve_xy, 2 * curve_yy])])
+    if not (hessian[0, 0] < 0 and torch.linalg.det(hessian) > 0):
+        return unknown
+    offset = -torch.linalg.solve(hessian, torch.stack([slope_x, slope_y]))
+    # The grid maximum of a unimodal peak is within half a cell of the true one; a fit farther off is noise.
+    return offset.clamp(-0.5, 0.5), torch.linalg.inv(-hessian)
+
+
+def _parabola_offset(values: Tensor) -> Tensor:
+    """Vertex offset in ``[-0.5, 0.5]`` steps of the parabola through three equally spaced values."""
+    left, middle, right = values.double().unbind()
+    curvature = left - 2 * middle + right
+    if not (torch.isfinite(values).all() and curvature < 0):
+        return torch.zeros((), dtype=torch.float64)
+    return (0.5 * (left - right) / curvature).clamp(-0.5, 0.5)
+
+
+# ---- command line -------------------------------------------------------------------------------------------------
+
+
+def _read_array(path: str, name: str):
+    import numpy as np
+
+    suffix = Path(path).suffix.lower()
+    if suffix == ".npy":
+        return np.load(path)
+    if suffix == ".png":
+        try:
+            from PIL import Image
+        except ImportError as error:
+            raise SystemExit(f"--{name}: reading PNG needs Pillow (pip install 'enmi_torch[train]')") from error
+        return np.array(Image.open(path).convert("L"))
+    raise SystemExit(f"--{name} must be a .npy or .png file, got {path!r}")
+
+
+def _parse_yaws(text: str) -> list[float]:
+    """``"start:stop:step"`` (both ends included) or a comma-separated list of degrees."""
+    if ":" in text:
+        start, stop, step = (float(value) for value in text.split(":"))
+        if step <= 0 or stop < start:
+            raise argparse.ArgumentTypeError(f"yaws start:stop:step needs step > 0 and stop >= start, got {text!r}")
+        count = math.floor((stop - start) / step + 1e-9) + 1
+        return [start + k * step for k in range(count)]
+    return [float(value) for value in text.split(",")]
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m enmi_torch.localize",
+        description="Localize a local image in a prior map: print the pose and its confidence, draw the score surface.",
+    )
+    parser.add_argument("--map", required=True, help="prior map, .npy (2-D) or .png (read as grey levels)")
+    parser.add_argument("--local", required=True, help="local image on the map's cell grid, .npy or .png")
+    parser.add_argument("--variance", help="local noise variance: a number or a .npy map (needed by --metric enmi)")
+    parser.add_argument("--local-mask", help="valid local pixels, .npy or .png (nonzero = valid)")
+    parser.add_argument("--map-mask", help="valid map cells, .npy or .png (nonzero = valid)")
+    parser.add_argument("--metric", default="enmi", choices=METRICS)
+    parser.add_argument("--shifts", type=int, nargs="+", default=[16], help="search radius r, or ry rx, in cells")
+    parser.add_argument(
+        "--center", type=int, nargs=2, metavar=("ROW", "COL"), help="prior map cell of the local centre"
+    )
+    parser.add_argument("--yaws", type=_parse_yaws, default=[0.0], help="degrees: start:stop:step or a,b,c")
+    parser.add_argument("--bins", type=int, default=32)
+    parser.add_argument("--value-range", type=float, nargs=2, default=[0.0, 256.0], metavar=("LOW", "HIGH"))
+    parser.add_argument("--min-overlap", type=float, default=0.5)
+    parser.add_argument("--exclusion-radius", type=int, default=3)
+    parser.add_argument("--coarse-factor", type=int, default=1)
+    parser.add_argument("--resample", choices=RESAMPLING, default="nearest", help="how the local image is rotated")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--output", help="PNG of the score surface at the best yaw, peak marked")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    """Command-line entry point; returns the printed result as a dict."""
+    args = _parser().parse_args(argv)
+    dtype = getattr(torch, args.dtype)
+    prior_map = torch.as_tensor(_read_array(args.map, "map"), dtype=dtype)
+    local = torch.as_tensor(_read_array(args.local, "local"), dtype=dtype)
+    for name, image in (("map", prior_map), ("local", local)):
+        if image.ndim != 2:
+            raise SystemExit(f"--{name} must hold a 2-D image, got shape {tuple(image.shape)}")
+    variance = None
+    if args.variance is not None:
+        try:
+            variance = float(args.variance)
+        except ValueError:
+            variance = torch.as_tensor(_read_array(args.variance, "variance"), dtype=dtype)
+    masks = {}
+    for name, path in (("local_mask", args.local_mask), ("map_mask", args.map_mask)):
+        if path is not None:
+            masks[name] = torch.as_tensor(_read_array(path, name.replace("_", "-")) != 0)
+    if len(args.shifts) not in (1, 2):
+        raise SystemExit(f"--shifts takes r or ry rx, got {args.shifts}")
+    try:
+        result = localize(
+            local[None, None],
+            prior_map[None, None],
+            variance,
+            shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
+            center=None if args.center is None else tuple(args.center),
+            yaws=args.yaws,
+            metric=args.metric,
+            bins=args.bins,
+            value_range=tuple(args.value_range),
+            min_overlap=args.min_overlap,
+            exclusion_radius=args.exclusion_radius,
+            coarse_factor=args.coarse_factor,
+            resample=args.resample,
+            **masks,
+        )
+    except (ValueError, TypeError) as error:
+        raise SystemExit(f"error: {error}") from error
+    dx, dy, yaw = result.pose[0].tolist()
+    report = {
+        "dx": round(dx, 3),
+        "dy": round(dy, 3),
+        "yaw_deg": round(yaw, 3),
+        "score": round(float(result.score[0]), 6),
+        "margin": float(result.margin[0]),
+        "covariance": [[float(value) for value in row] for row in result.covariance[0].tolist()],
+    }
+    print(json.dumps(report))
+    if args.output is not None:
+        _draw_surface(result, args.output, args.metric)
+        print(f"wrote {args.output}")
+    return report
+
+
+def _draw_surface(result: Localization, path: str, metric: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    surface = result.surface[0]
+    yaw_index = int(surface.flatten(1).amax(1).argmax())
+    plane = surface[yaw_index].double()
+    radius_y, radius_x = (plane.shape[0] - 1) // 2, (plane.shape[1] - 1) // 2
+    shown = plane.masked_fill(~torch.isfinite(plane), float("nan")).numpy()
+    several = surface.shape[0] > 1
+    figure, axes = plt.subplots(1, 2 if several else 1, figsize=(9.5 if several else 5.2, 4.2), squeeze=False)
+    image = axes[0, 0].imshow(
+        shown, extent=(-radius_x - 0.5, radius_x + 0.5, radius_y + 0.5, -radius_y - 0.5), cmap="viridis"
+    )
+    dx, dy, yaw = result.pose[0].tolist()
+    axes[0, 0].plot(dx, dy, marker="+", color="red", markersize=14, markeredgewidth=2)
+    axes[0, 0].set(
+        xlabel="dx (cells)", ylabel="dy (cells)", title=f"{metric.upper()} at yaw {float(result.yaws[yaw_index]):g}°"
+    )
+    figure.colorbar(image, ax=axes[0, 0], shrink=0.85)
+    if several:
+        profile = surface.flatten(1).amax(1).double()
+        axes[0, 1].plot(
+            result.yaws.double().numpy(), profile.masked_fill(~torch.isfinite(profile), float("nan")).numpy(), "o-"
+        )
+        axes[0, 1].axvline(yaw, color="red")
+        axes[0, 1].set(xlabel="yaw (degrees)", ylabel="best score over shifts", title=f"peak at yaw {yaw:.2f}°")
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+    plt.close(figure)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,498 @@
+"""Dense score surfaces: ENMI, NMI or NCC of a local image at every integer placement inside a map window, by FFT.
+
+With the map hard-binned, the joint histogram of the local image placed with its top-left pixel at window cell
+``s`` is
+
+    ``J[i, j](s) = sum_n W[n, i] local_valid[n] * R_j[n + s]``,   ``R_j = window_valid * [window bin == j]``,
+
+the cross-correlation of the local image's bin-weight plane ``W[:, i]`` (a Gaussian likelihood for ENMI, one-hot
+for NMI) with the window's bin-indicator plane ``R_j``. All ``K x K`` correlations over all placements come from one
+batched real FFT of each image's planes, a product per bin pair and a pruned inverse FFT (rows first, cropped to the
+placements, then columns); bins whose planes are empty on either side are skipped. :func:`direct_surface` is the
+reference: one :func:`~enmi_torch.histogram.joint_histogram` per placement.
+
+Convention:
+    ``local`` is ``(B, 1, h, w)``; ``window`` is ``(1, 1, Hw, Ww)`` (shared) or ``(B, 1, Hw, Ww)``, with
+    ``Hw >= h`` and ``Ww >= w``. The surface is ``(B, Hw - h + 1, Ww - w + 1)``: entry ``[b, u, v]`` scores the
+    local image with its top-left pixel on window cell ``(u, v)`` (row, column). Masked pixels of either image are
+    left out of that placement's histogram; ``overlap`` counts the local pixels that remain. A placement without any
+    overlap scores 1 (ENMI, NMI; the value of independent images) or 0 (NCC). Surfaces are computed without
+    gradient (a search, not a loss: use :func:`~enmi_torch.information.enmi` to differentiate one placement), in
+    float64 for float64 inputs and in float32 otherwise; float32 round-off moves a score by about 1e-6 (3e-7
+    measured for a 128 x 128 image over 101 x 101 placements by ``data_tools/bench_localize.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from enmi_torch._checks import (
+    check_bins,
+    check_finite_where,
+    check_floating,
+    check_mask_not_empty,
+    check_option,
+    check_positive_where,
+    check_tensor,
+    check_value_range,
+)
+from enmi_torch._layout import broadcast_map, scalar_or_map
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights
+from enmi_torch.histogram import _check_log_prior, joint_histogram
+from enmi_torch.information import nmi_from_joint_histogram
+
+METRICS = ("enmi", "nmi", "ncc")
+
+# The product buffer of one chunk of captured bins (all reference bins, whole spectrum) stays near this many complex
+# elements (8 MiB in complex64, one captured bin of a 128 x 128 image in a 228 x 228 window): batched enough for the
+# FFTs, small enough for the cache.
+_CHUNK_ELEMENTS = 1 << 20
+
+
+class Surface(NamedTuple):
+    """A dense score surface and the overlap behind each entry.
+
+    Attributes:
+        score: ``(B, Sy, Sx)`` score per placement.
+        overlap: ``(B, Sy, Sx)`` number of valid local pixels that land on valid window cells (integer-valued).
+    """
+
+    score: Tensor
+    overlap: Tensor
+
+
+class _Inputs(NamedTuple):
+    local: Tensor  # (B, h, w), masked pixels set to the low end of the range
+    window: Tensor  # (Bw, Hw, Ww), masked cells set to the low end of the range
+    local_valid: Tensor  # (B, h, w) bool
+    window_valid: Tensor  # (Bw, Hw, Ww) bool
+    variance: Tensor | None  # (B, h, w), 1 where masked
+
+
+def enmi_surface(
+    local: Tensor,
+    window: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    weights: str = "mass",
+    log_prior: Tensor | None = None,
+    local_mask: Tensor | None = None,
+    window_mask: Tensor | None = None,
+) -> Surface:
+    """ENMI of ``local`` at every placement inside ``window``, by FFT correlation of bin planes.
+
+    Args:
+        local: noisy local image ``(B, 1, h, w)``, floating point.
+        window: noiseless map section ``(1 or B, 1, Hw, Ww)`` holding every placement, ``Hw >= h``, ``Ww >= w``.
+        variance: per-pixel noise variance of ``local`` (> 0 where valid): a number, ``(h, w)``, ``(1, 1, h, w)``
+            or ``(B, 1, h, w)``.
+        bins: number of equal-width bins over ``value_range``.
+        value_range: ``(low, high)``; values outside are clipped into the edge bins.
+        weights: ``"mass"`` or ``"density"`` (see :func:`~enmi_torch.information.enmi`).
+        log_prior: optional log prior of the amplitudes per bin, ``(bins,)``, ``(1, bins)`` or ``(B, bins)``.
+        local_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
+        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window; ``False`` cells are left out.
+
+    Returns:
+        :class:`Surface` with ``score`` ``(B, Hw - h + 1, Ww - w + 1)``: entry ``[b, u, v]`` equals
+        ``enmi(local[b], window[b, :, u:u + h, v:v + w], variance, valid_mask=local_mask & window_mask[...])``.
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> window = torch.rand(1, 1, 12, 12, generator=generator) * 256
+        >>> local = window[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
+        >>> surface = enmi_surface(local, window, 16.0, bins=8)
+        >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
+        (torch.Size([1, 7, 7]), (3, 2))
+    """
+    check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+    if variance is None:
+        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    batch = inputs.local.shape[0]
+    if log_prior is not None:
+        log_prior = _check_log_prior(log_prior, bins, batch).to(inputs.local.dtype).unsqueeze(1)
+    with torch.no_grad():
+        plane_weights = likelihood_weights(inputs.local, inputs.variance, bins, value_range, weights, log_prior)
+        return _information_surface(plane_weights, inputs, bins, value_range)
+
+
+def nmi_surface(
+    local: Tensor,
+    window: Tensor,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    local_mask: Tensor | None = None,
+    window_mask: Tensor | None = None,
+) -> Surface:
+    """Hard-binned NMI of ``local`` at every placement inside ``window``, by FFT correlation of bin planes.
+
+    Args:
+        local: local image ``(B, 1, h, w)``, floating point.
+        window: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
+        bins: number of equal-width bins over ``value_range``.
+        value_range: ``(low, high)``.
+        local_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
+        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window.
+
+    Returns:
+        :class:`Surface`; ``score[b, u, v]`` equals ``nmi(local[b], window[b, :, u:u + h, v:v + w], ...)``.
+
+    Example:
+        >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+        >>> round(nmi_surface(window[..., 2:6, 1:5], window, bins=64).score[0, 2, 1].item(), 4)
+        2.0
+    """
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range)
+    with torch.no_grad():
+        one_hot = torch.nn.functional.one_hot(hard_bin_index(inputs.local, bins, value_range), bins)
+        return _information_surface(one_hot.to(inputs.local.dtype), inputs, bins, value_range)
+
+
+def ncc_surface(
+    local: Tensor,
+    window: Tensor,
+    *,
+    local_mask: Tensor | None = None,
+    window_mask: Tensor | None = None,
+) -> Surface:
+    """Normalised cross-correlation (Pearson) of ``local`` at every placement inside ``window``, masked, by FFT.
+
+    Args:
+        local: local image ``(B, 1, h, w)``, floating point.
+        window: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
+        local_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
+        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window.
+
+    Returns:
+        :class:`Surface`; ``score`` in ``[-1, 1]``, the Pearson correlation over the overlapping valid pixels; 0
+        where fewer than two pixels overlap or either side is constant there.
+
+    Example:
+        >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) ** 1.5
+        >>> round(ncc_surface(window[..., 2:6, 1:5], window).score[0, 2, 1].item(), 4)
+        1.0
+    """
+    inputs = _check_inputs(local, window, local_mask, window_mask, (0.0, 1.0))
+    with torch.no_grad():
+        return _ncc_surface(inputs)
+
+
+def direct_surface(
+    local: Tensor,
+    window: Tensor,
+    variance: Tensor | float | None = None,
+    *,
+    metric: str = "enmi",
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    weights: str = "mass",
+    log_prior: Tensor | None = None,
+    local_mask: Tensor | None = None,
+    window_mask: Tensor | None = None,
+) -> Surface:
+    """The reference for the FFT surfaces: a loop over placements, one joint histogram (or Pearson sum) each.
+
+    Slow (one :func:`~enmi_torch.histogram.joint_histogram` per placement and sample); use it on small windows to
+    check :func:`enmi_surface`, :func:`nmi_surface` and :func:`ncc_surface`, which take the same arguments.
+
+    Args:
+        local: ``(B, 1, h, w)``.
+        window: ``(1 or B, 1, Hw, Ww)``.
+        variance: as in :func:`enmi_surface`, for ``metric="enmi"`` only.
+        metric: ``"enmi"``, ``"nmi"`` or ``"ncc"``.
+        bins: number of bins (ENMI, NMI).
+        value_range: ``(low, high)`` of the bins (ENMI, NMI).
+        weights: ``"mass"`` or ``"density"`` (ENMI).
+        log_prior: optional log prior per bin (ENMI).
+        local_mask: as in :func:`enmi_surface`.
+        window_mask: as in :func:`enmi_surface`.
+
+    Returns:
+        :class:`Surface`, as the FFT functions.
+
+    Example:
+        >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+        >>> direct_surface(window[..., 2:6, 1:5], window, metric="nmi", bins=64).score[0, 2, 1]
+        tensor(2.)
+    """
+    check_option("metric", metric, METRICS)
+    if (metric == "enmi") != (variance is not None):
+        raise ValueError(f"variance must be given for metric='enmi' and only then, got metric={metric!r}")
+    if metric == "ncc":
+        value_range = (0.0, 1.0)
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    batch, height, width = inputs.local.shape
+    if log_prior is not None:
+        log_prior = _check_log_prior(log_prior, bins, batch).reshape(-1, bins)
+    rows = inputs.window.shape[1] - height + 1
+    cols = inputs.window.shape[2] - width + 1
+    score = inputs.local.new_empty(batch, rows, cols)
+    overlap = inputs.local.new_empty(batch, rows, cols)
+    for sample in range(batch):
+        window_index = sample if inputs.window.shape[0] > 1 else 0
+        for row in range(rows):
+            for col in range(cols):
+                section = inputs.window[window_index, row : row + height, col : col + width]
+                valid = (
+                    inputs.local_valid[sample]
+                    & inputs.window_valid[window_index, row : row + height, col : col + width]
+                )
+                count = int(valid.sum())
+                overlap[sample, row, col] = count
+                captured = inputs.local[sample]
+                if metric == "ncc":
+                    score[sample, row, col] = _pearson(captured[valid], section[valid])
+                elif count == 0:
+                    score[sample, row, col] = 1.0
+                else:
+                    counts = joint_histogram(
+                        captured[None, None],
+                        section[None, None],
+                        bins=bins,
+                        value_range=value_range,
+                        captured_variance=None if metric == "nmi" else inputs.variance[sample][None, None],
+                        valid_mask=valid[None, None],
+                        kernel="hard" if metric == "nmi" else weights,
+                        log_prior=None if log_prior is None else log_prior[min(sample, log_prior.shape[0] - 1)],
+                    )
+                    score[sample, row, col] = nmi_from_joint_histogram(counts)[0]
+    return Surface(score, overlap)
+
+
+def _pearson(captured: Tensor, section: Tensor) -> Tensor:
+    if captured.numel() < 2:
+        return captured.new_zeros(())
+    captured = captured - captured.mean()
+    section = section - section.mean()
+    denominator = (captured.square().sum() * section.square().sum()).sqrt()
+    if denominator == 0:
+        return captured.new_zeros(())
+    return (captured * section).sum() / denominator
+
+
+def _check_inputs(
+    local: Tensor,
+    window: Tensor,
+    local_mask: Tensor | None,
+    window_mask: Tensor | None,
+    value_range: tuple[float, float],
+    variance: Tensor | float | None = None,
+) -> _Inputs:
+    """Shapes, masks and values checked; images as ``(B, h, w)`` and ``(Bw, Hw, Ww)`` in the compute dtype."""
+    check_floating("local", local)
+    if local.ndim != 4 or local.shape[1] != 1 or local.shape[0] == 0 or local.numel() == 0:
+        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
+    check_floating("window", window)
+    batch, _, height, width = local.shape
+    if window.ndim != 4 or window.shape[1] != 1 or window.shape[0] not in (1, batch):
+        raise ValueError(
+            f"window must have shape (1, 1, Hw, Ww) or ({batch}, 1, Hw, Ww) for local of batch {batch}, "
+            f"got {tuple(window.shape)}"
+        )
+    if window.shape[2] < height or window.shape[3] < width:
+        raise ValueError(
+            f"window must be at least as large as local in both dimensions, got window {tuple(window.shape[2:])} "
+            f"for local {(height, width)}"
+        )
+    if window.device != local.device:
+        raise ValueError(f"window must be on the device of local ({local.device}), got {window.device}")
+    dtype = torch.float64 if local.dtype == torch.float64 else torch.float32
+    local_flat = local.reshape(batch, -1).to(dtype)
+    window_flat = window.reshape(window.shape[0], -1).to(dtype)
+
+    local_valid = _mask("local_mask", local_mask, local).expand(batch, -1)
+    window_valid = _mask("window_mask", window_mask, window).expand(window.shape[0], -1)
+    check_finite_where("local", local_flat, local_valid)
+    check_finite_where("window", window_flat, window_valid)
+    local_flat = torch.where(local_valid, local_flat, value_range[0])
+    window_flat = torch.where(window_valid, window_flat, value_range[0])
+    variance_flat = None
+    if variance is not None:
+        variance_flat = scalar_or_map("variance", variance, local).to(dtype).expand(batch, -1)
+        check_positive_where("variance", variance_flat, local_valid)
+        variance_flat = torch.where(local_valid, variance_flat, 1.0).reshape(batch, height, width)
+    return _Inputs(
+        local_flat.reshape(batch, height, width),
+        window_flat.reshape(window.shape[0], *window.shape[2:]),
+        local_valid.reshape(batch, height, width),
+        window_valid.reshape(window.shape[0], *window.shape[2:]),
+        variance_flat,
+    )
+
+
+def _mask(name: str, mask: Tensor | None, like: Tensor) -> Tensor:
+    """A bool mask as ``(1 or B, N)``; all ``True`` when ``None``; raises if a sample selects no pixel."""
+    if mask is None:
+        return torch.ones(1, like[0].numel(), dtype=torch.bool, device=like.device)
+    check_tensor(name, mask)
+    if mask.dtype != torch.bool:
+        raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
+    flat = broadcast_map(name, mask, like, "local" if name == "local_mask" else "window")
+    check_mask_not_empty(name, flat)
+    return flat.to(like.device)
+
+
+def fft_size(length: int) -> int:
+    """The smallest ``2^a 3^b 5^c >= length``: an FFT length pocketfft and cuFFT transform fast.
+
+    Example:
+        >>> fft_size(228), fft_size(256), fft_size(101)
+        (240, 256, 108)
+    """
+    best = 1 << max(0, (length - 1).bit_length())
+    power5 = 1
+    while power5 < best:
+        power35 = power5
+        while power35 < best:
+            size = power35
+            while size < length:
+                size *= 2
+            best = min(best, size)
+            power35 *= 3
+        power5 *= 5
+    return best
+
+
+class _Correlator:
+    """All pairwise cross-correlations of captured planes with reference planes, at the placements only, by FFT.
+
+    Spectra are kept transposed, ``(..., Q, P)`` (column frequencies, then row frequencies), so that each inverse
+    transform runs along a contiguous or sliced axis without a copy: rows first (``ifft``, cropped to the row
+    placements), then columns (``irfft``, cropped). ``correlations`` yields ``(start, block)`` with ``block[c, j, v,
+    u] = sum_n captured[start + c][n] reference[j][n + (u, v)]``, transposed like the spectra, over chunks of the
+    captured planes.
+    """
+
+    def __init__(self, local_shape: tuple[int, int], window_shape: tuple[int, int]) -> None:
+        self.rows = window_shape[0] - local_shape[0] + 1
+        self.cols = window_shape[1] - local_shape[1] + 1
+        # Circular correlation is exact for these placements once the FFT covers the window (no wrap-around).
+        self.shape = (fft_size(window_shape[0]), fft_size(window_shape[1]))
+        self._product: Tensor | None = None
+
+    def spectra(self, planes: Tensor) -> Tensor:
+        """Transposed half spectra ``(..., Q, P)`` of planes ``(..., h, w)`` zero-padded to the FFT shape."""
+        return torch.fft.rfft2(planes, s=self.shape).transpose(-1, -2).contiguous()
+
+    def correlations(self, captured_spectra: Tensor, reference_spectra: Tensor):
+        """Yield ``(start, (c, J, cols, rows))`` blocks over chunks of the ``I`` captured spectra ``(I, Q, P)``."""
+        planes, half, height = reference_spectra.shape
+        chunk = max(1, _CHUNK_ELEMENTS // (planes * height * half))
+        conjugate = torch.conj_physical(captured_spectra)
+        for start in range(0, captured_spectra.shape[0], chunk):
+            count = min(chunk, captured_spectra.shape[0] - start)
+            size = count * planes * half * height
+            # One product buffer for all chunks: fresh multi-megabyte tensors cost page faults on every chunk.
+            if self._product is None or self._product.numel() < size or self._product.dtype != conjugate.dtype:
+                self._product = torch.empty(size, dtype=conjugate.dtype, device=conjugate.device)
+            product = self._product[:size].view(count, planes, half, height)
+            torch.mul(conjugate[start : start + count, None], reference_spectra[None], out=product)
+            rows = torch.fft.ifft(product, dim=-1)[..., : self.rows]
+            yield start, torch.fft.irfft(rows, n=self.shape[1], dim=-2)[:, :, : self.cols]
+
+
+def _information_surface(
+    plane_weights: Tensor, inputs: _Inputs, bins: int, value_range: tuple[float, float]
+) -> Surface:
+    """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard window.
+
+    The captured planes get the local mask as one more plane and the reference planes the window mask, so that one
+    batch of correlations holds the joint counts, both marginals (each pixel's weights sum to 1) and the overlap.
+    Entropies come from ``H = log T - sum(c log c) / T`` with ``T`` the overlap, one pass over the counts.
+    """
+    batch, height, width = inputs.local.shape
+    windows = inputs.window.shape[0]
+    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
+    dtype = inputs.local.dtype
+    # FFT round-off leaves a joint entropy of order eps where the overlap is constant: score it 1, as the core does.
+    informative_above = math.sqrt(torch.finfo(dtype).eps)
+    plane_weights = (plane_weights * inputs.local_valid.unsqueeze(-1)).permute(0, 3, 1, 2)
+    window_bins = torch.where(inputs.window_valid, hard_bin_index(inputs.window, bins, value_range), bins)
+    scores, overlaps = [], []
+    reference = None
+    for sample in range(batch):
+        window_index = sample if windows > 1 else 0
+        if reference is None or windows > 1:
+            present = torch.bincount(window_bins[window_index].flatten(), minlength=bins + 1)[:bins].nonzero()[:, 0]
+            indicators = torch.cat(
+                [window_bins[window_index] == present[:, None, None], inputs.window_valid[[window_index]]]
+            )
+            reference = correlator.spectra(indicators.to(dtype))
+        captured_planes = plane_weights[sample]
+        occupied = captured_planes.flatten(1).amax(1).nonzero()[:, 0]
+        captured = correlator.spectra(torch.cat([captured_planes[occupied], inputs.local_valid[[sample]].to(dtype)]))
+        last = captured.shape[0] - 1
+        joint_sum = captured_sum = reference_sum = overlap = None
+        for start, block in correlator.correlations(captured, reference):
+            block = block.clamp_min_(0)
+            planes = block[: last - start] if start + block.shape[0] > last else block
+            joint = torch.special.xlogy(planes[:, :-1], planes[:, :-1]).sum((0, 1))
+            captured_part = torch.special.xlogy(planes[:, -1], planes[:, -1]).sum(0)
+            joint_sum = joint if joint_sum is None else joint_sum + joint
+            captured_sum = captured_part if captured_sum is None else captured_sum + captured_part
+            if start + block.shape[0] > last:
+                reference_counts, overlap = block[-1, :-1], block[-1, -1].round()
+                reference_sum = torch.special.xlogy(reference_counts, reference_counts).sum(0)
+        total = overlap.clamp_min(1)
+        log_total = total.log()
+        joint_entropy = log_total - joint_sum / total
+        captured_entropy = log_total - captured_sum / total
+        reference_entropy = log_total - reference_sum / total
+        informative = (joint_entropy > informative_above) & (overlap > 0)
+        safe_joint = torch.where(informative, joint_entropy, 1.0)
+        score = torch.where(informative, (captured_entropy + reference_entropy) / safe_joint, 1.0)
+        scores.append(score.transpose(0, 1))
+        overlaps.append(overlap.transpose(0, 1))
+    return Surface(torch.stack(scores), torch.stack(overlaps))
+
+
+def _ncc_surface(inputs: _Inputs) -> Surface:
+    """Masked Pearson correlation from six correlations of masks, centred images and their squares."""
+    batch, height, width = inputs.local.shape
+    windows = inputs.window.shape[0]
+    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
+    dtype = inputs.local.dtype
+    eps = torch.finfo(dtype).eps
+    local_valid = inputs.local_valid.to(dtype)
+    window_valid = inputs.window_valid.to(dtype)
+    # Centring on each image's own valid mean keeps the sums small, so the FFT round-off stays relative.
+    local = (inputs.local - _masked_mean(inputs.local, local_valid)) * local_valid
+    window = (inputs.window - _masked_mean(inputs.window, window_valid)) * window_valid
+    captured = correlator.spectra(torch.stack([local_valid, local, local.square()], dim=1))
+    reference = correlator.spectra(torch.stack([window_valid, window, window.square()], dim=1))
+    scores, overlaps = [], []
+    for sample in range(batch):
+        window_index = sample if windows > 1 else 0
+        parts = correlator.correlations(captured[sample], reference[window_index])
+        block = torch.cat([part for _, part in parts]).transpose(-1, -2)
+        count = block[0, 0].round()
+        local_sum, window_sum = block[1, 0], block[0, 1]
+        local_square, window_square, cross = block[2, 0], block[0, 2], block[1, 1]
+        safe_count = count.clamp_min(1)
+        covariance = cross - local_sum * window_sum / safe_count
+        local_spread = local_square - local_sum.square() / safe_count
+        window_spread = window_square - window_sum.square() / safe_count
+        # A spread within round-off of its raw second moment means a constant overlap: no correlation defined.
+        defined = (count >= 2) & (local_spread > 64 * eps * local_square) & (window_spread > 64 * eps * window_square)
+        denominator = torch.where(defined, local_spread * window_spread, 1.0).sqrt()
+        scores.append(torch.where(defined, covariance / denominator, 0.0).clamp(-1, 1))
+        overlaps.append(count)
+    return Surface(torch.stack(scores), torch.stack(overlaps))
+
+
+def _masked_mean(images: Tensor, valid: Tensor) -> Tensor:
+    return ((images * valid).sum((-2, -1)) / valid.sum((-2, -1)).clamp_min(1)).reshape(-1, 1, 1)

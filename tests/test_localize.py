@@ -1,0 +1,301 @@
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from kornia.geometry.transform import rotate
+from skimage import data
+
+from enmi_torch.localize import Localization, Localizer, _quadratic_peak, _rotated, localize, main
+from enmi_torch.score_surface import direct_surface
+from enmi_torch.variance import ConstantVariance, VarianceModel
+
+
+@pytest.fixture(scope="module")
+def gravel_map() -> torch.Tensor:
+    """A 160 x 160 section of scikit-image's gravel texture with a painted lane marking, (1, 1, 160, 160)."""
+    section = data.gravel()[100:260, 150:310].astype(np.float64)
+    section[:, 70:76] = 235.0
+    return torch.from_numpy(section).reshape(1, 1, 160, 160)
+
+
+def _cut(prior_map, row, col, size=32, yaw=0.0):
+    """The ``size`` x ``size`` local image whose centre pixel lies on map cell (row, col), rotated by ``yaw``."""
+    half = size // 2
+    if yaw == 0:
+        return prior_map[..., row - half : row - half + size, col - half : col - half + size].clone()
+    margin = size
+    big = prior_map[..., row - margin : row + margin, col - margin : col + margin]
+    turned = rotate(big, torch.tensor([yaw], dtype=big.dtype))
+    return turned[..., margin - half : margin - half + size, margin - half : margin - half + size].clone()
+
+
+def _noisy(local, std, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    return local + std * torch.randn(local.shape, generator=generator, dtype=local.dtype)
+
+
+@pytest.mark.parametrize("metric", ["enmi", "nmi", "ncc"])
+def test_known_shifts_are_found_exactly_at_low_noise(gravel_map, dtype, metric):
+    prior_map = gravel_map.to(dtype)
+    truths = [(3, -5), (-7, 0), (6, 6)]
+    local = torch.cat([_noisy(_cut(prior_map, 80 + dy, 80 + dx), 2.0, seed) for seed, (dx, dy) in enumerate(truths)])
+    result = localize(local, prior_map, 4.0 if metric == "enmi" else None, shifts=8, center=(80, 80), metric=metric)
+    assert isinstance(result, Localization)
+    assert result.surface.shape == (3, 1, 17, 17)
+    assert result.pose.dtype == dtype
+    for sample, (dx, dy) in enumerate(truths):
+        grid_peak = divmod(int(result.surface[sample, 0].flatten().argmax()), 17)
+        assert grid_peak == (dy + 8, dx + 8)
+        assert result.pose[sample, :2].tolist() == pytest.approx([dx, dy], abs=0.25)
+        assert result.pose[sample, 2].item() == 0.0
+        assert result.margin[sample] > 0
+        assert torch.isfinite(result.covariance[sample]).all()
+
+
+def test_yaw_is_recovered_on_a_rotated_crop(gravel_map):
+    local = _noisy(_cut(gravel_map, 84, 77, size=40, yaw=7.0), 2.0)
+    result = localize(local, gravel_map, 4.0, shifts=6, center=(80, 80), yaws=range(-12, 13, 3), bins=32)
+    dx, dy, yaw = result.pose[0].tolist()
+    assert (round(dx), round(dy)) == (-3, 4)
+    assert abs(yaw - 7.0) <= 1.0
+    profile = result.surface[0].flatten(1).amax(1)
+    assert result.yaws[int(profile.argmax())].item() in (6.0, 9.0)
+
+
+def test_batched_search_over_several_maps_and_centres_equals_single_searches(gravel_map):
+    maps = torch.cat([gravel_map, gravel_map.flip(-1)])
+    local = torch.cat([_cut(maps[:1], 70, 90), _cut(maps[1:], 95, 60)])
+    centers = torch.tensor([[72, 88], [92, 63]])
+    batched = localize(local, maps, 9.0, shifts=5, center=centers, yaws=[-2.0, 0.0, 2.0], bins=16)
+    for sample in range(2):
+        single = localize(
+            local[sample : sample + 1],
+            maps[sample : sample + 1],
+            9.0,
+            shifts=5,
+            center=tuple(centers[sample].tolist()),
+            yaws=[-2.0, 0.0, 2.0],
+            bins=16,
+        )
+        torch.testing.assert_close(batched.surface[sample], single.surface[0])
+        torch.testing.assert_close(batched.pose[sample], single.pose[0])
+    assert batched.pose[:, :2].round().tolist() == [[2.0, -2.0], [-3.0, 3.0]]
+
+
+def test_surface_at_yaw_zero_equals_the_direct_loop_over_the_window(gravel_map):
+    local = _noisy(_cut(gravel_map, 80, 80, size=12), 4.0)
+    variance = torch.linspace(4, 40, 144, dtype=torch.float64).reshape(1, 1, 12, 12)
+    result = localize(local, gravel_map, variance, shifts=3, center=(81, 79), bins=16, min_overlap=0.1)
+    window = gravel_map[..., 81 - 6 - 3 : 81 - 6 + 12 + 3, 79 - 6 - 3 : 79 - 6 + 12 + 3]
+    expected = direct_surface(local, window, variance, bins=16)
+    torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
+
+
+def test_min_overlap_excludes_candidates_with_too_little_valid_overlap(gravel_map):
+    local = _cut(gravel_map, 80, 80)
+    map_mask = torch.ones(160, 160, dtype=torch.bool)
+    map_mask[:, :70] = False
+    result = localize(local, gravel_map, 9.0, shifts=8, center=(80, 80), map_mask=map_mask, min_overlap=0.75)
+    # Local columns 64 + dx .. 95 + dx; valid map columns >= 70: overlap fraction (96 + dx - 70) / 32 >= 0.75.
+    allowed_dx = [dx for dx in range(-8, 9) if (96 + dx - 70) / 32 >= 0.75]
+    finite = torch.isfinite(result.surface[0, 0])
+    assert finite.any(0).tolist() == [dx in allowed_dx for dx in range(-8, 9)]
+    assert finite.all(0).tolist() == finite.any(0).tolist()
+    assert result.pose[0, :2].round().tolist() == [0.0, 0.0]
+    with pytest.raises(ValueError, match=r"no candidate passes min_overlap in sample\(s\) \[0\]"):
+        localize(local, gravel_map, 9.0, shifts=(2, 8), center=(80, 60), map_mask=map_mask, min_overlap=0.75)
+
+
+def test_candidates_off_the_map_are_scored_on_their_overlap(gravel_map):
+    local = _cut(gravel_map, 20, 20)
+    result = localize(local, gravel_map, 4.0, shifts=8, center=(16, 16), min_overlap=0.5)
+    assert result.pose[0, :2].round().tolist() == [4.0, 4.0]
+    # Shifting up/left by 8 leaves (32 - 4)^2 / 32^2 of the image on the map (centre 16 - 8 = 8: rows 8-16 .. 23).
+    assert torch.isfinite(result.surface[0, 0, 0, 0])
+    tight = localize(local, gravel_map, 4.0, shifts=8, center=(16, 16), min_overlap=1.0)
+    assert not torch.isfinite(tight.surface[0, 0, 0, 0])
+    assert torch.isfinite(tight.surface[0, 0, 8:, 8:]).all()
+
+
+def test_subcell_peak_of_an_exact_quadratic_and_its_covariance():
+    rows, cols = torch.meshgrid(torch.arange(7.0).double(), torch.arange(9.0).double(), indexing="ij")
+    curvature = torch.tensor([[2.0, 0.6], [0.6, 1.2]], dtype=torch.float64)
+    offset = torch.stack([cols - 4.3, rows - 2.8], dim=-1)
+    plane = 5 - 0.5 * torch.einsum("...i,ij,...j->...", offset, curvature, offset)
+    sub_cell, covariance = _quadratic_peak(plane, 3, 4)
+    torch.testing.assert_close(sub_cell, torch.tensor([0.3, -0.2], dtype=torch.float64))
+    torch.testing.assert_close(covariance, torch.linalg.inv(curvature))
+    _, on_edge = _quadratic_peak(plane, 0, 4)
+    assert torch.isinf(on_edge.diagonal()).all()
+
+
+def test_fractional_shift_is_refined_below_one_cell():
+    rows, cols = torch.meshgrid(torch.arange(96.0), torch.arange(96.0), indexing="ij")
+    smooth = 128 + 60 * torch.sin(rows / 5.0) * torch.cos(cols / 7.0) + 40 * torch.sin((rows + cols) / 11.0)
+    smooth = smooth.double().reshape(1, 1, 96, 96)
+    shifted = 128 + 60 * torch.sin((rows + 0.3) / 5.0) * torch.cos((cols - 0.4) / 7.0)
+    shifted = (shifted + 40 * torch.sin((rows + cols - 0.1) / 11.0)).double().reshape(1, 1, 96, 96)
+    local = shifted[..., 32:64, 32:64]
+    result = localize(local, smooth, metric="ncc", shifts=4, center=(48, 48))
+    assert result.pose[0, :2].tolist() == pytest.approx([-0.4, 0.3], abs=0.1)
+
+
+def test_margin_is_the_gap_to_the_best_candidate_outside_the_exclusion_zone(gravel_map):
+    local = _noisy(_cut(gravel_map, 80, 80), 8.0)
+    result = localize(local, gravel_map, 64.0, shifts=8, center=(80, 80), yaws=[-3.0, 0.0, 3.0], exclusion_radius=2)
+    best_over_yaws = result.surface[0].amax(0)
+    row, col = divmod(int(best_over_yaws.argmax()), 17)
+    outside = best_over_yaws.clone()
+    outside[row - 2 : row + 3, col - 2 : col + 3] = -math.inf
+    assert result.margin[0].item() == pytest.approx((best_over_yaws.max() - outside.max()).item())
+    whole = localize(local, gravel_map, 64.0, shifts=2, center=(80, 80), exclusion_radius=2)
+    assert whole.margin[0].item() == math.inf
+
+
+def test_brick_is_more_ambiguous_than_gravel():
+    brick = torch.from_numpy(data.brick()[100:260, 150:310].astype(np.float64)).reshape(1, 1, 160, 160)
+    gravel = torch.from_numpy(data.gravel()[100:260, 150:310].astype(np.float64)).reshape(1, 1, 160, 160)
+    margins = []
+    for prior_map in (brick, gravel):
+        local = _noisy(_cut(prior_map, 80, 80), 20.0)
+        margins.append(localize(local, prior_map, 400.0, shifts=16, center=(80, 80), bins=16).margin[0])
+    assert margins[0] < margins[1]
+
+
+def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map):
+    local = _noisy(_cut(gravel_map, 91, 66, yaw=3.0), 3.0)
+    options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "bins": 16}
+    exhaustive = localize(local, gravel_map, 9.0, **options)
+    coarse = localize(local, gravel_map, 9.0, coarse_factor=4, **options)
+    torch.testing.assert_close(coarse.pose, exhaustive.pose)
+    assert coarse.pose[0].round().tolist() == [-14.0, 11.0, 3.0]
+    evaluated = torch.isfinite(coarse.surface)
+    assert 0 < evaluated.sum() < evaluated.numel() / 3
+    torch.testing.assert_close(coarse.surface[evaluated], exhaustive.surface[evaluated])
+
+
+def test_variance_model_and_its_valid_mask_are_used(gravel_map):
+    class DiscVariance(VarianceModel):
+        def forward(self, captured):
+            return torch.full_like(captured[:1], 9.0)
+
+        def valid_mask(self, captured):
+            rows, cols = torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij")
+            return ((rows - 15.5) ** 2 + (cols - 15.5) ** 2 <= 12**2).reshape(1, 1, 32, 32)
+
+    local = _cut(gravel_map, 83, 78)
+    disc = DiscVariance()
+    modelled = localize(local, gravel_map, disc, shifts=5, center=(80, 80))
+    explicit = localize(local, gravel_map, 9.0, shifts=5, center=(80, 80), local_mask=disc.valid_mask(local))
+    torch.testing.assert_close(modelled.surface, explicit.surface)
+    constant = localize(local, gravel_map, ConstantVariance(9.0), shifts=5, center=(80, 80))
+    assert not torch.equal(constant.surface, modelled.surface)
+
+
+def test_localizer_module_agrees_with_the_function(gravel_map):
+    local = _noisy(_cut(gravel_map, 77, 85), 3.0)
+    module = Localizer(ConstantVariance(9.0), shifts=6, yaws=[-1.0, 0.0, 1.0], bins=16)
+    function = localize(local, gravel_map, 9.0, shifts=6, yaws=[-1.0, 0.0, 1.0], bins=16)
+    by_module = module(local, gravel_map)
+    torch.testing.assert_close(by_module.surface, function.surface)
+    torch.testing.assert_close(by_module.pose, function.pose)
+    assert "yaws" not in module.state_dict()
+    with pytest.raises(ValueError, match="variance must be None when Localizer has a variance_model"):
+        module(local, gravel_map, 9.0)
+
+
+def test_command_line_prints_the_pose_and_writes_the_surface(gravel_map, tmp_path, capsys):
+    from PIL import Image
+
+    np.save(tmp_path / "map.npy", gravel_map[0, 0].numpy())
+    local = _cut(gravel_map, 84, 73, size=40, yaw=-4.0)
+    Image.fromarray(local[0, 0].round().clamp(0, 255).numpy().astype(np.uint8)).save(tmp_path / "local.png")
+    mask = np.ones((40, 40), dtype=bool)
+    mask[:4] = False
+    np.save(tmp_path / "mask.npy", mask)
+    output = tmp_path / "surface.png"
+    arguments = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.png"), "--variance", "4"]
+    arguments += ["--local-mask", str(tmp_path / "mask.npy"), "--shifts", "10", "--center", "80", "80"]
+    arguments += ["--yaws=-8:0:2", "--output", str(output)]
+    report = main(arguments)
+    printed = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert printed == report
+    assert (round(report["dx"]), round(report["dy"])) == (-7, 4)
+    assert abs(report["yaw_deg"] + 4.0) <= 1.0
+    assert output.stat().st_size > 1000
+    with pytest.raises(SystemExit):
+        main([*arguments[:-3], "--yaws=0:-3:1"])
+    assert "needs step > 0 and stop >= start" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="error: variance must be given for metric='enmi'"):
+        main(["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.png")])
+
+
+def _invalid_localize_cases(gravel_map):
+    local = _cut(gravel_map, 80, 80)
+    return [
+        ({"local": torch.zeros(1, 1, 170, 20)}, ValueError, "local must not be larger than prior_map"),
+        ({"local": local.long()}, TypeError, "local must be a floating-point tensor"),
+        ({"prior_map": torch.cat([gravel_map] * 2)}, ValueError, r"prior_map must have shape \(1, 1, Hm, Wm\)"),
+        ({"variance": torch.ones(1, 1, 31, 32)}, ValueError, r"variance must have shape \(32, 32\)"),
+        ({"variance": -torch.ones(32, 32)}, ValueError, "variance must be finite and > 0"),
+        ({"variance": None}, ValueError, "variance must be given for metric='enmi'"),
+        ({"metric": "nmi"}, ValueError, "variance is only used by metric='enmi'"),
+        ({"metric": "mi"}, ValueError, "metric must be one of"),
+        ({"local_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "local_mask selects no pixel"),
+        ({"local_mask": torch.ones(32, 32)}, TypeError, "local_mask must be a bool tensor"),
+        ({"map_mask": torch.zeros(160, 160, dtype=torch.bool)}, ValueError, "map_mask selects no cell"),
+        ({"map_mask": torch.ones(16, 16, dtype=torch.bool)}, ValueError, "map_mask must have shape"),
+        ({"shifts": -1}, ValueError, "shifts must be an int >= 0"),
+        ({"shifts": (2, 2.5)}, ValueError, "shifts must be an int >= 0"),
+        ({"yaws": []}, ValueError, "yaws must be a non-empty sequence"),
+        ({"yaws": [0.0, math.nan]}, ValueError, "yaws must be a non-empty sequence"),
+        ({"center": (80.5, 80)}, ValueError, r"center must be \(row, col\) integers"),
+        ({"center": torch.tensor([[80.0, 80.0]])}, ValueError, "center must be"),
+        ({"min_overlap": 0.0}, ValueError, r"min_overlap must be a fraction in \(0, 1\]"),
+        ({"exclusion_radius": -2}, ValueError, "exclusion_radius must be an int >= 0"),
+        ({"coarse_factor": 0}, ValueError, "coarse_factor must be an int >= 1"),
+        ({"coarse_factor": 64}, ValueError, "coarse_factor must not exceed the local image size"),
+        ({"bins": 1}, ValueError, "bins must be an int >= 2"),
+        ({"weights": "gauss"}, ValueError, "weights must be one of"),
+        ({"resample": "bicubic"}, ValueError, "resample must be one of"),
+    ], local
+
+
+@pytest.mark.parametrize("index", range(25))
+def test_invalid_inputs_raise_clear_errors(gravel_map, index):
+    cases, local = _invalid_localize_cases(gravel_map)
+    change, error, message = cases[index]
+    arguments = {"local": local, "prior_map": gravel_map, "variance": 9.0, "shifts": 4}
+    arguments.update(change)
+    with pytest.raises(error, match=message):
+        localize(**arguments)
+
+
+def test_nearest_rotation_keeps_each_pixel_and_its_variance():
+    generator = torch.Generator().manual_seed(3)
+    local = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 256
+    variance = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 50 + 1
+    valid = torch.ones(1, 1, 20, 20, dtype=torch.bool)
+    turned, turned_variance, turned_valid = _rotated(local, variance, valid, [0.0, 17.0, -40.0], "nearest")
+    assert torch.equal(turned[0], local[0]) and torch.equal(turned_variance[0], variance[0])
+    pairs = {(value, noise) for value, noise in zip(local.flatten().tolist(), variance.flatten().tolist(), strict=True)}
+    for yaw in (1, 2):
+        kept = turned_valid[yaw, 0]
+        assert 0.6 * 400 < kept.sum() < 400
+        moved = zip(turned[yaw, 0][kept].tolist(), turned_variance[yaw, 0][kept].tolist(), strict=True)
+        assert set(moved) <= pairs
+
+
+def test_bilinear_rotation_propagates_the_noise_variance():
+    generator = torch.Generator().manual_seed(4)
+    sigma2 = torch.full((1, 1, 16, 16), 9.0, dtype=torch.float64)
+    valid = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+    _, predicted, kept = _rotated(torch.zeros_like(sigma2), sigma2, valid, [23.0], "bilinear")
+    noise = 3.0 * torch.randn(4000, 1, 16, 16, generator=generator, dtype=torch.float64)
+    empirical = rotate(noise, torch.full((4000,), -23.0, dtype=torch.float64)).var(0)
+    ratio = empirical[kept[0]] / predicted[0][kept[0]]
+    # 4000 draws: each variance estimate is within about 3 * sqrt(2 / 4000) = 7 % of the truth.
+    assert ratio.sub(1).abs().max() < 0.1
+    assert predicted[0][kept[0]].min() < 0.6 * 9.0

@@ -1,0 +1,242 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from skimage import data
+
+from enmi_torch import enmi, gaussian_log_prior, nmi
+from enmi_torch.score_surface import (
+    Surface,
+    direct_surface,
+    enmi_surface,
+    fft_size,
+    ncc_surface,
+    nmi_surface,
+)
+
+
+def _case(dtype, *, batch=2, local_shape=(9, 7), window_shape=(16, 15), seed=0):
+    """Gravel local images (one cut from the window, noisy), per-pixel variances and masks with partial overlap."""
+    generator = torch.Generator().manual_seed(seed)
+    gravel = torch.from_numpy(data.gravel()).to(dtype)
+    window = gravel[100 : 100 + window_shape[0], 200 : 200 + window_shape[1]].reshape(1, 1, *window_shape)
+    height, width = local_shape
+    local = torch.rand(batch, 1, height, width, generator=generator, dtype=dtype) * 256
+    local[0] = window[..., 3 : 3 + height, 4 : 4 + width] + 6 * torch.randn(
+        height, width, generator=generator, dtype=dtype
+    )
+    variance = torch.rand(batch, 1, height, width, generator=generator, dtype=dtype) * 60 + 2
+    local_mask = torch.rand(batch, 1, height, width, generator=generator) > 0.25
+    window_mask = torch.rand(1, 1, *window_shape, generator=generator) > 0.15
+    # An unmapped band: the placements on the left overlap it partly, the first ones almost entirely.
+    window_mask[..., : width - 1] = False
+    window_mask[..., :2, width - 1] = False
+    return local, window, variance, local_mask, window_mask
+
+
+@pytest.mark.parametrize(
+    ("metric", "options"),
+    [
+        ("enmi", {"weights": "mass"}),
+        ("enmi", {"weights": "density"}),
+        ("enmi", {"weights": "mass", "log_prior": "prior"}),
+        ("nmi", {}),
+        ("ncc", {}),
+    ],
+)
+def test_fft_surface_equals_direct_loop_with_masks_and_partial_overlap(metric, options):
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    options = dict(options)
+    if options.get("log_prior") == "prior":
+        options["log_prior"] = gaussian_log_prior(128.0, 40.0, 12, (0.0, 256.0), dtype=torch.float64)
+    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    binned = {} if metric == "ncc" else {"bins": 12, "value_range": (0.0, 256.0)}
+    if metric == "enmi":
+        fast = enmi_surface(local, window, variance, **binned, **options, **masks)
+    elif metric == "nmi":
+        fast = nmi_surface(local, window, **binned, **masks)
+    else:
+        fast = ncc_surface(local, window, **masks)
+    reference = direct_surface(
+        local, window, variance if metric == "enmi" else None, metric=metric, **binned, **options, **masks
+    )
+    assert isinstance(fast, Surface)
+    assert fast.score.shape == (2, 8, 9)
+    assert fast.score.dtype == torch.float64
+    # The window mask leaves some placements with partial and some with tiny overlap.
+    assert reference.overlap.min() < 10 < reference.overlap.max()
+    torch.testing.assert_close(fast.overlap, reference.overlap, rtol=0, atol=0)
+    torch.testing.assert_close(fast.score, reference.score, rtol=0, atol=1e-9)
+
+
+def test_surface_entries_equal_the_public_scores_at_each_placement():
+    local, window, variance, local_mask, window_mask = _case(torch.float64, batch=1)
+    fast_enmi = enmi_surface(local, window, variance, bins=16, local_mask=local_mask, window_mask=window_mask)
+    fast_nmi = nmi_surface(local, window, bins=16, local_mask=local_mask, window_mask=window_mask)
+    for row, col in [(0, 8), (4, 6), (7, 8), (3, 4)]:
+        section = window[..., row : row + 9, col : col + 7]
+        valid = local_mask & window_mask[..., row : row + 9, col : col + 7]
+        expected = enmi(local, section, variance, bins=16, valid_mask=valid)
+        torch.testing.assert_close(fast_enmi.score[:, row, col], expected, rtol=0, atol=1e-9)
+        torch.testing.assert_close(fast_nmi.score[:, row, col], nmi(local, section, bins=16, valid_mask=valid))
+
+
+def test_ncc_entries_equal_numpy_corrcoef():
+    local, window, _, local_mask, window_mask = _case(torch.float64, batch=1)
+    surface = ncc_surface(local, window, local_mask=local_mask, window_mask=window_mask)
+    for row, col in [(0, 8), (5, 7), (7, 6)]:
+        valid = (local_mask & window_mask[..., row : row + 9, col : col + 7]).numpy().ravel()
+        captured = local.numpy().ravel()[valid]
+        section = window[..., row : row + 9, col : col + 7].numpy().ravel()[valid]
+        assert surface.score[0, row, col].item() == pytest.approx(np.corrcoef(captured, section)[0, 1], abs=1e-9)
+
+
+@pytest.mark.parametrize("metric", ["enmi", "nmi", "ncc"])
+def test_float32_surface_is_close_to_the_float64_reference(metric):
+    local, window, variance, local_mask, window_mask = _case(torch.float64, local_shape=(24, 20), window_shape=(34, 33))
+    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    reference = direct_surface(local, window, variance if metric == "enmi" else None, metric=metric, bins=16, **masks)
+    single = {"local": local.float(), "window": window.float(), **masks}
+    if metric == "enmi":
+        fast = enmi_surface(variance=variance.float(), bins=16, **single)
+    elif metric == "nmi":
+        fast = nmi_surface(bins=16, **single)
+    else:
+        fast = ncc_surface(**single)
+    assert fast.score.dtype == torch.float32
+    torch.testing.assert_close(fast.overlap.double(), reference.overlap, rtol=0, atol=0)
+    torch.testing.assert_close(fast.score.double(), reference.score, rtol=0, atol=2e-5)
+
+
+def test_batched_surface_equals_per_sample_calls_and_per_sample_windows():
+    local, window, variance, local_mask, _ = _case(torch.float64, batch=3)
+    windows = torch.cat([window, window.flip(-1), window.flip(-2)])
+    batched = enmi_surface(local, windows, variance, bins=8, local_mask=local_mask)
+    for sample in range(3):
+        single = enmi_surface(
+            local[sample : sample + 1],
+            windows[sample : sample + 1],
+            variance[sample : sample + 1],
+            bins=8,
+            local_mask=local_mask[sample : sample + 1],
+        )
+        torch.testing.assert_close(batched.score[sample], single.score[0], rtol=0, atol=1e-12)
+    shared = enmi_surface(local, window, variance, bins=8, local_mask=local_mask)
+    torch.testing.assert_close(shared.score[0], batched.score[0], rtol=0, atol=1e-12)
+
+
+def test_enmi_surface_tends_to_the_nmi_surface_as_the_variance_vanishes():
+    local, window, _, local_mask, window_mask = _case(torch.float64)
+    # Half-integer values sit 0.5 grey levels from every bin edge: far out of reach of a vanishing variance.
+    local = local.floor() + 0.5
+    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    sharp = enmi_surface(local, window, 1e-8, bins=16, **masks)
+    hard = nmi_surface(local, window, bins=16, **masks)
+    torch.testing.assert_close(sharp.score, hard.score, rtol=0, atol=1e-9)
+
+
+def test_placement_without_overlap_scores_as_independent_images():
+    local, window, variance, _, _ = _case(torch.float64, batch=1)
+    window_mask = torch.ones(1, 1, 16, 15, dtype=torch.bool)
+    window_mask[..., :, :7] = False
+    for surface, empty_score in [
+        (enmi_surface(local, window, variance, bins=8, window_mask=window_mask), 1.0),
+        (nmi_surface(local, window, bins=8, window_mask=window_mask), 1.0),
+        (ncc_surface(local, window, window_mask=window_mask), 0.0),
+    ]:
+        assert surface.overlap[0, :, 0].eq(0).all()
+        assert surface.score[0, :, 0].eq(empty_score).all()
+        assert surface.overlap[0, :, 1].gt(0).all()
+
+
+def test_peak_is_at_the_cut_position():
+    local, window, variance, _, _ = _case(torch.float32, batch=1, local_shape=(20, 20), window_shape=(40, 40))
+    for surface in [enmi_surface(local, window, variance), nmi_surface(local, window), ncc_surface(local, window)]:
+        assert divmod(int(surface.score[0].flatten().argmax()), 21) == (3, 4)
+
+
+def test_surfaces_of_nan_pixels_outside_the_masks_are_finite():
+    local, window, variance, local_mask, window_mask = _case(torch.float64, batch=1)
+    local = local.masked_fill(~local_mask, math.nan)
+    window = window.masked_fill(~window_mask, math.nan)
+    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    for surface in [
+        enmi_surface(local, window, variance, **masks),
+        nmi_surface(local, window, **masks),
+        ncc_surface(local, window, **masks),
+    ]:
+        assert torch.isfinite(surface.score).all()
+
+
+def test_fft_size_is_the_smallest_five_smooth_length():
+    def smooth(number):
+        for prime in (2, 3, 5):
+            while number % prime == 0:
+                number //= prime
+        return number == 1
+
+    for length in range(1, 400):
+        size = fft_size(length)
+        assert size >= length and smooth(size)
+        assert not any(smooth(candidate) for candidate in range(length, size))
+
+
+def test_surface_runs_on_the_device(device):
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    expected = enmi_surface(local, window, variance, local_mask=local_mask, window_mask=window_mask)
+    moved = enmi_surface(
+        local.to(device),
+        window.to(device),
+        variance.to(device),
+        local_mask=local_mask.to(device),
+        window_mask=window_mask.to(device),
+    )
+    torch.testing.assert_close(moved.score.cpu(), expected.score)
+
+
+def _invalid_cases():
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    empty_local = torch.zeros_like(local_mask)
+    empty_local[0] = True
+    return [
+        ({"local": local.long()}, TypeError, "local must be a floating-point tensor"),
+        ({"local": local[:, 0]}, ValueError, r"local must have shape \(B, 1, h, w\)"),
+        ({"window": window[..., :8, :]}, ValueError, "window must be at least as large as local"),
+        ({"window": torch.cat([window] * 3)}, ValueError, r"window must have shape \(1, 1, Hw, Ww\) or \(2, 1"),
+        ({"variance": variance[..., :5]}, ValueError, "variance must have the spatial shape"),
+        ({"variance": -variance}, ValueError, "variance must be finite and > 0"),
+        ({"variance": None}, ValueError, "variance must be a number or a tensor"),
+        ({"local_mask": local_mask.float()}, TypeError, "local_mask must be a bool tensor"),
+        ({"local_mask": empty_local}, ValueError, r"local_mask selects no pixel in sample\(s\) \[1\]"),
+        ({"window_mask": torch.zeros_like(window_mask)}, ValueError, "window_mask selects no pixel"),
+        ({"window_mask": window_mask[..., :3]}, ValueError, "window_mask must have the spatial shape"),
+        ({"local": local.masked_fill(local_mask, math.nan)}, ValueError, "local must be finite"),
+        ({"bins": 1}, ValueError, "bins must be an int >= 2"),
+        ({"value_range": (5.0, 1.0)}, ValueError, "value_range must be finite with low < high"),
+        ({"weights": "gauss"}, ValueError, "weights must be one of"),
+        ({"log_prior": torch.zeros(3)}, ValueError, r"log_prior must have shape \(32,\)"),
+    ], (local, window, variance, local_mask, window_mask)
+
+
+@pytest.mark.parametrize("index", range(16))
+def test_invalid_inputs_raise_clear_errors(index):
+    cases, (local, window, variance, local_mask, window_mask) = _invalid_cases()
+    change, error, message = cases[index]
+    arguments = {"local": local, "window": window, "variance": variance, "local_mask": local_mask}
+    arguments["window_mask"] = window_mask
+    arguments.update(change)
+    with pytest.raises(error, match=message):
+        enmi_surface(**arguments)
+
+
+def test_direct_surface_checks_its_metric_and_variance():
+    local, window, variance, _, _ = _case(torch.float64)
+    with pytest.raises(ValueError, match="metric must be one of"):
+        direct_surface(local, window, variance, metric="mi")
+    with pytest.raises(ValueError, match="variance must be given for metric='enmi' and only then"):
+        direct_surface(local, window, variance, metric="nmi")
+    with pytest.raises(ValueError, match="variance must be given for metric='enmi' and only then"):
+        direct_surface(local, window, metric="enmi")
+    with pytest.raises(ValueError, match="window must be at least as large as local"):
+        ncc_surface(local, window[..., :, :3])
