@@ -31,7 +31,7 @@ matched against a map made by another sensor: the case mutual information is for
 Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model and writes
 ``data_tools/figures/localization_success.png`` (``localization_success_nonmonotonic.png``).
 
-    python data_tools/localization_benchmark.py                 # 30 s to 2 minutes on 2 CPU cores
+    python data_tools/localization_benchmark.py                 # 26 s (quiet) to 150 s (busy) on a 2-core CPU
     python data_tools/localization_benchmark.py --response nonmonotonic
     python data_tools/localization_benchmark.py --trials 100    # tighter rates
     python data_tools/localization_benchmark.py --example /tmp/enmi_example   # files for the command line tool
