@@ -5,20 +5,23 @@ a stop bar) and ``brick()``, a repetitive, ambiguous pattern. Each trial cuts a 
 integer shift within the search window and a yaw on the searched grid) around a random prior position, rotated
 with kornia, and adds Gaussian noise of per-cell variance given by one of two sensor models:
 
-* ``camera``: the rectified bird's-eye view of the paper's road camera (``RoadCamera.paper()``): rows are 2.5 cm
-  ground cells from 200 cm (top) to 40 cm (bottom) ahead, columns are lateral; sigma^2 = N0 / A~ with A~ the
-  projected area of each cell (``camera.projected_area``), which grows as z^-3 less with distance: far cells are
-  noisy; cells outside the horizontal field of view are invalid.
-* ``lidar``: sigma^2 = N0 (1 + 3 (r / R)^2) growing with the range r from the vehicle at the image centre; cells
-  beyond R (half the image) are out of range and invalid.
+* ``camera``: the rectified bird's-eye view of the paper's road camera (``RoadCamera.paper()``), from
+  :func:`enmi_torch.data.truth.camera_truth`: a :class:`~enmi_torch.rectify.GroundGrid` of 2.5 cm cells from 200 cm
+  (row 0) to 40 cm ahead (the camera's visible distance range), columns lateral, with the analytic variance
+  sigma^2 = N0 / A~ of :func:`enmi_torch.variance.perspective_variance` (A~ the focal-plane area of each cell's
+  visible part, paper eq. TildeA: far cells are noisy); cells whose centre the camera does not see
+  (:func:`enmi_torch.rectify.visible_cells`) are invalid.
+* ``lidar``: :func:`enmi_torch.data.truth.lidar_truth`, sigma^2 = N0 (1 + 3 (r / R)^2) growing with the range r from
+  the vehicle at the image centre; cells beyond R (half the image) are out of range and invalid.
 
 The local image is then searched by :func:`enmi_torch.localize.localize` (shifts within +-8 cells, yaws -4..4 by
 2 degrees) with:
 
 * ENMI, analytic: the true variance map of the sensor model;
-* ENMI, learned: the empirical mask of the paper's section "Ford Image Analysis",
-  Var[i, j] = 1 / (n - 1) sum_k (a_ij - a~_ij)^2 over ``--pairs`` synthetic local/prior pairs at random poses
-  (aligned, so the differences are the sensor noise); cells never observed are invalid;
+* ENMI, learned: the paper's empirical mask (section "Ford Image Analysis"),
+  Var[i, j] = 1 / (n - 1) sum_k (a_ij - a~_ij)^2, computed by :func:`enmi_torch.variance.empirical_variance` over
+  ``--pairs`` synthetic aligned pairs at random poses (noisy local image against its noiseless rendering, so the
+  residuals are the sensor noise); cells it never observed are invalid;
 * NMI (hard bins) and NCC, on the same valid cells.
 
 With ``--response nonmonotonic`` the local sensor sees the ground through a non-monotonic grey-level response
@@ -28,7 +31,7 @@ matched against a map made by another sensor: the case mutual information is for
 Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model and writes
 ``data_tools/figures/localization_success.png`` (``localization_success_nonmonotonic.png``).
 
-    python data_tools/localization_benchmark.py                 # 30 s to 2 minutes on 2 CPU cores
+    python data_tools/localization_benchmark.py                 # 26 s (quiet) to 150 s (busy) on a 2-core CPU
     python data_tools/localization_benchmark.py --response nonmonotonic
     python data_tools/localization_benchmark.py --trials 100    # tighter rates
     python data_tools/localization_benchmark.py --example /tmp/enmi_example   # files for the command line tool
@@ -45,8 +48,10 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch.camera import RoadCamera, projected_area
+from enmi_torch.camera import RoadCamera
+from enmi_torch.data.truth import camera_truth, lidar_truth
 from enmi_torch.localize import localize
+from enmi_torch.variance import empirical_variance
 
 LOCAL = 64
 RADIUS = 8
@@ -72,25 +77,13 @@ def prior_map(name: str) -> torch.Tensor:
 
 
 def sensor_model(name: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """Variance per unit noise power and the valid cells, ``(1, 1, LOCAL, LOCAL)`` each."""
-    rows, cols = torch.meshgrid(
-        torch.arange(LOCAL, dtype=torch.float64), torch.arange(LOCAL, dtype=torch.float64), indexing="ij"
-    )
+    """Variance per unit noise power (1 where invalid) and the valid cells, ``(1, 1, LOCAL, LOCAL)`` each."""
     if name == "lidar":
-        reach = LOCAL / 2
-        distance = ((rows - (LOCAL - 1) / 2) ** 2 + (cols - (LOCAL - 1) / 2) ** 2).sqrt()
-        return (1 + 3 * (distance / reach) ** 2).reshape(1, 1, LOCAL, LOCAL), (distance <= reach).reshape(
-            1, 1, LOCAL, LOCAL
-        )
-    camera = RoadCamera.paper()
-    near, far = camera.visible_distance_range()
-    cell = (far - near) / LOCAL
-    distance_far = far - rows * cell  # row 0 is the farthest strip
-    distance_near = distance_far - cell
-    lateral = (cols - LOCAL / 2 + 0.5) * cell
-    area = projected_area(camera, lateral - cell / 2, lateral + cell / 2, distance_near, distance_far)
-    valid = lateral.abs() + cell / 2 <= camera.visible_half_width(distance_near)
-    return (1 / area).reshape(1, 1, LOCAL, LOCAL), valid.reshape(1, 1, LOCAL, LOCAL)
+        truth = lidar_truth((LOCAL, LOCAL), 1.0, 2.0, range_fraction=1.0)
+    else:
+        truth = camera_truth((LOCAL, LOCAL), 1.0, distance_range=RoadCamera.paper().visible_distance_range())
+    unit_variance = torch.where(truth.valid, truth.variance, 1.0)
+    return unit_variance.reshape(1, 1, LOCAL, LOCAL), truth.valid.reshape(1, 1, LOCAL, LOCAL)
 
 
 def cut(prior: torch.Tensor, centers: torch.Tensor, yaws: torch.Tensor) -> torch.Tensor:
@@ -112,15 +105,13 @@ def random_poses(generator: torch.Generator, count: int, margin: int):
 
 
 def learned_mask(prior, unit_variance, valid, noise_power, pairs, generator, response):
-    """The paper's empirical variance from ``pairs`` aligned local/prior pairs, and the cells it observed."""
+    """The paper's empirical variance from ``pairs`` aligned local/prior pairs (1 where unobserved), and its cells."""
     centers = torch.randint(2 * LOCAL, 512 - 2 * LOCAL, (pairs, 2), generator=generator)
     yaws = (torch.rand(pairs, generator=generator, dtype=torch.float64) - 0.5) * 360
     clean = sensor_response(cut(prior, centers, yaws), response)
     noise = torch.randn(clean.shape, generator=generator, dtype=torch.float64) * (noise_power * unit_variance).sqrt()
-    difference = torch.where(valid, (clean + noise) - clean, 0.0)
-    variance = difference.square().sum(0, keepdim=True) / (pairs - 1)
-    observed = valid & (variance > 0)
-    return torch.where(observed, variance, 1.0), observed
+    variance, observed = empirical_variance(clean + noise, clean, valid)
+    return torch.where(observed, variance, 1.0).reshape(valid.shape), observed.reshape(valid.shape)
 
 
 def sensor_response(values: torch.Tensor, response: str) -> torch.Tensor:

@@ -162,3 +162,44 @@ def check_mask_not_empty(name: str, valid: Tensor) -> None:
     if bool(empty.any()):
         samples = torch.nonzero(empty).flatten().tolist()
         raise ValueError(f"{name} selects no pixel in sample(s) {samples}; every sample needs at least one pixel")
+
+
+def check_log_prior(log_prior: Any, bins: int, batch: int) -> Tensor:
+    """Raise unless ``log_prior`` is a float ``(bins,)``, ``(1, bins)`` or ``(batch, bins)`` without NaN or +inf.
+
+    Returns it as ``(1 or batch, 1, bins)``; ``-inf`` (a bin the prior rules out) is allowed.
+    """
+    check_floating("log_prior", log_prior)
+    if log_prior.shape not in ((bins,), (1, bins), (batch, bins)):
+        raise ValueError(
+            f"log_prior must have shape ({bins},), (1, {bins}) or ({batch}, {bins}), got {tuple(log_prior.shape)}"
+        )
+    if log_prior.device.type == "cpu" and bool(torch.isnan(log_prior).any() | torch.isposinf(log_prior).any()):
+        raise ValueError("log_prior must hold finite values or -inf, got NaN or +inf")
+    return log_prior.reshape(-1, 1, bins)
+
+
+def check_local_in_map(local: Any, map_image: Any, map_name: str, map_dims: str) -> tuple[int, int, int]:
+    """Raise unless ``local`` is ``(B, 1, h, w)`` and ``map_image`` ``(1 or B, 1, H, W)`` with ``H >= h``, ``W >= w``.
+
+    Both must be floating point and on one device; ``map_dims`` names the map's sizes in messages (``"Hw, Ww"``).
+    Returns ``(B, h, w)``.
+    """
+    check_floating("local", local)
+    if local.ndim != 4 or local.shape[1] != 1 or 0 in local.shape:
+        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
+    check_floating(map_name, map_image)
+    batch, _, height, width = local.shape
+    if map_image.ndim != 4 or map_image.shape[1] != 1 or map_image.shape[0] not in (1, batch):
+        raise ValueError(
+            f"{map_name} must have shape (1, 1, {map_dims}) or ({batch}, 1, {map_dims}) for local of batch {batch}, "
+            f"got {tuple(map_image.shape)}"
+        )
+    if map_image.shape[2] < height or map_image.shape[3] < width:
+        raise ValueError(
+            f"local must not be larger than {map_name}: {map_name} must be at least as large as local in both "
+            f"dimensions, got local {(height, width)} and {map_name} {tuple(map_image.shape[2:])}"
+        )
+    if map_image.device != local.device:
+        raise ValueError(f"{map_name} must be on the device of local ({local.device}), got {map_image.device}")
+    return batch, height, width

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_tensor
+from enmi_torch._checks import check_floating, check_mask_not_empty, check_positive_where, check_tensor
 
 
 def spatial_shape(name: str, image: Tensor) -> tuple[int, ...]:
@@ -63,3 +64,26 @@ def scalar_or_map(name: str, values: Tensor | float, like: Tensor) -> Tensor:
     if values.ndim == 0:
         return values.reshape(1, 1)
     return broadcast_map(name, values, like)
+
+
+def mask_map(name: str, mask: Any, like: Tensor, like_name: str = "captured") -> Tensor:
+    """A bool mask given as :func:`broadcast_map` accepts, as ``(B, N)`` for ``like``'s batch ``B`` (a view).
+
+    Raises ``TypeError`` unless it is a bool tensor and ``ValueError`` if a sample selects no pixel.
+    """
+    check_tensor(name, mask)
+    if mask.dtype != torch.bool:
+        raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
+    valid = broadcast_map(name, mask, like, like_name).to(like.device).expand(like.shape[0], -1)
+    check_mask_not_empty(name, valid)
+    return valid
+
+
+def variance_map(name: str, variance: Tensor | float, like: Tensor, dtype: torch.dtype, valid: Tensor | None) -> Tensor:
+    """A variance given as :func:`scalar_or_map` accepts, as ``(B, N)`` in ``dtype``, > 0 where ``valid``, 1 elsewhere.
+
+    ``valid`` is ``None`` (every pixel) or a bool ``(B, N)``.
+    """
+    flat = scalar_or_map(name, variance, like).to(dtype).expand(like.shape[0], like[0].numel())
+    check_positive_where(name, flat, valid)
+    return flat if valid is None else torch.where(valid, flat, 1.0)

@@ -15,13 +15,12 @@ from enmi_torch._checks import (
     check_bins,
     check_finite_where,
     check_floating,
-    check_mask_not_empty,
+    check_log_prior,
     check_option,
-    check_positive_where,
     check_tensor,
     check_value_range,
 )
-from enmi_torch._layout import broadcast_map, flatten_image, scalar_or_map
+from enmi_torch._layout import flatten_image, mask_map, variance_map
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
@@ -232,13 +231,7 @@ def _prepare(
     if reference_flat.shape[0] == 0:
         raise ValueError(f"reference must hold at least one candidate, got shape {tuple(reference.shape)}")
 
-    valid = None
-    if valid_mask is not None:
-        check_tensor("valid_mask", valid_mask)
-        if valid_mask.dtype != torch.bool:
-            raise TypeError(f"valid_mask must be a bool tensor, got dtype {valid_mask.dtype}")
-        valid = broadcast_map("valid_mask", valid_mask, captured).expand(batch, pixels)
-        check_mask_not_empty("valid_mask", valid)
+    valid = None if valid_mask is None else mask_map("valid_mask", valid_mask, captured)
     check_finite_where("captured", captured_flat, valid)
     check_finite_where("reference", reference_flat, valid)
     if valid is not None:
@@ -246,16 +239,11 @@ def _prepare(
         captured_flat = torch.where(valid, captured_flat, value_range[0])
         reference_flat = torch.where(valid, reference_flat, value_range[0])
     pair_weight = None if valid is None else valid.to(compute_dtype)
-
     variance = None
     if captured_variance is not None:
-        variance = scalar_or_map("captured_variance", captured_variance, captured)
-        variance = variance.to(compute_dtype).expand(batch, pixels)
-        check_positive_where("captured_variance", variance, valid)
-        if valid is not None:
-            variance = torch.where(valid, variance, 1.0)
+        variance = variance_map("captured_variance", captured_variance, captured, compute_dtype, valid)
     if log_prior is not None:
-        log_prior = _check_log_prior(log_prior, bins, batch).to(compute_dtype)
+        log_prior = check_log_prior(log_prior, bins, batch).to(compute_dtype)
 
     return _Inputs(
         captured_flat,
@@ -270,17 +258,6 @@ def _prepare(
         with_candidates,
         out_dtype,
     )
-
-
-def _check_log_prior(log_prior: Tensor, bins: int, batch: int) -> Tensor:
-    check_floating("log_prior", log_prior)
-    if log_prior.shape not in ((bins,), (1, bins), (batch, bins)):
-        raise ValueError(
-            f"log_prior must have shape ({bins},), (1, {bins}) or ({batch}, {bins}), got {tuple(log_prior.shape)}"
-        )
-    if log_prior.device.type == "cpu" and bool(torch.isnan(log_prior).any() | torch.isposinf(log_prior).any()):
-        raise ValueError("log_prior must hold finite values or -inf, got NaN or +inf")
-    return log_prior.reshape(-1, 1, bins)
 
 
 def _reference_rows(reference: Tensor, bins: int, value_range: tuple[float, float]) -> Tensor:

@@ -54,8 +54,12 @@ def nmi_from_joint_histogram(counts: Tensor) -> Tensor:
     return _nmi_from_entropies(*entropies(counts))
 
 
-def _nmi_from_entropies(captured_entropy: Tensor, reference_entropy: Tensor, joint_entropy: Tensor) -> Tensor:
-    informative = joint_entropy > torch.finfo(joint_entropy.dtype).eps
+def _nmi_from_entropies(
+    captured_entropy: Tensor, reference_entropy: Tensor, joint_entropy: Tensor, informative: Tensor | None = None
+) -> Tensor:
+    """``(H[A] + H[B]) / H[A, B]`` where ``informative`` (default: ``H[A, B] > eps``), 1 elsewhere."""
+    if informative is None:
+        informative = joint_entropy > torch.finfo(joint_entropy.dtype).eps
     safe_joint = torch.where(informative, joint_entropy, torch.ones_like(joint_entropy))
     return torch.where(informative, (captured_entropy + reference_entropy) / safe_joint, torch.ones_like(safe_joint))
 

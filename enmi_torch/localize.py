@@ -32,7 +32,14 @@ import torch
 from kornia.geometry.transform import rotate
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_bins, check_floating, check_option, check_tensor, check_value_range
+from enmi_torch._checks import (
+    check_bins,
+    check_floating,
+    check_local_in_map,
+    check_option,
+    check_tensor,
+    check_value_range,
+)
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
 from enmi_torch.score_surface import METRICS, Surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance.base import VarianceModel
@@ -143,21 +150,7 @@ def localize(
     """
     check_option("metric", metric, METRICS)
     check_option("resample", resample, RESAMPLING)
-    check_floating("local", local)
-    if local.ndim != 4 or local.shape[1] != 1 or 0 in local.shape:
-        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
-    check_floating("prior_map", prior_map)
-    batch, _, height, width = local.shape
-    if prior_map.ndim != 4 or prior_map.shape[1] != 1 or prior_map.shape[0] not in (1, batch):
-        raise ValueError(
-            f"prior_map must have shape (1, 1, Hm, Wm) or ({batch}, 1, Hm, Wm) for local of batch {batch}, "
-            f"got {tuple(prior_map.shape)}"
-        )
-    if prior_map.shape[2] < height or prior_map.shape[3] < width:
-        raise ValueError(
-            f"local must not be larger than prior_map, got local {(height, width)} and prior_map "
-            f"{tuple(prior_map.shape[2:])}"
-        )
+    batch = check_local_in_map(local, prior_map, "prior_map", "Hm, Wm")[0]
     radius = _check_shifts(shifts)
     centers = _check_center(center, batch, tuple(prior_map.shape[2:]), local.device)
     yaw_list = _check_yaws(yaws)

@@ -33,17 +33,15 @@ from torch import Tensor
 from enmi_torch._checks import (
     check_bins,
     check_finite_where,
-    check_floating,
-    check_mask_not_empty,
+    check_local_in_map,
+    check_log_prior,
     check_option,
-    check_positive_where,
-    check_tensor,
     check_value_range,
 )
-from enmi_torch._layout import broadcast_map, scalar_or_map
+from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights
-from enmi_torch.histogram import _check_log_prior, joint_histogram
-from enmi_torch.information import nmi_from_joint_histogram
+from enmi_torch.histogram import joint_histogram
+from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
 
 METRICS = ("enmi", "nmi", "ncc")
 
@@ -119,7 +117,7 @@ def enmi_surface(
     inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
     batch = inputs.local.shape[0]
     if log_prior is not None:
-        log_prior = _check_log_prior(log_prior, bins, batch).to(inputs.local.dtype).unsqueeze(1)
+        log_prior = check_log_prior(log_prior, bins, batch).to(inputs.local.dtype).unsqueeze(1)
     with torch.no_grad():
         plane_weights = likelihood_weights(inputs.local, inputs.variance, bins, value_range, weights, log_prior)
         return _information_surface(plane_weights, inputs, bins, value_range)
@@ -237,7 +235,7 @@ def direct_surface(
     inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
     batch, height, width = inputs.local.shape
     if log_prior is not None:
-        log_prior = _check_log_prior(log_prior, bins, batch).reshape(-1, bins)
+        log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins)
     rows = inputs.window.shape[1] - height + 1
     cols = inputs.window.shape[2] - width + 1
     score = inputs.local.new_empty(batch, rows, cols)
@@ -293,38 +291,20 @@ def _check_inputs(
     variance: Tensor | float | None = None,
 ) -> _Inputs:
     """Shapes, masks and values checked; images as ``(B, h, w)`` and ``(Bw, Hw, Ww)`` in the compute dtype."""
-    check_floating("local", local)
-    if local.ndim != 4 or local.shape[1] != 1 or local.shape[0] == 0 or local.numel() == 0:
-        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
-    check_floating("window", window)
-    batch, _, height, width = local.shape
-    if window.ndim != 4 or window.shape[1] != 1 or window.shape[0] not in (1, batch):
-        raise ValueError(
-            f"window must have shape (1, 1, Hw, Ww) or ({batch}, 1, Hw, Ww) for local of batch {batch}, "
-            f"got {tuple(window.shape)}"
-        )
-    if window.shape[2] < height or window.shape[3] < width:
-        raise ValueError(
-            f"window must be at least as large as local in both dimensions, got window {tuple(window.shape[2:])} "
-            f"for local {(height, width)}"
-        )
-    if window.device != local.device:
-        raise ValueError(f"window must be on the device of local ({local.device}), got {window.device}")
+    batch, height, width = check_local_in_map(local, window, "window", "Hw, Ww")
     dtype = torch.float64 if local.dtype == torch.float64 else torch.float32
     local_flat = local.reshape(batch, -1).to(dtype)
     window_flat = window.reshape(window.shape[0], -1).to(dtype)
 
-    local_valid = _mask("local_mask", local_mask, local).expand(batch, -1)
-    window_valid = _mask("window_mask", window_mask, window).expand(window.shape[0], -1)
+    local_valid = _mask("local_mask", local_mask, local)
+    window_valid = _mask("window_mask", window_mask, window)
     check_finite_where("local", local_flat, local_valid)
     check_finite_where("window", window_flat, window_valid)
     local_flat = torch.where(local_valid, local_flat, value_range[0])
     window_flat = torch.where(window_valid, window_flat, value_range[0])
     variance_flat = None
     if variance is not None:
-        variance_flat = scalar_or_map("variance", variance, local).to(dtype).expand(batch, -1)
-        check_positive_where("variance", variance_flat, local_valid)
-        variance_flat = torch.where(local_valid, variance_flat, 1.0).reshape(batch, height, width)
+        variance_flat = variance_map("variance", variance, local, dtype, local_valid).reshape(batch, height, width)
     return _Inputs(
         local_flat.reshape(batch, height, width),
         window_flat.reshape(window.shape[0], *window.shape[2:]),
@@ -335,15 +315,10 @@ def _check_inputs(
 
 
 def _mask(name: str, mask: Tensor | None, like: Tensor) -> Tensor:
-    """A bool mask as ``(1 or B, N)``; all ``True`` when ``None``; raises if a sample selects no pixel."""
+    """A bool mask as ``(B, N)`` for ``like``'s batch; all ``True`` when ``None``; raises if a sample selects none."""
     if mask is None:
-        return torch.ones(1, like[0].numel(), dtype=torch.bool, device=like.device)
-    check_tensor(name, mask)
-    if mask.dtype != torch.bool:
-        raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
-    flat = broadcast_map(name, mask, like, "local" if name == "local_mask" else "window")
-    check_mask_not_empty(name, flat)
-    return flat.to(like.device)
+        return torch.ones(like.shape[0], like[0].numel(), dtype=torch.bool, device=like.device)
+    return mask_map(name, mask, like, "local" if name == "local_mask" else "window")
 
 
 def fft_size(length: int) -> int:
@@ -453,8 +428,7 @@ def _information_surface(
         captured_entropy = log_total - captured_sum / total
         reference_entropy = log_total - reference_sum / total
         informative = (joint_entropy > informative_above) & (overlap > 0)
-        safe_joint = torch.where(informative, joint_entropy, 1.0)
-        score = torch.where(informative, (captured_entropy + reference_entropy) / safe_joint, 1.0)
+        score = _nmi_from_entropies(captured_entropy, reference_entropy, joint_entropy, informative)
         scores.append(score.transpose(0, 1))
         overlaps.append(overlap.transpose(0, 1))
     return Surface(torch.stack(scores), torch.stack(overlaps))
