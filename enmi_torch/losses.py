@@ -12,6 +12,14 @@ from enmi_torch.variance.base import VarianceModel
 REDUCTIONS = ("none", "mean", "sum")
 
 
+def _store_histogram_options(module: nn.Module, bins, value_range, reference_kernel, reduction) -> None:
+    """Check and store the hyper-parameters both losses share."""
+    module.bins = check_bins(bins)
+    module.value_range = check_value_range(value_range)
+    module.reference_kernel = check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
+    module.reduction = check_option("reduction", reduction, REDUCTIONS)
+
+
 def _reduce(loss: Tensor, reduction: str) -> Tensor:
     if reduction == "mean":
         return loss.mean()
@@ -45,11 +53,8 @@ class NMILoss(nn.Module):
         reduction: str = "mean",
     ) -> None:
         super().__init__()
-        self.bins = check_bins(bins)
-        self.value_range = check_value_range(value_range)
+        _store_histogram_options(self, bins, value_range, reference_kernel, reduction)
         self.kernel = check_option("kernel", kernel, PARZEN_KERNELS)
-        self.reference_kernel = check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
-        self.reduction = check_option("reduction", reduction, REDUCTIONS)
 
     def forward(self, captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None) -> Tensor:
         """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)`` (or ``(B, H, W)``, ``(B, N)``)."""
@@ -101,11 +106,8 @@ class ENMILoss(nn.Module):
         reduction: str = "mean",
     ) -> None:
         super().__init__()
-        self.bins = check_bins(bins)
-        self.value_range = check_value_range(value_range)
+        _store_histogram_options(self, bins, value_range, reference_kernel, reduction)
         self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
-        self.reference_kernel = check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
-        self.reduction = check_option("reduction", reduction, REDUCTIONS)
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
             raise TypeError(
                 f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"

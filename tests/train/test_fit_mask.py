@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _pickle_payload import EXECUTED, Payload
 from lightning.pytorch import Callback, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -141,19 +142,6 @@ def test_resume_from_checkpoint_equals_an_uninterrupted_run(tmp_path):
     torch.testing.assert_close(resumed, uninterrupted, equal_nan=True, rtol=1e-6, atol=0)
     halfway = torch.load(tmp_path / "first" / "last.ckpt", weights_only=True)
     assert halfway["global_step"] == 2 * 3 and bool(halfway["state_dict"]["statistics_ready"])
-
-
-EXECUTED = []
-
-
-def _mark_executed():
-    EXECUTED.append(True)
-    return {}
-
-
-class Payload:
-    def __reduce__(self):
-        return (_mark_executed, ())
 
 
 def test_tampered_checkpoint_is_refused(tmp_path):

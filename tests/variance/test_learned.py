@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from _pickle_payload import EXECUTED, Payload
 
 from enmi_torch import ENMILoss, enmi
 from enmi_torch.data import SyntheticPairs, camera_truth, lidar_truth
@@ -234,19 +235,6 @@ def test_save_load_round_trip(make, tmp_path, generator):
         assert torch.equal(loaded.valid_mask(captured), model.valid_mask(captured))
         assert loaded.form == (model.form if suffix == "pt" else "pixel")
     assert np.load(tmp_path / "mask.npy", allow_pickle=False).dtype == np.float32
-
-
-EXECUTED = []
-
-
-def _mark_executed():
-    EXECUTED.append(True)
-    return {}
-
-
-class Payload:
-    def __reduce__(self):
-        return (_mark_executed, ())
 
 
 @pytest.fixture
