@@ -180,6 +180,11 @@ def _as_tensor(value: Tensor | float) -> Tensor:
     return value if isinstance(value, Tensor) else torch.tensor(float(value), dtype=torch.float64)
 
 
+def _area_scale(camera: RoadCamera) -> float:
+    """``f^2 h sec(theta)``: the constant of det J and of every focal-plane area (eqs. Jacobian and TildeA)."""
+    return camera.focal_length**2 * camera.height / math.cos(camera.tilt)
+
+
 def camera_depth(camera: RoadCamera, distance: Tensor | float) -> Tensor:
     """Camera depth ``z = d cos(theta) + h sin(theta)`` of road points at distance ``d`` ahead.
 
@@ -215,8 +220,7 @@ def jacobian_determinant(camera: RoadCamera, depth: Tensor | float) -> Tensor:
     ``+f h sec(theta) / z^2``, so the determinant is positive (``y~`` and ``z`` both grow towards the horizon). Only
     ``|det J|``, the local area scale, enters eq. TildeA.
     """
-    f = camera.focal_length
-    return f**2 * camera.height / math.cos(camera.tilt) / _as_tensor(depth) ** 3
+    return _area_scale(camera) / _as_tensor(depth) ** 3
 
 
 def projected_area(
@@ -236,10 +240,9 @@ def projected_area(
         >>> f"{area.item():.3e}"
         '7.719e-05'
     """
-    f = camera.focal_length
     near, far = camera_depth(camera, distance_near), camera_depth(camera, distance_far)
     width = _as_tensor(lateral_high) - _as_tensor(lateral_low)
-    return f**2 * camera.height / math.cos(camera.tilt) * width / 2 * (1 / near**2 - 1 / far**2)
+    return _area_scale(camera) * width / 2 * (1 / near**2 - 1 / far**2)
 
 
 def visible_projected_area(
@@ -269,7 +272,7 @@ def visible_projected_area(
         >>> f"{visible_projected_area(camera, 30.0, 50.0, 40.0, 60.0).item():.3e}"  # a corner is out of view
         '7.530e-05'
     """
-    theta, slope = camera.tilt, math.tan(math.radians(camera.horizontal_fov_deg) / 2)
+    slope = math.tan(math.radians(camera.horizontal_fov_deg) / 2)
     lateral_low, lateral_high = _as_tensor(lateral_low), _as_tensor(lateral_high)
     view_near, view_far = camera.visible_distance_range()
     near = camera_depth(camera, torch.clamp(_as_tensor(distance_near), min=view_near))
@@ -284,7 +287,7 @@ def visible_projected_area(
     )
     z_a, z_b, w_a, w_b = depths[..., :-1], depths[..., 1:], width[..., :-1], width[..., 1:]
     pieces = (z_b - z_a) * (w_a * z_b + w_b * z_a) / (2 * z_a**2 * z_b**2)
-    return camera.focal_length**2 * camera.height / math.cos(theta) * pieces.sum(dim=-1)
+    return _area_scale(camera) * pieces.sum(dim=-1)
 
 
 def ground_to_focal_matrix(camera: RoadCamera, *, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
