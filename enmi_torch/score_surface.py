@@ -8,7 +8,8 @@ With the map hard-binned, the joint histogram of the local image placed with its
 the cross-correlation of the local image's bin-weight plane ``W[:, i]`` (a Gaussian likelihood for ENMI, one-hot
 for NMI) with the window's bin-indicator plane ``R_j``. All ``K x K`` correlations over all placements come from one
 batched real FFT of each image's planes, a product per bin pair and a pruned inverse FFT (rows first, cropped to the
-placements, then columns); bins whose planes are empty on either side are skipped. :func:`direct_surface` is the
+placements, then columns); bins whose planes are empty on either side are skipped, and the masks add a plane only
+where they leave pixels out (otherwise the marginals are constants and box sums). :func:`direct_surface` is the
 reference: one :func:`~enmi_torch.histogram.joint_histogram` per placement.
 
 Convention:
@@ -25,6 +26,7 @@ Convention:
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import torch
@@ -45,10 +47,10 @@ from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
 
 METRICS = ("enmi", "nmi", "ncc")
 
-# The product buffer of one chunk of captured bins (all reference bins, whole spectrum) stays near this many complex
-# elements (8 MiB in complex64, one captured bin of a 128 x 128 image in a 228 x 228 window): batched enough for the
-# FFTs, small enough for the cache.
-_CHUNK_ELEMENTS = 1 << 20
+# The product of one captured plane with a block of reference planes (whole half spectra) stays near this many complex
+# elements (4 MiB in complex64, 16 reference planes for a 128 x 128 image in a 228 x 228 window): batched enough for
+# the FFTs, small enough for the CPU cache.
+_BLOCK_ELEMENTS = 1 << 19
 
 
 class Surface(NamedTuple):
@@ -345,11 +347,11 @@ def fft_size(length: int) -> int:
 class _Correlator:
     """All pairwise cross-correlations of captured planes with reference planes, at the placements only, by FFT.
 
-    Spectra are kept transposed, ``(..., Q, P)`` (column frequencies, then row frequencies), so that each inverse
+    Spectra are kept transposed, ``(K, Q, P)`` (column frequencies, then row frequencies), so that each inverse
     transform runs along a contiguous or sliced axis without a copy: rows first (``ifft``, cropped to the row
-    placements), then columns (``irfft``, cropped). ``correlations`` yields ``(start, block)`` with ``block[c, j, v,
-    u] = sum_n captured[start + c][n] reference[j][n + (u, v)]``, transposed like the spectra, over chunks of the
-    captured planes.
+    placements), then columns (``irfft``, cropped). The ``1 / (P Q)`` of the inverse transform is folded into the
+    reference spectra and the conjugate into the captured spectra, once. Products and inverse transforms run in
+    blocks of reference planes small enough for the CPU cache.
     """
 
     def __init__(self, local_shape: tuple[int, int], window_shape: tuple[int, int]) -> None:
@@ -357,27 +359,96 @@ class _Correlator:
         self.cols = window_shape[1] - local_shape[1] + 1
         # Circular correlation is exact for these placements once the FFT covers the window (no wrap-around).
         self.shape = (fft_size(window_shape[0]), fft_size(window_shape[1]))
-        self._product: Tensor | None = None
 
-    def spectra(self, planes: Tensor) -> Tensor:
-        """Transposed half spectra ``(..., Q, P)`` of planes ``(..., h, w)`` zero-padded to the FFT shape."""
-        return torch.fft.rfft2(planes, s=self.shape).transpose(-1, -2).contiguous()
+    def spectra(self, planes: Tensor, *, captured: bool) -> Tensor:
+        """Transposed half spectra ``(K, Q, P)`` of planes ``(K, h, w)``, conjugated (captured) or scaled."""
+        # Columns first over the unpadded rows, then rows: no transform of the zero padding rows, no transposed copy.
+        half = torch.fft.rfft(planes, n=self.shape[1], dim=-1).transpose(-1, -2)
+        spectrum = torch.fft.fft(half, n=self.shape[0], dim=-1)
+        return spectrum.conj_physical_() if captured else spectrum.mul_(1.0 / (self.shape[0] * self.shape[1]))
 
-    def correlations(self, captured_spectra: Tensor, reference_spectra: Tensor):
-        """Yield ``(start, (c, J, cols, rows))`` blocks over chunks of the ``I`` captured spectra ``(I, Q, P)``."""
-        planes, half, height = reference_spectra.shape
-        chunk = max(1, _CHUNK_ELEMENTS // (planes * height * half))
-        conjugate = torch.conj_physical(captured_spectra)
-        for start in range(0, captured_spectra.shape[0], chunk):
-            count = min(chunk, captured_spectra.shape[0] - start)
-            size = count * planes * half * height
-            # One product buffer for all chunks: fresh multi-megabyte tensors cost page faults on every chunk.
-            if self._product is None or self._product.numel() < size or self._product.dtype != conjugate.dtype:
-                self._product = torch.empty(size, dtype=conjugate.dtype, device=conjugate.device)
-            product = self._product[:size].view(count, planes, half, height)
-            torch.mul(conjugate[start : start + count, None], reference_spectra[None], out=product)
-            rows = torch.fft.ifft(product, dim=-1)[..., : self.rows]
-            yield start, torch.fft.irfft(rows, n=self.shape[1], dim=-2)[:, :, : self.cols]
+    def blocks(self, captured: Tensor, reference: Tensor) -> Iterator[tuple[int, int, Tensor]]:
+        """Yield ``(index, start, block)`` over the captured planes and blocks of reference planes.
+
+        ``block[c, v, u] = sum_n captured[index][n] reference[start + c][n + (u, v)]``, transposed like the spectra,
+        ``(c, cols, rows)``; ``captured`` and ``reference`` are spectra from :meth:`spectra`. Callers may overwrite
+        the blocks.
+        """
+        planes, half, length = reference.shape
+        per_block = max(1, min(planes, _BLOCK_ELEMENTS // (half * length)))
+        per_block = -(-planes // -(-planes // per_block))  # equal blocks: 31 planes as 16 + 15, not 18 + 13
+        product = reference.new_empty(per_block, half, length)
+        for index in range(captured.shape[0]):
+            for start in range(0, planes, per_block):
+                count = min(per_block, planes - start)
+                torch.mul(captured[index], reference[start : start + count], out=product[:count])
+                # No ``out=`` for the transforms: torch computes into a fresh tensor and copies it over.
+                rows = torch.fft.ifft(product[:count], dim=-1, norm="forward")[..., : self.rows]
+                yield index, start, torch.fft.irfft(rows, n=self.shape[1], dim=-2, norm="forward")[:, : self.cols]
+
+
+class _EntropySum:
+    """Running ``sum c log c`` over blocks of counts ``(c, cols, rows)``, summed over the blocks' first axis.
+
+    ``scratch`` holds the logs of a block, ``(>= c, cols, rows)``; entropy sums used in turn may share one.
+    """
+
+    def __init__(self, scratch: Tensor) -> None:
+        self.total = scratch.new_zeros(scratch.shape[1:])
+        self._tiny = torch.finfo(scratch.dtype).tiny
+        self._scratch = scratch
+
+    def add(self, counts: Tensor) -> None:
+        """Add the block's ``c log c`` (FFT round-off below 0 counts as 0); ``counts`` is clamped in place."""
+        if counts.shape[0] == 0:
+            return
+        counts.clamp_min_(self._tiny)
+        logs = torch.log(counts, out=self._scratch[: counts.shape[0]])
+        self.total += logs.mul_(counts).sum(0)
+
+
+def _box_sums(planes: Tensor, height: int, width: int) -> Tensor:
+    """Sums of 0/1 planes ``(K, H, W)`` over every ``height x width`` box, exact integers.
+
+    Returned transposed, ``(K, W - width + 1, H - height + 1)``, in float32 while every partial sum stays below 2^24.
+    """
+    dtype = torch.float32 if planes.shape[-2] * planes.shape[-1] < 1 << 24 else torch.float64
+    cumulative = torch.nn.functional.pad(planes.to(dtype).cumsum(-1), (1, 0))
+    cumulative = (cumulative[..., width:] - cumulative[..., :-width]).transpose(-1, -2)
+    cumulative = torch.nn.functional.pad(cumulative.cumsum(-1), (1, 0))
+    return cumulative[..., height:] - cumulative[..., :-height]
+
+
+class _ReferencePlanes:
+    """The window's side of the information surfaces, computed once per window.
+
+    ``spectra`` holds the indicator planes of the bins present in the window, then the window mask where it leaves
+    cells out (``complete`` is ``False``). :meth:`counts` gives, on demand, the exact number of cells of each present
+    bin and of valid cells under a local image at each placement.
+    """
+
+    def __init__(
+        self, correlator: _Correlator, window_bins: Tensor, window_valid: Tensor, bins: int, dtype: torch.dtype
+    ) -> None:
+        present = torch.bincount(window_bins.flatten(), minlength=bins + 1)[:bins].nonzero()[:, 0]
+        planes = window_bins == present[:, None, None]
+        self.complete = bool(window_valid.all())
+        if not self.complete:
+            planes = torch.cat([planes, window_valid[None]])
+        self.spectra = correlator.spectra(planes.to(dtype), captured=False)
+        self.bin_count = present.shape[0]
+        self._labels = torch.cat([present, present.new_tensor([bins])])
+        self._window_bins = window_bins
+        self._counts: Tensor | None = None
+
+    def counts(self, height: int, width: int, dtype: torch.dtype) -> Tensor:
+        """``(Kr + 1, cols, rows)``: cells of each present bin, then valid cells, under a ``height x width`` image."""
+        if self._counts is None:
+            indicators = self._window_bins == self._labels[:, None, None]  # the last plane: masked cells
+            counts = _box_sums(indicators, height, width).to(dtype)
+            counts[-1] = counts[-1].neg_().add_(height * width)
+            self._counts = counts
+        return self._counts
 
 
 def _information_surface(
@@ -385,9 +456,12 @@ def _information_surface(
 ) -> Surface:
     """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard window.
 
-    The captured planes get the local mask as one more plane and the reference planes the window mask, so that one
-    batch of correlations holds the joint counts, both marginals (each pixel's weights sum to 1) and the overlap.
-    Entropies come from ``H = log T - sum(c log c) / T`` with ``T`` the overlap, one pass over the counts.
+    The joint counts are the correlations of the occupied captured planes with the present reference planes; bins
+    whose planes are empty are skipped. The marginals and the overlap come from one more plane on each side, the
+    local and the window masks, where these leave pixels out. Where they do not, the captured marginals are constant
+    (each pixel's weights sum to 1 and every placement lies inside the window), and the reference marginals and the
+    overlap are box sums of indicator planes, exact integers. Entropies come from ``H = log T - sum(c log c) / T``
+    with ``T`` the overlap.
     """
     batch, height, width = inputs.local.shape
     windows = inputs.window.shape[0]
@@ -397,36 +471,50 @@ def _information_surface(
     informative_above = math.sqrt(torch.finfo(dtype).eps)
     plane_weights = (plane_weights * inputs.local_valid.unsqueeze(-1)).permute(0, 3, 1, 2)
     window_bins = torch.where(inputs.window_valid, hard_bin_index(inputs.window, bins, value_range), bins)
+    shape = (correlator.cols, correlator.rows)
     scores, overlaps = [], []
     reference = None
     for sample in range(batch):
         window_index = sample if windows > 1 else 0
         if reference is None or windows > 1:
-            present = torch.bincount(window_bins[window_index].flatten(), minlength=bins + 1)[:bins].nonzero()[:, 0]
-            indicators = torch.cat(
-                [window_bins[window_index] == present[:, None, None], inputs.window_valid[[window_index]]]
+            reference = _ReferencePlanes(
+                correlator, window_bins[window_index], inputs.window_valid[window_index], bins, dtype
             )
-            reference = correlator.spectra(indicators.to(dtype))
-        captured_planes = plane_weights[sample]
-        occupied = captured_planes.flatten(1).amax(1).nonzero()[:, 0]
-        captured = correlator.spectra(torch.cat([captured_planes[occupied], inputs.local_valid[[sample]].to(dtype)]))
-        last = captured.shape[0] - 1
-        joint_sum = captured_sum = reference_sum = overlap = None
-        for start, block in correlator.correlations(captured, reference):
-            block = block.clamp_min_(0)
-            planes = block[: last - start] if start + block.shape[0] > last else block
-            joint = torch.special.xlogy(planes[:, :-1], planes[:, :-1]).sum((0, 1))
-            captured_part = torch.special.xlogy(planes[:, -1], planes[:, -1]).sum(0)
-            joint_sum = joint if joint_sum is None else joint_sum + joint
-            captured_sum = captured_part if captured_sum is None else captured_sum + captured_part
-            if start + block.shape[0] > last:
-                reference_counts, overlap = block[-1, :-1], block[-1, -1].round()
-                reference_sum = torch.special.xlogy(reference_counts, reference_counts).sum(0)
+        local_valid = inputs.local_valid[sample]
+        local_complete = bool(local_valid.all())
+        weights = plane_weights[sample]
+        weights = weights[weights.flatten(1).amax(1).nonzero()[:, 0]]
+        planes = weights if local_complete else torch.cat([weights, local_valid[None].to(dtype)])
+        captured = correlator.spectra(planes, captured=True)
+
+        scratch = inputs.local.new_empty(reference.spectra.shape[0], *shape)
+        joint, captured_sum, reference_sum = _EntropySum(scratch), _EntropySum(scratch), _EntropySum(scratch)
+        overlap = None
+        for index, start, block in correlator.blocks(captured, reference.spectra):
+            bin_rows = block[: max(0, reference.bin_count - start)]
+            mask_row = block[-1:] if start + block.shape[0] > reference.bin_count else block[:0]
+            if index < weights.shape[0]:
+                joint.add(bin_rows)
+                captured_sum.add(mask_row)  # this captured bin's marginal: its correlation with the window mask
+            else:
+                reference_sum.add(bin_rows)  # the reference marginals: the local mask against each bin plane
+                if mask_row.shape[0]:
+                    overlap = mask_row[0].round()
+        if reference.complete:
+            marginals = weights.sum((-2, -1))
+            captured_sum.total += torch.special.xlogy(marginals, marginals).sum()
+        if local_complete:
+            counts = reference.counts(height, width, dtype)
+            reference_sum.total += torch.special.xlogy(counts[:-1], counts[:-1]).sum(0)
+            overlap = counts[-1]
+        elif overlap is None:
+            overlap = local_valid.sum().to(dtype).expand(shape)
+
         total = overlap.clamp_min(1)
         log_total = total.log()
-        joint_entropy = log_total - joint_sum / total
-        captured_entropy = log_total - captured_sum / total
-        reference_entropy = log_total - reference_sum / total
+        joint_entropy = log_total - joint.total / total
+        captured_entropy = log_total - captured_sum.total / total
+        reference_entropy = log_total - reference_sum.total / total
         informative = (joint_entropy > informative_above) & (overlap > 0)
         score = _nmi_from_entropies(captured_entropy, reference_entropy, joint_entropy, informative)
         scores.append(score.transpose(0, 1))
@@ -446,13 +534,19 @@ def _ncc_surface(inputs: _Inputs) -> Surface:
     # Centring on each image's own valid mean keeps the sums small, so the FFT round-off stays relative.
     local = (inputs.local - _masked_mean(inputs.local, local_valid)) * local_valid
     window = (inputs.window - _masked_mean(inputs.window, window_valid)) * window_valid
-    captured = correlator.spectra(torch.stack([local_valid, local, local.square()], dim=1))
-    reference = correlator.spectra(torch.stack([window_valid, window, window.square()], dim=1))
     scores, overlaps = [], []
+    reference = None
     for sample in range(batch):
         window_index = sample if windows > 1 else 0
-        parts = correlator.correlations(captured[sample], reference[window_index])
-        block = torch.cat([part for _, part in parts]).transpose(-1, -2)
+        if reference is None or windows > 1:
+            planes = torch.stack([window_valid[window_index], window[window_index], window[window_index].square()])
+            reference = correlator.spectra(planes, captured=False)
+        planes = torch.stack([local_valid[sample], local[sample], local[sample].square()])
+        captured = correlator.spectra(planes, captured=True)
+        block = local.new_empty(3, 3, correlator.cols, correlator.rows)
+        for index, start, part in correlator.blocks(captured, reference):
+            block[index, start : start + part.shape[0]] = part
+        block = block.transpose(-1, -2)
         count = block[0, 0].round()
         local_sum, window_sum = block[1, 0], block[0, 1]
         local_square, window_square, cross = block[2, 0], block[0, 2], block[1, 1]

@@ -70,6 +70,30 @@ def test_fft_surface_equals_direct_loop_with_masks_and_partial_overlap(metric, o
     torch.testing.assert_close(fast.score, reference.score, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("metric", ["enmi", "nmi", "ncc"])
+@pytest.mark.parametrize("masked", ["none", "local", "window", "both"])
+def test_fft_surface_equals_direct_loop_for_each_mask_combination(metric, masked):
+    # Masks that leave nothing out take other paths (constant marginals, box-summed counts) than partial ones.
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    window_mask[..., :, :3] = True  # leave a full-overlap placement or two even with the window mask
+    masks = {
+        "local_mask": local_mask if masked in ("local", "both") else None,
+        "window_mask": window_mask if masked in ("window", "both") else None,
+    }
+    binned = {} if metric == "ncc" else {"bins": 12}
+    if metric == "enmi":
+        fast = enmi_surface(local, window, variance, **binned, **masks)
+    elif metric == "nmi":
+        fast = nmi_surface(local, window, **binned, **masks)
+    else:
+        fast = ncc_surface(local, window, **masks)
+    reference = direct_surface(local, window, variance if metric == "enmi" else None, metric=metric, **binned, **masks)
+    torch.testing.assert_close(fast.overlap, reference.overlap, rtol=0, atol=0)
+    torch.testing.assert_close(fast.score, reference.score, rtol=0, atol=1e-9)
+    if masked == "none":
+        assert bool((fast.overlap == 9 * 7).all())
+
+
 def test_surface_entries_equal_the_public_scores_at_each_placement():
     local, window, variance, local_mask, window_mask = _case(torch.float64, batch=1)
     fast_enmi = enmi_surface(local, window, variance, bins=16, local_mask=local_mask, window_mask=window_mask)
