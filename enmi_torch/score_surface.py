@@ -347,11 +347,13 @@ def fft_size(length: int) -> int:
 class _Correlator:
     """All pairwise cross-correlations of captured planes with reference planes, at the placements only, by FFT.
 
-    Spectra are kept transposed, ``(K, Q, P)`` (column frequencies, then row frequencies), so that each inverse
-    transform runs along a contiguous or sliced axis without a copy: rows first (``ifft``, cropped to the row
-    placements), then columns (``irfft``, cropped). The ``1 / (P Q)`` of the inverse transform is folded into the
-    reference spectra and the conjugate into the captured spectra, once. Products and inverse transforms run in
-    blocks of reference planes small enough for the CPU cache.
+    Spectra are kept transposed, ``(K, Q, P)`` (column frequencies, then row frequencies), so that the first inverse
+    transform runs along contiguous rows (``ifft``); its output, cropped to the row placements, is copied transposed
+    into a staging buffer, so that the second (``irfft``, cropped to the column placements) also runs along contiguous
+    rows and leaves the placements as ``(rows, cols)`` (8 % faster than transforming along the strided axis, which
+    torch copies anyway). The ``1 / (P Q)`` of the inverse transform is folded into the reference spectra and the
+    conjugate into the captured spectra, once. Products and inverse transforms run in blocks of reference planes
+    small enough for the CPU cache.
     """
 
     def __init__(self, local_shape: tuple[int, int], window_shape: tuple[int, int]) -> None:
@@ -370,27 +372,29 @@ class _Correlator:
     def blocks(self, captured: Tensor, reference: Tensor) -> Iterator[tuple[int, int, Tensor]]:
         """Yield ``(index, start, block)`` over the captured planes and blocks of reference planes.
 
-        ``block[c, v, u] = sum_n captured[index][n] reference[start + c][n + (u, v)]``, transposed like the spectra,
-        ``(c, cols, rows)``; ``captured`` and ``reference`` are spectra from :meth:`spectra`. Callers may overwrite
-        the blocks.
+        ``block[c, u, v] = sum_n captured[index][n] reference[start + c][n + (u, v)]``, ``(c, rows, cols)``;
+        ``captured`` and ``reference`` are spectra from :meth:`spectra`. Callers may overwrite the blocks.
         """
         planes, half, length = reference.shape
         per_block = max(1, min(planes, _BLOCK_ELEMENTS // (half * length)))
         per_block = -(-planes // -(-planes // per_block))  # equal blocks: 31 planes as 16 + 15, not 18 + 13
         product = reference.new_empty(per_block, half, length)
+        staging = reference.new_empty(per_block, self.rows, half)
         for index in range(captured.shape[0]):
             for start in range(0, planes, per_block):
                 count = min(per_block, planes - start)
                 torch.mul(captured[index], reference[start : start + count], out=product[:count])
                 # No ``out=`` for the transforms: torch computes into a fresh tensor and copies it over.
-                rows = torch.fft.ifft(product[:count], dim=-1, norm="forward")[..., : self.rows]
-                yield index, start, torch.fft.irfft(rows, n=self.shape[1], dim=-2, norm="forward")[:, : self.cols]
+                rows = torch.fft.ifft(product[:count], dim=-1, norm="forward")
+                staging[:count].copy_(rows[..., : self.rows].transpose(-1, -2))
+                surface = torch.fft.irfft(staging[:count], n=self.shape[1], dim=-1, norm="forward")
+                yield index, start, surface[..., : self.cols]
 
 
 class _EntropySum:
-    """Running ``sum c log c`` over blocks of counts ``(c, cols, rows)``, summed over the blocks' first axis.
+    """Running ``sum c log c`` over blocks of counts ``(c, rows, cols)``, summed over the blocks' first axis.
 
-    ``scratch`` holds the logs of a block, ``(>= c, cols, rows)``; entropy sums used in turn may share one.
+    ``scratch`` holds the logs of a block, ``(>= c, rows, cols)``; entropy sums used in turn may share one.
     """
 
     def __init__(self, scratch: Tensor) -> None:
@@ -408,15 +412,16 @@ class _EntropySum:
 
 
 def _box_sums(planes: Tensor, height: int, width: int) -> Tensor:
-    """Sums of 0/1 planes ``(K, H, W)`` over every ``height x width`` box, exact integers.
+    """Sums of 0/1 planes ``(K, H, W)`` over every ``height x width`` box, ``(K, H - height + 1, W - width + 1)``.
 
-    Returned transposed, ``(K, W - width + 1, H - height + 1)``, in float32 while every partial sum stays below 2^24.
+    Exact integers: float32 while every partial sum stays below 2^24, float64 beyond. Both cumulative sums run along
+    contiguous rows (several times faster than along columns).
     """
     dtype = torch.float32 if planes.shape[-2] * planes.shape[-1] < 1 << 24 else torch.float64
     cumulative = torch.nn.functional.pad(planes.to(dtype).cumsum(-1), (1, 0))
     cumulative = (cumulative[..., width:] - cumulative[..., :-width]).transpose(-1, -2)
     cumulative = torch.nn.functional.pad(cumulative.cumsum(-1), (1, 0))
-    return cumulative[..., height:] - cumulative[..., :-height]
+    return (cumulative[..., height:] - cumulative[..., :-height]).transpose(-1, -2)
 
 
 class _ReferencePlanes:
@@ -442,7 +447,7 @@ class _ReferencePlanes:
         self._counts: Tensor | None = None
 
     def counts(self, height: int, width: int, dtype: torch.dtype) -> Tensor:
-        """``(Kr + 1, cols, rows)``: cells of each present bin, then valid cells, under a ``height x width`` image."""
+        """``(Kr + 1, rows, cols)``: cells of each present bin, then valid cells, under a ``height x width`` image."""
         if self._counts is None:
             indicators = self._window_bins == self._labels[:, None, None]  # the last plane: masked cells
             counts = _box_sums(indicators, height, width).to(dtype)
@@ -471,7 +476,7 @@ def _information_surface(
     informative_above = math.sqrt(torch.finfo(dtype).eps)
     plane_weights = (plane_weights * inputs.local_valid.unsqueeze(-1)).permute(0, 3, 1, 2)
     window_bins = torch.where(inputs.window_valid, hard_bin_index(inputs.window, bins, value_range), bins)
-    shape = (correlator.cols, correlator.rows)
+    shape = (correlator.rows, correlator.cols)
     scores, overlaps = [], []
     reference = None
     for sample in range(batch):
@@ -517,8 +522,8 @@ def _information_surface(
         reference_entropy = log_total - reference_sum.total / total
         informative = (joint_entropy > informative_above) & (overlap > 0)
         score = _nmi_from_entropies(captured_entropy, reference_entropy, joint_entropy, informative)
-        scores.append(score.transpose(0, 1))
-        overlaps.append(overlap.transpose(0, 1))
+        scores.append(score)
+        overlaps.append(overlap)
     return Surface(torch.stack(scores), torch.stack(overlaps))
 
 
@@ -543,10 +548,9 @@ def _ncc_surface(inputs: _Inputs) -> Surface:
             reference = correlator.spectra(planes, captured=False)
         planes = torch.stack([local_valid[sample], local[sample], local[sample].square()])
         captured = correlator.spectra(planes, captured=True)
-        block = local.new_empty(3, 3, correlator.cols, correlator.rows)
+        block = local.new_empty(3, 3, correlator.rows, correlator.cols)
         for index, start, part in correlator.blocks(captured, reference):
             block[index, start : start + part.shape[0]] = part
-        block = block.transpose(-1, -2)
         count = block[0, 0].round()
         local_sum, window_sum = block[1, 0], block[0, 1]
         local_square, window_square, cross = block[2, 0], block[0, 2], block[1, 1]
