@@ -5,7 +5,7 @@ import pytest
 import torch
 from skimage import data
 
-from enmi_torch import enmi, gaussian_log_prior, nmi
+from enmi_torch import enmi, gaussian_log_prior, nmi, score_surface
 from enmi_torch.score_surface import (
     Surface,
     direct_surface,
@@ -92,6 +92,22 @@ def test_fft_surface_equals_direct_loop_for_each_mask_combination(metric, masked
     torch.testing.assert_close(fast.score, reference.score, rtol=0, atol=1e-9)
     if masked == "none":
         assert bool((fast.overlap == 9 * 7).all())
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_blocks_of_reference_planes_give_the_one_block_surface(monkeypatch, masked):
+    # Tiny blocks: several per captured plane, the last one shorter, the mask plane alone in a block or with bins.
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    masks = {"local_mask": local_mask, "window_mask": window_mask} if masked else {}
+    whole = enmi_surface(local, window, variance, bins=12, **masks)
+    half_spectrum = fft_size(16) * (fft_size(15) // 2 + 1)
+    for planes_per_block in (1, 2, 5):
+        monkeypatch.setattr(score_surface, "_BLOCK_ELEMENTS", planes_per_block * half_spectrum)
+        blocked = enmi_surface(local, window, variance, bins=12, **masks)
+        torch.testing.assert_close(blocked.score, whole.score, rtol=0, atol=1e-12)
+        torch.testing.assert_close(blocked.overlap, whole.overlap, rtol=0, atol=0)
+    reference = direct_surface(local, window, variance, bins=12, **masks)
+    torch.testing.assert_close(blocked.score, reference.score, rtol=0, atol=1e-9)
 
 
 def test_surface_entries_equal_the_public_scores_at_each_placement():
