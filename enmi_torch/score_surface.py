@@ -350,8 +350,8 @@ class _Correlator:
     Spectra are kept transposed, ``(K, Q, P)`` (column frequencies, then row frequencies), so that the first inverse
     transform runs along contiguous rows (``ifft``); its output, cropped to the row placements, is copied transposed
     into a staging buffer, so that the second (``irfft``, cropped to the column placements) also runs along contiguous
-    rows and leaves the placements as ``(rows, cols)`` (8 % faster than transforming along the strided axis, which
-    torch copies anyway). The ``1 / (P Q)`` of the inverse transform is folded into the reference spectra and the
+    rows and leaves the placements as ``(rows, cols)`` (faster than transforming along the strided axis, which torch
+    copies anyway). The ``1 / (P Q)`` of the inverse transform is folded into the reference spectra and the
     conjugate into the captured spectra, once. Products and inverse transforms run in blocks of reference planes
     small enough for the CPU cache.
     """
@@ -414,8 +414,8 @@ class _EntropySum:
 def _box_sums(planes: Tensor, height: int, width: int) -> Tensor:
     """Sums of 0/1 planes ``(K, H, W)`` over every ``height x width`` box, ``(K, H - height + 1, W - width + 1)``.
 
-    Exact integers: float32 while every partial sum stays below 2^24, float64 beyond. Both cumulative sums run along
-    contiguous rows (several times faster than along columns).
+    Exact integers: float32 while every partial sum stays below 2^24, float64 beyond. The column sums run over the
+    row-summed planes, which are narrower than the window.
     """
     dtype = torch.float32 if planes.shape[-2] * planes.shape[-1] < 1 << 24 else torch.float64
     cumulative = torch.nn.functional.pad(planes.to(dtype).cumsum(-1), (1, 0))
