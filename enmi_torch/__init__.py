@@ -3,9 +3,10 @@
 from enmi_torch._checks import value_checks
 from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likelihood_weights, parzen_weights
 from enmi_torch.camera import RoadCamera
+from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
-from enmi_torch.losses import ENMILoss, NMILoss
+from enmi_torch.losses import ECRLoss, ENMILoss, NMILoss
 from enmi_torch.rectify import GroundGrid, rectify, unrectify
 from enmi_torch.variance import (
     ConstantVariance,
@@ -21,6 +22,8 @@ from enmi_torch.variance import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "BinSums",
+    "ECRLoss",
     "ConstantVariance",
     "ENMILoss",
     "EmpiricalVariance",
@@ -32,6 +35,8 @@ __all__ = [
     "VarianceModel",
     "bin_centers",
     "bin_edges",
+    "ecr",
+    "ecr_from_bin_sums",
     "empirical_variance",
     "enmi",
     "entropies",

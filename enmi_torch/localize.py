@@ -41,7 +41,8 @@ from enmi_torch._checks import (
     check_value_range,
 )
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
-from enmi_torch.score_surface import METRICS, Surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.correlation_ratio import check_model_variance
+from enmi_torch.score_surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance.base import VarianceModel
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
@@ -87,6 +88,7 @@ def localize(
     value_range: tuple[float, float] = (0.0, 256.0),
     weights: str = "mass",
     log_prior: Tensor | None = None,
+    model_variance: float | None = None,
     local_mask: Tensor | None = None,
     map_mask: Tensor | None = None,
     min_overlap: float = 0.5,
@@ -100,19 +102,22 @@ def localize(
     Args:
         local: local images ``(B, 1, h, w)``, floating point, on the map's cell grid.
         prior_map: ``(1, 1, Hm, Wm)`` (one map for all) or ``(B, 1, Hm, Wm)``, floating point.
-        variance: for ``metric="enmi"``: the local images' per-pixel noise variance (a number, ``(h, w)``,
-            ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel` (its
+        variance: for ``metric="ecr"`` and ``"enmi"``: the local images' per-pixel noise variance (a number,
+            ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel` (its
             ``valid_mask`` is used too). Must be ``None`` for the other metrics.
         shifts: search radius in cells, ``r`` or ``(ry, rx)``: shifts ``dy`` in ``[-ry, ry]``, ``dx`` in
             ``[-rx, rx]``.
         center: prior pose: map cell ``(row, col)`` under the local centre pixel, or ``(B, 2)`` integers, one per
             sample; ``None`` for the map's centre cell ``(Hm // 2, Wm // 2)``.
         yaws: yaw angles to search, in degrees; ``None`` for ``[0]``.
-        metric: ``"enmi"``, ``"nmi"`` (hard bins) or ``"ncc"``.
-        bins: number of equal-width bins over ``value_range`` (ENMI, NMI).
+        metric: ``"ecr"`` (the noise-aware correlation ratio, :func:`~enmi_torch.correlation_ratio.ecr`: the
+            per-pixel variance weighs each pixel's evidence; the best of the library's scores on
+            ``data_tools/yardstick.py``), ``"enmi"`` (the paper's score), ``"nmi"`` (hard bins) or ``"ncc"``.
+        bins: number of equal-width bins over ``value_range`` (ECR: reference bins; ENMI, NMI).
         value_range: ``(low, high)`` of the bins.
         weights: ``"mass"`` or ``"density"`` likelihood weights (ENMI).
         log_prior: optional log prior of the amplitudes per bin (ENMI).
+        model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
         local_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
         map_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
         min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) local image's
@@ -164,20 +169,24 @@ def localize(
     if metric != "ncc":
         check_bins(bins)
         check_value_range(value_range)
-    if metric == "enmi":
+    if metric in ("ecr", "enmi"):
         check_option("weights", weights, LIKELIHOOD_WEIGHTS)
         if variance is None:
-            raise ValueError("variance must be given for metric='enmi' (a number, a tensor or a VarianceModel)")
+            raise ValueError(f"variance must be given for metric={metric!r} (a number, a tensor or a VarianceModel)")
     elif variance is not None:
-        raise ValueError(f"variance is only used by metric='enmi', got metric={metric!r}; pass variance=None")
-    elif log_prior is not None:
+        raise ValueError(f"variance is only used by metric='ecr' or 'enmi', got metric={metric!r}; pass variance=None")
+    if log_prior is not None and metric != "enmi":
         raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
+    if model_variance is not None and metric != "ecr":
+        raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
+    if metric == "ecr":
+        check_model_variance(model_variance, bins, value_range)
 
     with torch.no_grad():
         local_valid = _local_valid(local, local_mask, variance)
         variance_map = _variance_map(local, variance)
         map_valid = _map_valid(prior_map, map_mask)
-        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior)
+        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, model_variance)
         search = _Search(
             local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
         )
@@ -192,14 +201,15 @@ class Localizer(nn.Module):
     """Module form of :func:`localize`: stores the search settings and an optional variance model.
 
     Args:
-        variance_model: optional :class:`~enmi_torch.variance.VarianceModel` for ``metric="enmi"`` (else give the
-            variance per call).
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel` for ``metric="ecr"`` or ``"enmi"``
+            (else give the variance per call).
         shifts: search radius (see :func:`localize`).
         yaws: yaws in degrees (stored as a non-persistent buffer).
-        metric: ``"enmi"``, ``"nmi"`` or ``"ncc"``.
+        metric: ``"ecr"``, ``"enmi"``, ``"nmi"`` or ``"ncc"``.
         bins: number of bins.
         value_range: ``(low, high)`` of the bins.
-        weights: ``"mass"`` or ``"density"``.
+        weights: ``"mass"`` or ``"density"`` (ENMI).
+        model_variance: ``tau^2`` of ECR (see :func:`localize`).
         min_overlap: see :func:`localize`.
         exclusion_radius: see :func:`localize`.
         coarse_factor: see :func:`localize`.
@@ -225,6 +235,7 @@ class Localizer(nn.Module):
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
         weights: str = "mass",
+        model_variance: float | None = None,
         min_overlap: float = 0.5,
         exclusion_radius: int = 3,
         coarse_factor: int = 1,
@@ -243,6 +254,9 @@ class Localizer(nn.Module):
         self.bins = check_bins(bins)
         self.value_range = check_value_range(value_range)
         self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        self.model_variance = (
+            None if model_variance is None else check_model_variance(model_variance, bins, value_range)
+        )
         self.options = {
             "min_overlap": min_overlap,
             "exclusion_radius": exclusion_radius,
@@ -275,6 +289,7 @@ class Localizer(nn.Module):
             bins=self.bins,
             value_range=self.value_range,
             weights=self.weights,
+            model_variance=self.model_variance,
             local_mask=local_mask,
             map_mask=map_mask,
             **self.options,
@@ -392,9 +407,9 @@ def _map_valid(prior_map: Tensor, map_mask: Tensor | None) -> Tensor:
 class _ScoreFunction:
     """The chosen surface function with its settings."""
 
-    def __init__(self, metric, bins, value_range, weights, log_prior) -> None:
+    def __init__(self, metric, bins, value_range, weights, log_prior, model_variance) -> None:
         self.metric, self.bins, self.value_range = metric, bins, value_range
-        self.weights, self.log_prior = weights, log_prior
+        self.weights, self.log_prior, self.model_variance = weights, log_prior, model_variance
 
     def __call__(self, local, window, variance, local_mask, window_mask) -> Surface:
         masks = {"local_mask": local_mask, "window_mask": window_mask}
@@ -402,6 +417,16 @@ class _ScoreFunction:
             return ncc_surface(local, window, **masks)
         if self.metric == "nmi":
             return nmi_surface(local, window, bins=self.bins, value_range=self.value_range, **masks)
+        if self.metric == "ecr":
+            return ecr_surface(
+                local,
+                window,
+                variance,
+                bins=self.bins,
+                value_range=self.value_range,
+                model_variance=self.model_variance,
+                **masks,
+            )
         return enmi_surface(
             local,
             window,

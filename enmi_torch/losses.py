@@ -1,4 +1,5 @@
-"""Loss modules: ``2 - NMI`` and ``2 - ENMI``, which fall to 0 as the captured image aligns with the reference."""
+"""Loss modules: ``2 - NMI`` and ``2 - ENMI``, which fall to 0 as the captured image aligns with the reference, and
+``-ECR``, which falls as the reference bins explain the captured image."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from torch import Tensor, nn
 
 from enmi_torch._checks import check_bins, check_option, check_value_range
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS
+from enmi_torch.correlation_ratio import check_model_variance, ecr
 from enmi_torch.information import enmi, nmi
 from enmi_torch.variance.base import VarianceModel
 
@@ -123,15 +125,7 @@ class ENMILoss(nn.Module):
         valid_mask: Tensor | None = None,
     ) -> Tensor:
         """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`enmi`."""
-        if variance is None and self.variance_model is None:
-            raise ValueError("variance must be given per call when ENMILoss has no variance_model, got None")
-        if variance is not None and self.variance_model is not None:
-            raise ValueError("variance must be None when ENMILoss has a variance_model; pass one or the other")
-        if self.variance_model is not None:
-            variance = self.variance_model(captured)
-            model_mask = self.variance_model.valid_mask(captured)
-            if model_mask is not None:
-                valid_mask = model_mask if valid_mask is None else valid_mask & model_mask
+        variance, valid_mask = _variance_and_mask(self, "ENMILoss", captured, variance, valid_mask)
         score = enmi(
             captured,
             reference,
@@ -144,3 +138,77 @@ class ENMILoss(nn.Module):
             valid_mask=valid_mask,
         )
         return _reduce(2 - score, self.reduction)
+
+
+class ECRLoss(nn.Module):
+    """``-ECR(captured, reference, variance)`` in nats per pixel; module form of :func:`~enmi_torch.correlation_ratio.ecr`.
+
+    The variance comes per call or from a :class:`~enmi_torch.variance.VarianceModel` given at construction, as in
+    :class:`ENMILoss`; the model's parameters get gradients through the loss.
+
+    Args:
+        bins: number of reference bins.
+        value_range: ``(low, high)`` of the reference bins.
+        model_variance: ``tau^2 >= 0``; ``None`` for ``bin_width^2 / 12``.
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel`.
+        reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> loss = ECRLoss(bins=4)
+        >>> loss(image, image, variance=1.0), loss(image, image.transpose(-1, -2), variance=1.0)
+        (tensor(-7.3843), tensor(-0.3736))
+    """
+
+    def __init__(
+        self,
+        bins: int = 32,
+        value_range: tuple[float, float] = (0.0, 256.0),
+        model_variance: float | None = None,
+        variance_model: VarianceModel | None = None,
+        reduction: str = "mean",
+    ) -> None:
+        super().__init__()
+        self.bins = check_bins(bins)
+        self.value_range = check_value_range(value_range)
+        self.model_variance = check_model_variance(model_variance, self.bins, self.value_range)
+        self.reduction = check_option("reduction", reduction, REDUCTIONS)
+        if variance_model is not None and not isinstance(variance_model, VarianceModel):
+            raise TypeError(
+                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
+            )
+        self.variance_model = variance_model
+
+    def forward(
+        self,
+        captured: Tensor,
+        reference: Tensor,
+        variance: Tensor | float | None = None,
+        valid_mask: Tensor | None = None,
+    ) -> Tensor:
+        """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`ecr`."""
+        variance, valid_mask = _variance_and_mask(self, "ECRLoss", captured, variance, valid_mask)
+        score = ecr(
+            captured,
+            reference,
+            variance,
+            bins=self.bins,
+            value_range=self.value_range,
+            model_variance=self.model_variance,
+            valid_mask=valid_mask,
+        )
+        return _reduce(-score, self.reduction)
+
+
+def _variance_and_mask(module: nn.Module, name: str, captured: Tensor, variance, valid_mask):
+    """The call's variance or the module's model's, and the call's mask combined with the model's."""
+    if variance is None and module.variance_model is None:
+        raise ValueError(f"variance must be given per call when {name} has no variance_model, got None")
+    if variance is not None and module.variance_model is not None:
+        raise ValueError(f"variance must be None when {name} has a variance_model; pass one or the other")
+    if module.variance_model is not None:
+        variance = module.variance_model(captured)
+        model_mask = module.variance_model.valid_mask(captured)
+        if model_mask is not None:
+            valid_mask = model_mask if valid_mask is None else valid_mask & model_mask
+    return variance, valid_mask

@@ -36,12 +36,13 @@ def _noisy(local, std, seed=0):
     return local + std * torch.randn(local.shape, generator=generator, dtype=local.dtype)
 
 
-@pytest.mark.parametrize("metric", ["enmi", "nmi", "ncc"])
+@pytest.mark.parametrize("metric", ["ecr", "enmi", "nmi", "ncc"])
 def test_known_shifts_are_found_exactly_at_low_noise(gravel_map, dtype, metric):
     prior_map = gravel_map.to(dtype)
     truths = [(3, -5), (-7, 0), (6, 6)]
     local = torch.cat([_noisy(_cut(prior_map, 80 + dy, 80 + dx), 2.0, seed) for seed, (dx, dy) in enumerate(truths)])
-    result = localize(local, prior_map, 4.0 if metric == "enmi" else None, shifts=8, center=(80, 80), metric=metric)
+    variance = 4.0 if metric in ("ecr", "enmi") else None
+    result = localize(local, prior_map, variance, shifts=8, center=(80, 80), metric=metric)
     assert isinstance(result, Localization)
     assert result.surface.shape == (3, 1, 17, 17)
     assert result.pose.dtype == dtype
@@ -241,7 +242,10 @@ def _invalid_localize_cases(gravel_map):
         ({"variance": torch.ones(1, 1, 31, 32)}, ValueError, r"variance must have shape \(32, 32\)"),
         ({"variance": -torch.ones(32, 32)}, ValueError, "variance must be finite and > 0"),
         ({"variance": None}, ValueError, "variance must be given for metric='enmi'"),
-        ({"metric": "nmi"}, ValueError, "variance is only used by metric='enmi'"),
+        ({"metric": "nmi"}, ValueError, "variance is only used by metric='ecr' or 'enmi'"),
+        ({"metric": "ecr", "variance": None}, ValueError, "variance must be given for metric='ecr'"),
+        ({"metric": "ecr", "model_variance": -1.0}, ValueError, "model_variance must be a number >= 0"),
+        ({"model_variance": 1.0}, ValueError, "model_variance is only used by metric='ecr'"),
         ({"metric": "mi"}, ValueError, "metric must be one of"),
         ({"local_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "local_mask selects no pixel"),
         ({"local_mask": torch.ones(32, 32)}, TypeError, "local_mask must be a bool tensor"),
@@ -263,7 +267,7 @@ def _invalid_localize_cases(gravel_map):
     ], local
 
 
-@pytest.mark.parametrize("index", range(25))
+@pytest.mark.parametrize("index", range(28))
 def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     cases, local = _invalid_localize_cases(gravel_map)
     change, error, message = cases[index]
@@ -299,3 +303,19 @@ def test_bilinear_rotation_propagates_the_noise_variance():
     # 4000 draws: each variance estimate is within about 3 * sqrt(2 / 4000) = 7 % of the truth.
     assert ratio.sub(1).abs().max() < 0.1
     assert predicted[0][kept[0]].min() < 0.6 * 9.0
+
+
+def test_ecr_search_with_unequal_radii_and_a_noisy_far_half_equals_the_direct_loop(gravel_map):
+    # A camera-like variance: the top rows are 100 times noisier than the bottom rows.
+    local = _cut(gravel_map, 83, 78, size=24)[..., :, :20]
+    variance = torch.logspace(2, 0, 24, dtype=torch.float64).reshape(24, 1).expand(24, 20) * 4
+    local = (
+        local
+        + torch.randn(local.shape, generator=torch.Generator().manual_seed(5), dtype=local.dtype) * variance.sqrt()
+    )
+    result = localize(local, gravel_map, variance, shifts=(3, 5), center=(80, 80), metric="ecr", min_overlap=0.1)
+    assert result.surface.shape == (1, 1, 7, 11)
+    assert result.pose[0, :2].round().tolist() == [-4.0, 3.0]
+    window = gravel_map[..., 80 - 12 - 3 : 80 - 12 + 24 + 3, 80 - 10 - 5 : 80 - 10 + 20 + 5]
+    expected = direct_surface(local, window, variance, metric="ecr")
+    torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)

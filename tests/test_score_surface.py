@@ -280,3 +280,26 @@ def test_direct_surface_checks_its_metric_and_variance():
         direct_surface(local, window, metric="enmi")
     with pytest.raises(ValueError, match="window must be at least as large as local"):
         ncc_surface(local, window[..., :, :3])
+
+
+@pytest.mark.parametrize("masks", ["none", "local", "window", "both"])
+def test_ecr_fft_surface_equals_direct_loop(masks, dtype):
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    # One window per sample, so a swapped sample/window pairing fails too.
+    window = torch.cat([window, window.flip(-1) * 0.5 + 60])
+    chosen = {
+        "local_mask": local_mask if masks in ("local", "both") else None,
+        "window_mask": torch.cat([window_mask, window_mask.flip(-2)]) if masks in ("window", "both") else None,
+    }
+    fast = score_surface.ecr_surface(
+        local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, model_variance=3.0, **chosen
+    )
+    slow = direct_surface(local, window, variance, metric="ecr", bins=12, model_variance=3.0, **chosen)
+    assert fast.score.shape == (2, 8, 9)
+    assert fast.score.dtype == dtype
+    tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 2e-3}
+    torch.testing.assert_close(fast.score.double(), slow.score, **tolerance)
+    torch.testing.assert_close(fast.overlap.double(), slow.overlap, rtol=0, atol=0)
+    if masks in ("none", "local"):
+        # The noisy cut of sample 0 sits at window cell (3, 4) (the window mask hides part of it).
+        assert divmod(int(fast.score[0].flatten().argmax()), 9) == (3, 4)

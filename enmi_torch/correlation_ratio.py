@@ -1,0 +1,175 @@
+"""ECR, the enhanced (noise-aware) correlation ratio: a Gaussian log-likelihood ratio with per-pixel noise variance.
+
+Model: the sensor sees a function of the map, blurred by noise whose variance is known per pixel. A captured pixel
+``v_n`` over a reference pixel in bin ``j_n`` is ``v_n ~ N(mu_{j_n}, sigma_n^2 + tau^2)``, one unknown mean per
+reference bin (any response, monotonic or not), ``sigma_n^2`` the pixel's noise variance (analytic or learned) and
+``tau^2`` the model variance (what a bin of the map does not explain; by default the spread of an amplitude
+uniform in a bin, ``bin_width^2 / 12``). The alternative is one mean for all pixels (captured independent of the
+map). With weights ``w_n = 1 / (sigma_n^2 + tau^2)`` and per-bin sums ``W_j = sum w_n``, ``S_j = sum w_n v_n``, the
+maximised log-likelihood ratio is
+
+    ``LLR = (sum_j S_j^2 / W_j - S^2 / W) / 2`` (``S``, ``W`` the sums over all bins),
+
+the weighted between-bin sum of squares (generalised least squares). Under the alternative ``2 LLR`` is
+``chi^2`` with ``K_occ - 1`` degrees of freedom (``K_occ`` the occupied reference bins) whatever the pixel variances,
+so ``ECR = (LLR - (K_occ - 1) / 2) / n`` (``n`` the valid pixels) has mean 0 for unrelated images, in every
+placement: a noisy pixel adds its evidence in proportion to its precision instead of a full unit of histogram weight,
+which is what makes the per-pixel variance pay (see ``data_tools/yardstick.py``).
+
+With one variance for all pixels, ``ECR = eta^2 Var[v] / (2 (sigma^2 + tau^2)) - (K_occ - 1) / (2 n)`` with
+``eta^2`` the classic correlation ratio (Pearson, Roche et al. 1998) of the captured image given the reference bins.
+
+Convention:
+    Captured values are used as they are (not clipped: a value beyond the range is still evidence); reference values
+    are hard-binned into ``bins`` equal bins over ``value_range``, clipped into the edge bins.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from enmi_torch._checks import check_floating
+from enmi_torch.binning import bin_width, hard_bin_index
+from enmi_torch.histogram import _prepare
+
+
+class BinSums(NamedTuple):
+    """Per reference bin sums of one placement, ``(..., bins)`` each: the streaming state of ECR.
+
+    Attributes:
+        count: valid pixels ``n_j``.
+        weight: ``W_j = sum w_n``.
+        weighted_value: ``S_j = sum w_n v_n`` (values centred on a constant; ECR does not depend on it).
+    """
+
+    count: Tensor
+    weight: Tensor
+    weighted_value: Tensor
+
+
+def default_model_variance(bins: int, value_range: tuple[float, float]) -> float:
+    """``bin_width^2 / 12``: the variance of an amplitude uniform in one reference bin.
+
+    Example:
+        >>> default_model_variance(32, (0.0, 256.0))
+        5.333333333333333
+    """
+    return bin_width(bins, value_range) ** 2 / 12
+
+
+def check_model_variance(model_variance, bins: int, value_range: tuple[float, float]) -> float:
+    """``model_variance`` as a float >= 0; ``None`` gives :func:`default_model_variance`."""
+    if model_variance is None:
+        return default_model_variance(bins, value_range)
+    if isinstance(model_variance, bool) or not isinstance(model_variance, (int, float)) or not model_variance >= 0:
+        raise ValueError(f"model_variance must be a number >= 0 or None, got {model_variance!r}")
+    if model_variance == float("inf"):
+        raise ValueError("model_variance must be finite, got inf")
+    return float(model_variance)
+
+
+def ecr_from_bin_sums(sums: BinSums) -> Tensor:
+    """ECR from per-bin sums ``(..., bins)`` (summed over batches or processes if need be), ``(...)``.
+
+    Bins with no valid pixel are left out (``0 / 0``); a placement without any valid pixel scores 0.
+
+    Example:
+        >>> sums = BinSums(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0]]), torch.tensor([[-4.0, 4.0]]))
+        >>> ecr_from_bin_sums(sums)  # (16 / 2 + 16 / 2 - 0) / 2 = 8 nats, minus 1 / 2 for 2 bins, over 4 pixels
+        tensor([1.8750])
+    """
+    occupied = sums.count > 0.5
+    safe_weight = torch.where(occupied, sums.weight, 1.0)
+    between = torch.where(occupied, sums.weighted_value.square() / safe_weight, 0.0).sum(-1)
+    total_weight = sums.weight.sum(-1)
+    between = between - sums.weighted_value.sum(-1).square() / total_weight.clamp_min(torch.finfo(between.dtype).tiny)
+    count = sums.count.sum(-1)
+    penalty = (occupied.sum(-1) - 1).clamp_min(0).to(between.dtype)
+    return torch.where(count > 0.5, 0.5 * (between - penalty) / count.clamp_min(1), 0.0)
+
+
+def ecr(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    model_variance: float | None = None,
+    valid_mask: Tensor | None = None,
+) -> Tensor:
+    """Enhanced correlation ratio: the noise-aware Gaussian log-likelihood ratio per valid pixel, in nats, ``(B,)``.
+
+    Args:
+        captured: noisy image ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        reference: noiseless map section, same shape; or ``(C, *captured.shape)``, ``C`` candidates per image.
+        variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
+            ``(1, 1, H, W)`` or ``(B, 1, H, W)``.
+        bins: number of equal-width bins the reference is cut into, over ``value_range``.
+        value_range: ``(low, high)`` of the reference bins.
+        model_variance: ``tau^2 >= 0`` added to every pixel's variance (see the module docstring); ``None`` for
+            ``bin_width^2 / 12``.
+        valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
+
+    Returns:
+        ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: about 0 for unrelated images, larger
+        the better the reference bins predict the captured values; ``ECR * n`` is the log-likelihood ratio less its
+        mean under independence.
+
+    Convention:
+        Differentiable in ``captured`` and ``variance`` (the reference is hard-binned).
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = torch.rand(1, 1, 16, 16, generator=generator) * 256
+        >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator)
+        >>> ecr(captured, torch.stack([reference, reference.roll(1, -1)]), 64.0, bins=8)
+        tensor([[17.4752],
+                [ 0.4031]])
+    """
+    if variance is None:
+        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_floating("captured", captured)
+    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None)
+    tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
+    sums = bin_sums(
+        inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight, inputs.bins, inputs.value_range
+    )
+    score = ecr_from_bin_sums(sums)
+    return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
+
+
+def bin_sums(
+    captured: Tensor,
+    reference: Tensor,
+    total_variance: Tensor,
+    valid: Tensor | None,
+    bins: int,
+    value_range: tuple[float, float],
+    centre: Tensor | float | None = None,
+) -> BinSums:
+    """Per-bin sums of ``(B, N)`` captured values over ``(C, B, N)`` references, ``(C, B, bins)`` each.
+
+    ``total_variance`` is ``sigma^2 + tau^2`` ``(B, N)``; ``valid`` ``(B, N)`` float 0/1 or ``None``. Values are
+    centred on ``centre`` (``(B, 1)`` or a number; ``None``: each sample's weighted mean), which keeps
+    ``S_j^2 / W_j - S^2 / W`` free of cancellation; ECR does not depend on it, but sums accumulated over several
+    calls (streaming) must share one centre.
+    """
+    weight = total_variance.reciprocal()
+    if valid is not None:
+        weight = weight * valid
+    if centre is None:
+        centre = (weight * captured).sum(-1, keepdim=True).detach() / weight.sum(-1, keepdim=True).detach()
+    weighted_value = weight * (captured - centre)
+    count = torch.ones_like(captured) if valid is None else valid
+    samples = reference.shape[:-1]
+    offsets = torch.arange(samples.numel(), device=captured.device).view(*samples, 1) * bins
+    cells = (hard_bin_index(reference, bins, value_range) + offsets).flatten()
+    sums = []
+    for per_pixel in (count, weight, weighted_value):
+        source = per_pixel.expand(reference.shape).reshape(-1)
+        sums.append(per_pixel.new_zeros(samples.numel() * bins).index_add(0, cells, source).view(*samples, bins))
+    return BinSums(*sums)

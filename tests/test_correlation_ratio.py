@@ -1,0 +1,178 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from enmi_torch import BinSums, ECRLoss, ecr, ecr_from_bin_sums
+from enmi_torch.correlation_ratio import default_model_variance
+from enmi_torch.variance import ConstantVariance
+
+
+def _numpy_ecr(captured, reference, variance, bins, value_range, model_variance, valid):
+    """Independent reference: a loop over the reference bins, weighted group means, in numpy float64."""
+    captured, reference = np.asarray(captured, np.float64), np.asarray(reference, np.float64)
+    weight = 1.0 / (np.asarray(variance, np.float64) + model_variance)
+    width = (value_range[1] - value_range[0]) / bins
+    index = np.clip(np.floor((reference - value_range[0]) / width), 0, bins - 1).astype(int)
+    keep = np.asarray(valid, bool)
+    values, weights, index = captured[keep], weight[keep], index[keep]
+    grand_mean = np.sum(weights * values) / np.sum(weights)
+    between, occupied = 0.0, 0
+    for label in range(bins):
+        chosen = index == label
+        if not chosen.any():
+            continue
+        occupied += 1
+        group_mean = np.sum(weights[chosen] * values[chosen]) / np.sum(weights[chosen])
+        between += np.sum(weights[chosen]) * (group_mean - grand_mean) ** 2
+    return (0.5 * between - 0.5 * (occupied - 1)) / keep.sum()
+
+
+def _case(dtype, shape=(2, 1, 7, 5), seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    reference = torch.rand(shape, generator=generator, dtype=torch.float64) * 256
+    # Non-monotonic response, noise of per-pixel variance, values beyond the range kept as they are.
+    captured = 300 * (reference / 256 - 0.4).abs() + torch.randn(shape, generator=generator, dtype=torch.float64) * 20
+    variance = torch.rand(shape, generator=generator, dtype=torch.float64) * 400 + 1
+    valid = torch.rand(shape, generator=generator) > 0.2
+    return captured.to(dtype), reference.to(dtype), variance.to(dtype), valid
+
+
+@pytest.mark.parametrize("model_variance", [0.0, None, 37.5])
+def test_ecr_equals_numpy_group_means(dtype, tolerance, model_variance):
+    captured, reference, variance, valid = _case(dtype)
+    bins, value_range = 6, (0.0, 256.0)
+    result = ecr(captured, reference, variance, bins=bins, model_variance=model_variance, valid_mask=valid)
+    tau2 = default_model_variance(bins, value_range) if model_variance is None else model_variance
+    expected = [
+        _numpy_ecr(captured[b, 0], reference[b, 0], variance[b, 0], bins, value_range, tau2, valid[b, 0])
+        for b in range(captured.shape[0])
+    ]
+    assert result.dtype == dtype
+    torch.testing.assert_close(result, torch.tensor(expected, dtype=dtype), **tolerance)
+
+
+def test_ecr_candidates_equal_one_call_each_and_roles_are_not_symmetric(dtype, tolerance):
+    captured, reference, variance, valid = _case(dtype)
+    candidates = torch.stack([reference, reference.flip(-1), captured])
+    together = ecr(captured, candidates, variance, bins=5, valid_mask=valid)
+    assert together.shape == (3, 2)
+    for index in range(3):
+        alone = ecr(captured, candidates[index], variance, bins=5, valid_mask=valid)
+        torch.testing.assert_close(together[index], alone, **tolerance)
+    # The captured image is modelled given the reference bins: swapping the roles changes the score.
+    swapped = ecr(reference, captured, variance, bins=5, valid_mask=valid)
+    assert not torch.allclose(swapped, together[0], rtol=1e-2)
+
+
+def test_ecr_with_one_variance_is_the_classic_correlation_ratio():
+    captured, reference, _, _ = _case(torch.float64, shape=(1, 1, 9, 11))
+    bins, sigma2, tau2 = 7, 90.0, 10.0
+    index = np.clip(np.floor(reference.numpy().ravel() / (256 / bins)), 0, bins - 1)
+    values = captured.numpy().ravel()
+    groups = [values[index == label] for label in range(bins) if (index == label).any()]
+    eta2 = sum(len(g) * (g.mean() - values.mean()) ** 2 for g in groups) / np.sum((values - values.mean()) ** 2)
+    expected = eta2 * values.var() / (2 * (sigma2 + tau2)) - (len(groups) - 1) / (2 * values.size)
+    result = ecr(captured, reference, sigma2, bins=bins, model_variance=tau2)
+    assert math.isclose(result.item(), expected, rel_tol=1e-10)
+
+
+def test_ecr_is_centred_under_independence_with_any_variances():
+    # 2 LLR is chi^2 with K_occ - 1 degrees of freedom for captured values independent of the reference.
+    generator = torch.Generator().manual_seed(3)
+    samples, pixels, bins = 400, 300, 8
+    variance = torch.rand(samples, pixels, generator=generator, dtype=torch.float64) ** 4 * 1e4 + 0.5
+    captured = 100 + torch.randn(samples, pixels, generator=generator, dtype=torch.float64) * variance.sqrt()
+    reference = torch.rand(samples, pixels, generator=generator, dtype=torch.float64) * 256
+    centred_llr = ecr(captured, reference, variance, bins=bins, model_variance=0.0) * pixels
+    standard_error = math.sqrt((bins - 1) / 2) / math.sqrt(samples)
+    assert abs(centred_llr.mean().item()) < 4 * standard_error
+    # Under-stated variances break it: the statistic is no longer centred.
+    wrong = ecr(captured, reference, variance / 4, bins=bins, model_variance=0.0) * pixels
+    assert abs(wrong.mean().item()) > 10 * standard_error
+
+
+def test_a_pixel_with_a_flat_likelihood_adds_no_evidence():
+    captured, reference, variance, _ = _case(torch.float64, shape=(1, 1, 6, 6))
+    base = ecr(captured, reference, variance, bins=4, model_variance=0.0) * 36
+    # One more pixel, in a bin already occupied, with an enormous noise variance and a wild value.
+    grown_captured = torch.cat([captured.flatten(1), torch.tensor([[1e4]], dtype=torch.float64)], 1)
+    grown_reference = torch.cat([reference.flatten(1), reference.flatten(1)[:, :1]], 1)
+    grown_variance = torch.cat([variance.flatten(1), torch.tensor([[1e16]], dtype=torch.float64)], 1)
+    grown = ecr(grown_captured, grown_reference, grown_variance, bins=4, model_variance=0.0) * 37
+    assert abs((grown - base).item()) < 1e-6
+    # The paper's ENMI gives such a pixel a full unit of histogram weight instead.
+
+
+def test_ecr_masked_equals_cropped_and_masked_pixels_may_hold_nan(dtype, tolerance):
+    captured, reference, variance, _ = _case(dtype, shape=(1, 1, 6, 8))
+    mask = torch.zeros(1, 1, 6, 8, dtype=torch.bool)
+    mask[..., 1:5, 2:7] = True
+    poisoned = torch.where(mask, captured, torch.nan)
+    masked = ecr(poisoned, reference, variance, bins=5, valid_mask=mask)
+    cropped = ecr(captured[..., 1:5, 2:7], reference[..., 1:5, 2:7], variance[..., 1:5, 2:7], bins=5)
+    torch.testing.assert_close(masked, cropped, **tolerance)
+
+
+def test_ecr_gradcheck_in_captured_and_variance():
+    captured, reference, variance, valid = _case(torch.float64, shape=(2, 1, 4, 3))
+    captured.requires_grad_()
+    variance.requires_grad_()
+
+    def score(captured, variance):
+        return ecr(captured, reference, variance, bins=4, valid_mask=valid)
+
+    assert torch.autograd.gradcheck(score, (captured, variance))
+
+
+def test_ecr_from_bin_sums_streams():
+    captured, reference, variance, _ = _case(torch.float64, shape=(1, 1, 8, 8))
+    from enmi_torch.correlation_ratio import bin_sums
+
+    # Sums over two halves add up to the sums of the whole: the score can be accumulated across batches.
+    tau2 = 5.0
+    flat = captured.flatten(1), reference.flatten(1)[None], variance.flatten(1) + tau2
+    whole = bin_sums(*flat, None, 4, (0.0, 256.0))
+    halves = [
+        bin_sums(flat[0][:, part], flat[1][..., part], flat[2][:, part], None, 4, (0.0, 256.0), centre=100.0)
+        for part in (slice(0, 30), slice(30, 64))
+    ]
+    summed = BinSums(*(first + second for first, second in zip(*halves, strict=True)))
+    torch.testing.assert_close(ecr_from_bin_sums(summed), ecr_from_bin_sums(whole), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ecr_from_bin_sums(whole), ecr(*flat[:2], flat[2] - tau2, bins=4, model_variance=tau2))
+
+
+def test_ecr_loss_agrees_with_function_and_its_variance_model():
+    captured, reference, variance, valid = _case(torch.float32)
+    loss = ECRLoss(bins=5, reduction="none")
+    torch.testing.assert_close(
+        loss(captured, reference, variance, valid), -ecr(captured, reference, variance, bins=5, valid_mask=valid)
+    )
+    with_model = ECRLoss(bins=5, variance_model=ConstantVariance(100.0), reduction="sum")
+    torch.testing.assert_close(with_model(captured, reference), loss(captured, reference, 100.0).sum())
+    variance.requires_grad_()
+    loss(captured, reference, variance, valid).sum().backward()
+    assert torch.isfinite(variance.grad).all() and variance.grad[valid].abs().sum() > 0
+    assert (variance.grad[~valid] == 0).all()
+    with pytest.raises(ValueError, match="variance must be None when ECRLoss has a variance_model"):
+        with_model(captured, reference, 1.0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"variance": None}, "variance must be"),
+        ({"model_variance": -1.0}, "model_variance must be a number >= 0"),
+        ({"model_variance": math.inf}, "model_variance must be finite"),
+        ({"model_variance": "auto"}, "model_variance must be a number"),
+        ({"variance": -1.0}, "variance"),
+        ({"bins": 1}, "bins"),
+    ],
+)
+def test_ecr_refuses_bad_arguments(kwargs, message):
+    captured, reference, variance, _ = _case(torch.float64)
+    arguments = {"variance": variance, **kwargs}
+    variance = arguments.pop("variance")
+    with pytest.raises(ValueError, match=message):
+        ecr(captured, reference, variance, **arguments)
