@@ -23,8 +23,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BinSums",
-    "ECRLoss",
     "ConstantVariance",
+    "ECRLoss",
     "ENMILoss",
     "EmpiricalVariance",
     "GroundGrid",

@@ -1,5 +1,4 @@
-"""Loss modules: ``2 - NMI`` and ``2 - ENMI``, which fall to 0 as the captured image aligns with the reference, and
-``-ECR``, which falls as the reference bins explain the captured image."""
+"""Loss modules: ``2 - NMI``, ``2 - ENMI`` (0 when aligned) and ``-ECR`` (falls as the reference explains the image)."""
 
 from __future__ import annotations
 
@@ -141,7 +140,7 @@ class ENMILoss(nn.Module):
 
 
 class ECRLoss(nn.Module):
-    """``-ECR(captured, reference, variance)`` in nats per pixel; module form of :func:`~enmi_torch.correlation_ratio.ecr`.
+    """``-ECR(captured, reference, variance)`` (nats per pixel): the module form of :func:`~enmi_torch.ecr`.
 
     The variance comes per call or from a :class:`~enmi_torch.variance.VarianceModel` given at construction, as in
     :class:`ENMILoss`; the model's parameters get gradients through the loss.
