@@ -83,7 +83,7 @@ def localize(
     shifts: int | tuple[int, int] = 16,
     center: tuple[int, int] | Tensor | None = None,
     yaws: Sequence[float] | Tensor | None = None,
-    metric: str = "enmi",
+    metric: str = "ecr",
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
     weights: str = "mass",
@@ -221,7 +221,7 @@ class Localizer(nn.Module):
         >>> generator = torch.Generator().manual_seed(0)
         >>> prior_map = torch.rand(1, 1, 40, 40, generator=generator) * 256
         >>> localizer = Localizer(ConstantVariance(16.0), shifts=5, bins=16)
-        >>> localizer(prior_map[..., 15:31, 14:30], prior_map).pose.round(decimals=2).tolist()
+        >>> localizer(prior_map[..., 15:31, 14:30], prior_map).pose.round().tolist()
         [[2.0, 3.0, 0.0]]
     """
 
@@ -231,7 +231,7 @@ class Localizer(nn.Module):
         *,
         shifts: int | tuple[int, int] = 16,
         yaws: Sequence[float] | Tensor | None = None,
-        metric: str = "enmi",
+        metric: str = "ecr",
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
         weights: str = "mass",

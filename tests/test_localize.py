@@ -88,7 +88,7 @@ def test_batched_search_over_several_maps_and_centres_equals_single_searches(gra
 def test_surface_at_yaw_zero_equals_the_direct_loop_over_the_window(gravel_map):
     local = _noisy(_cut(gravel_map, 80, 80, size=12), 4.0)
     variance = torch.linspace(4, 40, 144, dtype=torch.float64).reshape(1, 1, 12, 12)
-    result = localize(local, gravel_map, variance, shifts=3, center=(81, 79), bins=16, min_overlap=0.1)
+    result = localize(local, gravel_map, variance, shifts=3, center=(81, 79), bins=16, min_overlap=0.1, metric="enmi")
     window = gravel_map[..., 81 - 6 - 3 : 81 - 6 + 12 + 3, 79 - 6 - 3 : 79 - 6 + 12 + 3]
     expected = direct_surface(local, window, variance, bins=16)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
@@ -241,11 +241,11 @@ def _invalid_localize_cases(gravel_map):
         ({"prior_map": torch.cat([gravel_map] * 2)}, ValueError, r"prior_map must have shape \(1, 1, Hm, Wm\)"),
         ({"variance": torch.ones(1, 1, 31, 32)}, ValueError, r"variance must have shape \(32, 32\)"),
         ({"variance": -torch.ones(32, 32)}, ValueError, "variance must be finite and > 0"),
-        ({"variance": None}, ValueError, "variance must be given for metric='enmi'"),
+        ({"metric": "enmi", "variance": None}, ValueError, "variance must be given for metric='enmi'"),
         ({"metric": "nmi"}, ValueError, "variance is only used by metric='ecr' or 'enmi'"),
         ({"metric": "ecr", "variance": None}, ValueError, "variance must be given for metric='ecr'"),
         ({"metric": "ecr", "model_variance": -1.0}, ValueError, "model_variance must be a number >= 0"),
-        ({"model_variance": 1.0}, ValueError, "model_variance is only used by metric='ecr'"),
+        ({"metric": "enmi", "model_variance": 1.0}, ValueError, "model_variance is only used by metric='ecr'"),
         ({"metric": "mi"}, ValueError, "metric must be one of"),
         ({"local_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "local_mask selects no pixel"),
         ({"local_mask": torch.ones(32, 32)}, TypeError, "local_mask must be a bool tensor"),
