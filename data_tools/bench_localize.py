@@ -155,7 +155,9 @@ def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
     times["localize_36_yaws"] = []
     for _ in range(yaw_rounds):
         seconds, located = _timed(
-            lambda: localize(local, prior_map, variance, shifts=RADIUS, center=center, yaws=yaws, bins=BINS)
+            lambda: localize(
+                local, prior_map, variance, shifts=RADIUS, center=center, yaws=yaws, bins=BINS, metric="enmi"
+            )
         )
         times["localize_36_yaws"].append(seconds)
     checks["localize_pose"] = [round(value, 2) for value in located.pose[0].tolist()]
