@@ -86,8 +86,12 @@ def write_outputs(model: MaskFitModule, trainer, output_dir: Path, log_dir: str,
         "train_epoch_seconds": model.epoch_seconds,
         "learned_pixels": int(model.mask.valid.sum()),
         "errors": model.mask_errors(),
+        "localization_pairs": min(model.hparams.localization_pairs, len(datamodule.val_set)),
         "localization": {
             key.split("/", 1)[1]: float(value) for key, value in metrics.items() if key.startswith("localization/")
+        },
+        "localization_z": {
+            key.split("/", 1)[1]: float(value) for key, value in metrics.items() if key.startswith("localization_z/")
         },
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -112,7 +116,7 @@ def print_summary(summary: dict) -> None:
         )
     if summary["localization"]:
         scores = ", ".join(f"{name} {value:.3f}" for name, value in sorted(summary["localization"].items()))
-        lines.append(f"  localization accuracy on {summary['val_pairs']} held-out pairs: {scores}")
+        lines.append(f"  localization success on {summary['localization_pairs']} held-out pairs: {scores}")
     print("\n".join(lines))
 
 

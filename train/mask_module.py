@@ -8,9 +8,12 @@ pairs in the process's batch times the pixels per image), so the gradient averag
 single-process gradient of the same global batch: the fitted mask does not depend on the number of processes.
 
 Dashboards (TensorBoard): ``train/nll``, ``val/nll``; ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth``,
-``mask/empirical_rel_rms_vs_truth``; ``localization/{learned,analytic,uniform,nmi}`` (share of held-out pairs
-located at the right shift); ``speed/pairs_per_second``; the mask figure; histograms of raw and standardised
-residuals.
+``mask/empirical_rel_rms_vs_truth``; ``localization/<method>`` (share of held-out pairs located within one pixel
+by a whole-image search, the protocol of ``data_tools/yardstick.py``) and ``localization_z/<method>`` (the mean
+z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
+(``*_learned``), the true field (``*_analytic``, synthetic data) and the uniform controls (``*_uniform``: the learned
+mask's mean; ``enmi_best_uniform``: the best of the mean times ``localization_grid``), hard NMI and NCC;
+``speed/pairs_per_second``; the mask figure; histograms of raw and standardised residuals.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from torch import Tensor
 
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
-from enmi_torch.information import enmi, nmi
+from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
 from train.mask_figure import mask_figure, masked_residual
 
@@ -37,69 +40,68 @@ def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
     return float((ratio - 1).square().mean().sqrt())
 
 
-def localization_hits(
+def localization_trials(
     local: Tensor,
     prior: Tensor,
     valid: Tensor,
-    variances: dict[str, Tensor | float | None],
-    seeds: Tensor,
+    variances: dict[str, Tensor | float],
     *,
-    pixels: int,
     max_shift: int,
     bins: int,
     value_range: tuple[float, float],
-) -> tuple[dict[str, int], int]:
-    """How many pairs each variance map locates at the right shift with ENMI (``None``: hard NMI), and how many tried.
+    uniform_grid: tuple[float, ...] = (),
+) -> dict[str, tuple[int, float]]:
+    """Whole-image localization of aligned pairs, the protocol of ``data_tools/yardstick.py``: hits and peak z-scores.
 
-    For each pair, ``pixels`` valid pixels are drawn (seeded by ``seeds``, away from the border by ``max_shift``)
-    across the whole image, like the tiles of the paper's simulation; the local values there are scored against the
-    prior at every shift in ``[-max_shift, max_shift]^2`` and the pair counts as located when the zero shift scores
-    highest. Pairs with fewer valid pixels are skipped.
+    Each pair's local image, less a border of ``max_shift`` pixels, is searched in its prior image at every shift in
+    ``[-max_shift, max_shift]^2`` (FFT score surfaces); the pair is located when the best shift is within one pixel of
+    the zero shift. The peak z-score, ``(score at zero shift - mean) / std`` over the shifts more than one pixel away,
+    measures the margin where every method locates the pair.
 
     Args:
         local: ``(B, 1, H, W)``.
-        prior: ``(B, 1, H, W)``.
-        valid: bool ``(B, 1, H, W)``, pixels usable by every map.
-        variances: name -> ``(H, W)`` map, a number (uniform variance) or ``None`` (hard NMI).
-        seeds: ``(B,)`` integers, one per pair.
-        pixels: pixels drawn per pair.
+        prior: ``(B, 1, H, W)``, aligned with ``local``.
+        valid: bool ``(B, 1, H, W)``, pixels usable by every method.
+        variances: name -> ``(H, W)`` variance map or a number (one uniform variance); each is scored with ECR and with
+            ENMI (methods ``"ecr_<name>"``, ``"enmi_<name>"``). The name ``"uniform"`` also gives ENMI at the uniform
+            variance times each factor of ``uniform_grid`` (``"enmi_uniform_x<factor>"``).
         max_shift: largest shift in pixels.
-        bins: histogram bins.
-        value_range: histogram range.
+        bins: bins of ECR (reference), ENMI and NMI.
+        value_range: range of the bins.
+        uniform_grid: factors for the best-uniform control.
+
+    Returns:
+        Method -> ``(hits, sum of peak z-scores)`` over the pairs, for the methods above, ``"nmi"`` and ``"ncc"``.
     """
     height, width = local.shape[-2:]
-    shifts = [(dy, dx) for dy in range(-max_shift, max_shift + 1) for dx in range(-max_shift, max_shift + 1)]
-    offsets = torch.tensor([dy * width + dx for dy, dx in shifts], device=local.device)
-    inner = torch.zeros(height, width, dtype=torch.bool, device=local.device)
-    inner[max_shift : height - max_shift, max_shift : width - max_shift] = True
-    chosen = []
-    for pair in range(local.shape[0]):
-        candidates = torch.nonzero((valid[pair, 0] & inner).flatten()).flatten()
-        if candidates.numel() < pixels:
-            continue
-        generator = torch.Generator().manual_seed(int(seeds[pair]) + 7919)
-        pick = torch.randperm(candidates.numel(), generator=generator)[:pixels].to(local.device)
-        chosen.append((pair, candidates[pick]))
-    if not chosen:
-        return dict.fromkeys(variances, 0), 0
-    pairs = torch.tensor([pair for pair, _ in chosen], device=local.device)
-    where = torch.stack([index for _, index in chosen])  # (P, K)
-    flat_local, flat_prior = local.flatten(1)[pairs], prior.flatten(1)[pairs]
-    candidates = len(shifts)
-    captured = torch.gather(flat_local, 1, where).repeat_interleave(candidates, 0)
-    shifted = where.unsqueeze(1) + offsets.view(1, -1, 1)  # (P, C, K)
-    reference = torch.gather(flat_prior.unsqueeze(1).expand(-1, candidates, -1), 2, shifted).flatten(0, 1)
-    zero = shifts.index((0, 0))
-    hits = {}
+    inner = (..., slice(max_shift, height - max_shift), slice(max_shift, width - max_shift))
+    crop, crop_valid = local[inner].float(), valid[inner]
+    window = prior.float()
+    options = {"bins": bins, "value_range": value_range, "local_mask": crop_valid}
+    surfaces = {}
     for name, variance in variances.items():
-        if variance is None:
-            scores = nmi(captured, reference, bins=bins, value_range=value_range)
-        else:
-            if isinstance(variance, Tensor):
-                variance = variance.to(captured.dtype).flatten()[where].repeat_interleave(candidates, 0)
-            scores = enmi(captured, reference, variance, bins=bins, value_range=value_range)
-        hits[name] = int((scores.view(-1, candidates).argmax(dim=1) == zero).sum())
-    return hits, len(chosen)
+        if isinstance(variance, Tensor):
+            variance = variance[inner].float()
+        surfaces[f"ecr_{name}"] = ecr_surface(crop, window, variance, **options)
+        surfaces[f"enmi_{name}"] = enmi_surface(crop, window, variance, **options)
+        if name == "uniform":
+            for factor in uniform_grid:
+                surfaces[f"enmi_uniform_x{factor:g}"] = enmi_surface(crop, window, variance * factor, **options)
+    surfaces["nmi"] = nmi_surface(crop, window, **options)
+    surfaces["ncc"] = ncc_surface(crop, window, local_mask=crop_valid)
+    span = 2 * max_shift + 1
+    offsets = torch.arange(span, device=local.device) - max_shift
+    far = (offsets.abs().view(-1, 1) > 1) | (offsets.abs().view(1, -1) > 1)
+    results = {}
+    for method, surface in surfaces.items():
+        score = surface.score.double()
+        peak = score.flatten(1).argmax(1)
+        rows, cols = peak // span - max_shift, peak % span - max_shift
+        hits = int(((rows.abs() <= 1) & (cols.abs() <= 1)).sum())
+        others = score[:, far]
+        z = (score[:, max_shift, max_shift] - others.mean(1)) / others.std(1).clamp_min(1e-12)
+        results[method] = (hits, float(z.sum()))
+    return results
 
 
 class MaskFitModule(LightningModule):
@@ -114,10 +116,11 @@ class MaskFitModule(LightningModule):
             field (synthetic camera-like pairs).
         match_intensity: fit a gain and offset per pair before taking residuals (for intensity changes).
         lr: Adam learning rate, annealed to 0 by a cosine over the run.
-        localization_pixels: pixels drawn per held-out pair for the localization score.
+        localization_pairs: held-out pairs searched per validation (the first ones; 0 turns the search off).
         localization_shift: the shifts searched are ``[-s, s]^2`` pixels.
-        bins: ENMI/NMI bins for the localization score.
-        value_range: ENMI/NMI bin range.
+        localization_grid: factors of the uniform variance tried by the best-uniform ENMI control.
+        bins: ECR/ENMI/NMI bins for the localization score.
+        value_range: bin range.
     """
 
     def __init__(
@@ -129,8 +132,9 @@ class MaskFitModule(LightningModule):
         reference: str | None = None,
         match_intensity: bool = False,
         lr: float = 0.05,
-        localization_pixels: int = 32,
-        localization_shift: int = 2,
+        localization_pairs: int = 32,
+        localization_shift: int = 3,
+        localization_grid: tuple[float, ...] = (0.25, 4.0),
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
     ) -> None:
@@ -140,7 +144,8 @@ class MaskFitModule(LightningModule):
         self.mask: LearnedVariance | None = None
         self.statistics = EmpiricalVariance(self.shape)
         self.register_buffer("statistics_ready", torch.tensor(False))
-        self._hits: dict[str, int] = {}
+        self._hits: dict[str, float] = {}
+        self._z_sums: dict[str, float] = {}
         self._trials = 0
         self._histogram_batch: tuple[Tensor, Tensor] | None = None
         self._epoch_start, self._epoch_pairs = 0.0, 0
@@ -247,7 +252,7 @@ class MaskFitModule(LightningModule):
                 self._histogram_batch = self._residuals(local, prior, valid)
             self._epoch_pairs += batch_size * self.trainer.world_size
         else:
-            self._localize(local, prior, valid, batch["index"])
+            self._localize(local, prior, valid)
             if self._figure_pair is None:
                 self._figure_pair = (local[0].detach(), prior[0].detach(), valid[0].detach())
         return loss
@@ -269,31 +274,35 @@ class MaskFitModule(LightningModule):
             standardised = residual / self.mask(local).expand_as(local)[keep].sqrt()
         return residual.detach().cpu(), standardised.detach().cpu()
 
-    def _localize(self, local: Tensor, prior: Tensor, valid: Tensor, seeds: Tensor) -> None:
+    def _localize(self, local: Tensor, prior: Tensor, valid: Tensor) -> None:
+        room = self.hparams.localization_pairs - self._trials * self.trainer.world_size
+        if room <= 0:
+            return
+        take = min(local.shape[0], -(-room // self.trainer.world_size))
+        local, prior, valid = local[:take], prior[:take], valid[:take]
         with torch.no_grad():
             learned = self.mask.variance_map().to(local.device)
             usable = valid & self.mask.valid_mask(local)
-            variances: dict[str, Tensor | float | None] = {"learned": learned}
+            variances: dict[str, Tensor | float] = {"learned": learned}
             truth = self.truth
             if truth is not None:
                 usable = usable & truth.valid.to(local.device)
                 variances["analytic"] = truth.variance.to(local.device)
             variances["uniform"] = float(learned[self.mask.valid].mean())
-            variances["nmi"] = None
-            hits, trials = localization_hits(
+            results = localization_trials(
                 local,
                 prior,
                 usable,
                 variances,
-                seeds,
-                pixels=self.hparams.localization_pixels,
                 max_shift=self.hparams.localization_shift,
                 bins=self.hparams.bins,
                 value_range=tuple(self.hparams.value_range),
+                uniform_grid=tuple(self.hparams.localization_grid),
             )
-        for name, count in hits.items():
-            self._hits[name] = self._hits.get(name, 0) + count
-        self._trials += trials
+        for name, (hits, z_sum) in results.items():
+            self._hits[name] = self._hits.get(name, 0) + hits
+            self._z_sums[name] = self._z_sums.get(name, 0.0) + z_sum
+        self._trials += take
 
     # ----- epoch ends: dashboards ---------------------------------------------------------------------------------
     def mask_errors(self) -> dict[str, float]:
@@ -329,18 +338,28 @@ class MaskFitModule(LightningModule):
 
     def on_validation_epoch_start(self) -> None:
         """Reset the localization counts."""
-        self._hits, self._trials, self._figure_pair = {}, 0, None
+        self._hits, self._z_sums, self._trials, self._figure_pair = {}, {}, 0, None
 
     def on_validation_epoch_end(self) -> None:
         """Sum the localization counts over processes, log the accuracies and the mask figure."""
         if self.trainer.sanity_checking:
             return
         names = sorted(self._hits)
-        totals = torch.tensor([self._hits[name] for name in names] + [self._trials], dtype=torch.float64)
+        totals = [self._hits[name] for name in names] + [self._z_sums[name] for name in names] + [self._trials]
+        totals = torch.tensor(totals, dtype=torch.float64)
         totals = self.trainer.strategy.reduce(totals.to(self.device), reduce_op="sum")
-        if totals[-1] > 0:
-            for name, hits in zip(names, totals[:-1], strict=True):
-                self.log(f"localization/{name}", float(hits / totals[-1]), sync_dist=True)
+        pairs = float(totals[-1])
+        if pairs > 0:
+            rates = {name: float(totals[index]) / pairs for index, name in enumerate(names)}
+            margins = {name: float(totals[len(names) + index]) / pairs for index, name in enumerate(names)}
+            grid = [name for name in names if name.startswith("enmi_uniform")]
+            best = max(grid, key=lambda name: (rates[name], margins[name]))
+            rates["enmi_best_uniform"], margins["enmi_best_uniform"] = rates[best], margins[best]
+            for name in rates:
+                if name.startswith("enmi_uniform_x"):
+                    continue
+                self.log(f"localization/{name}", rates[name], sync_dist=False)
+                self.log(f"localization_z/{name}", margins[name], sync_dist=False)
         if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
             figure = self.figure()
             self.logger.experiment.add_figure("masks", figure, self.global_step)

@@ -15,7 +15,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from enmi_torch.data import PairDataModule
 from enmi_torch.variance import LearnedVariance, empirical_variance
 from train.fit_mask import main
-from train.mask_module import MaskFitModule, localization_hits
+from train.mask_module import MaskFitModule, localization_trials
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = str(ROOT / "configs" / "fit_mask_smoke.yaml")
@@ -53,10 +53,17 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
         "mask/rel_rms_vs_empirical",
         "mask/rel_rms_vs_truth",
         "mask/empirical_rel_rms_vs_truth",
-        "localization/learned",
-        "localization/analytic",
-        "localization/uniform",
+        "localization/ecr_learned",
+        "localization/ecr_analytic",
+        "localization/ecr_uniform",
+        "localization/enmi_learned",
+        "localization/enmi_analytic",
+        "localization/enmi_uniform",
+        "localization/enmi_best_uniform",
         "localization/nmi",
+        "localization/ncc",
+        "localization_z/ecr_learned",
+        "localization_z/enmi_best_uniform",
     }
     assert expected_scalars <= set(tags["scalars"])
     assert "masks" in tags["images"] and {"residuals/raw", "residuals/standardised"} <= set(tags["histograms"])
@@ -65,7 +72,8 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     errors = summary["errors"]
     logged = events.Scalars("mask/rel_rms_vs_truth")[-1].value
     assert logged == pytest.approx(errors["rel_rms_vs_truth"], rel=1e-5)
-    assert 0 <= summary["localization"]["learned"] <= 1
+    assert 0 <= summary["localization"]["ecr_learned"] <= 1
+    assert not any(name.startswith("enmi_uniform_x") for name in summary["localization"])
 
 
 @pytest.mark.parametrize(
@@ -167,26 +175,24 @@ def test_cli_resume_continues_the_run(tmp_path):
     assert checkpoint["global_step"] == 2 * torch.load(first["last_checkpoint"], weights_only=True)["global_step"]
 
 
-def test_localization_hits_count_the_right_shift():
+def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
     generator = torch.Generator().manual_seed(0)
-    prior = torch.rand(3, 1, 20, 20, generator=generator) * 255
-    valid = torch.ones(3, 1, 20, 20, dtype=torch.bool)
-    variances = {"exact": 1e-4, "hard": None}
-    hits, trials = localization_hits(
-        prior.clone(), prior, valid, variances, torch.arange(3), pixels=40, max_shift=2, bins=16, value_range=(0, 256)
-    )
-    assert trials == 3 and hits == {"exact": 3, "hard": 3}
-    shifted = prior.roll(1, dims=-1)  # the local image sits one pixel off: the zero shift must lose
-    hits, _ = localization_hits(
-        shifted, prior, valid, variances, torch.arange(3), pixels=40, max_shift=2, bins=16, value_range=(0, 256)
-    )
-    assert hits == {"exact": 0, "hard": 0}
-    few = valid.clone()
-    few[0] = False
-    _, trials = localization_hits(
-        prior, prior, few, variances, torch.arange(3), pixels=40, max_shift=2, bins=16, value_range=(0, 256)
-    )
-    assert trials == 2
+    prior = torch.rand(3, 1, 20, 24, generator=generator) * 255
+    valid = torch.ones(3, 1, 20, 24, dtype=torch.bool)
+    variance = torch.linspace(1, 100, 20 * 24).reshape(20, 24)
+    noisy = prior + torch.randn(prior.shape, generator=generator) * variance.sqrt()
+    options = {"max_shift": 3, "bins": 16, "value_range": (0.0, 256.0), "uniform_grid": (0.25, 4.0)}
+    results = localization_trials(noisy, prior, valid, {"learned": variance, "uniform": 50.0}, **options)
+    expected = {"ecr_learned", "enmi_learned", "ecr_uniform", "enmi_uniform", "nmi", "ncc"}
+    assert set(results) == expected | {"enmi_uniform_x0.25", "enmi_uniform_x4"}
+    assert all(hits == 3 and z_sum > 3 * 3 for hits, z_sum in results.values())
+    # The local image sits two pixels off along the columns only: the zero shift loses, for every method.
+    shifted = noisy.roll(2, dims=-1)
+    results = localization_trials(shifted, prior, valid, {"learned": variance, "uniform": 50.0}, **options)
+    assert all(hits == 0 for hits, _ in results.values())
+    # A one-pixel offset still counts as located (the yardstick's rule).
+    results = localization_trials(noisy.roll(1, dims=-2), prior, valid, {"uniform": 50.0}, **options)
+    assert results["ecr_uniform"][0] == 3
 
 
 def fit_in_subprocess(tmp_path, name, *overrides):
