@@ -308,10 +308,11 @@ def _plot(table, keys, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = sorted(
-        {(key[2], key[1]) for key in keys}, key=lambda pair: (RESPONSES.index(pair[0]), PROFILES.index(pair[1]))
+    responses = [name for name in RESPONSES if any(key[2] == name for key in keys)]
+    profiles = [name for name in PROFILES if any(key[1] == name for key in keys)]
+    figure, axes = plt.subplots(
+        len(responses), len(profiles), figsize=(4.2 * len(profiles), 3.6 * len(responses)), sharey=True, squeeze=False
     )
-    figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.8), sharey=True, squeeze=False)
     styles = {
         "ECR true": "o-",
         "ECR learned": "s--",
@@ -323,18 +324,22 @@ def _plot(table, keys, path: Path) -> None:
         "ECR uniform mean": ".:",
         "ENMI learned": "<--",
     }
-    for axis, (response, profile) in zip(axes[0], panels, strict=True):
-        levels = sorted({key[3] for key in keys if key[1:3] == (profile, response)})
-        for method in METHODS:
-            rates = []
-            for level in levels:
-                group = [key for key in keys if key[1:] == (profile, response, level)]
-                rates.append(np.mean([table[(*key, method)][1] / table[(*key, method)][2] for key in group]))
-            axis.plot(levels, rates, styles[method], label=method)
-        axis.set_xscale("log")
-        axis.set(title=f"{profile}, {response}", xlabel="mean noise sigma (grey levels)", ylim=(-0.03, 1.03))
-        axis.grid(alpha=0.3)
-    axes[0, 0].set_ylabel("success rate (mean over maps)")
+    for row, response in enumerate(responses):
+        for col, profile in enumerate(profiles):
+            axis = axes[row, col]
+            levels = sorted({key[3] for key in keys if key[1:3] == (profile, response)})
+            for method in METHODS:
+                rates = []
+                for level in levels:
+                    group = [key for key in keys if key[1:] == (profile, response, level)]
+                    rates.append(np.mean([table[(*key, method)][1] / table[(*key, method)][2] for key in group]))
+                axis.plot(levels, rates, styles[method], label=method)
+            axis.set_xscale("log")
+            axis.set(title=f"{profile} variance, {response}", ylim=(-0.03, 1.03))
+            axis.grid(alpha=0.3)
+            if row == len(responses) - 1:
+                axis.set_xlabel("mean noise sigma (grey levels)")
+        axes[row, 0].set_ylabel("success rate (mean over maps)")
     axes[0, 0].legend(fontsize=7, loc="lower left")
     figure.tight_layout()
     figure.savefig(path, dpi=80)
