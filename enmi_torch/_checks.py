@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 _VALUE_CHECKS_ON_ACCELERATORS = os.environ.get("ENMI_TORCH_VALUE_CHECKS", "0") == "1"
+MAX_BINS = 1 << 24
 
 
 @contextlib.contextmanager
@@ -69,11 +70,14 @@ def check_option(name: str, value: Any, allowed: Sequence[str]) -> str:
 
 
 def check_bins(bins: Any) -> int:
-    """Raise unless ``bins`` is an integer of at least 2."""
+    """Raise unless ``bins`` is an integer in ``[2, 2**24]``."""
     if isinstance(bins, bool) or not isinstance(bins, int):
         raise TypeError(f"bins must be an int >= 2, got {type(bins).__name__} {bins!r}")
     if bins < 2:
         raise ValueError(f"bins must be an int >= 2, got {bins}")
+    if bins > MAX_BINS:
+        # Beyond 2**24 float32 values no longer tell neighbouring bins apart (and bins**2 cell indices near int64's).
+        raise ValueError(f"bins must be at most {MAX_BINS} (2**24), got {bins}")
     return bins
 
 

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from enmi_torch._checks import check_floating, check_option
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
-from enmi_torch.histogram import hard_entropies, joint_histogram
+from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
 
 
 def entropies(counts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -104,16 +104,8 @@ def nmi(
         return _nmi_from_entropies(
             *hard_entropies(captured, reference, bins=bins, value_range=value_range, valid_mask=valid_mask)
         )
-    counts = joint_histogram(
-        captured,
-        reference,
-        bins=bins,
-        value_range=value_range,
-        valid_mask=valid_mask,
-        kernel=kernel,
-        reference_kernel=reference_kernel,
-    )
-    return nmi_from_joint_histogram(counts)
+    inputs = _prepare(captured, reference, bins, value_range, None, valid_mask, kernel, reference_kernel, None)
+    return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))
 
 
 def _few_pixels(captured: Tensor, bins: int) -> bool:
@@ -124,6 +116,8 @@ def _few_pixels(captured: Tensor, bins: int) -> bool:
     """
     if not isinstance(captured, Tensor) or captured.ndim < 2 or isinstance(bins, bool) or not isinstance(bins, int):
         return False
+    if captured.shape[0] == 0:
+        return False  # the joint histogram's checks refuse an empty batch
     return 4 * captured[0].numel() < bins * bins
 
 
@@ -182,15 +176,7 @@ def enmi(
     check_option("weights", weights, LIKELIHOOD_WEIGHTS)
     if variance is None:
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
-    counts = joint_histogram(
-        captured,
-        reference,
-        bins=bins,
-        value_range=value_range,
-        captured_variance=variance,
-        valid_mask=valid_mask,
-        kernel=weights,
-        reference_kernel=reference_kernel,
-        log_prior=log_prior,
+    inputs = _prepare(
+        captured, reference, bins, value_range, variance, valid_mask, weights, reference_kernel, log_prior, "variance"
     )
-    return nmi_from_joint_histogram(counts)
+    return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))

@@ -32,6 +32,7 @@ import torch
 from kornia.geometry.transform import rotate
 from torch import Tensor, nn
 
+from enmi_torch._budget import check_search_memory
 from enmi_torch._checks import (
     check_bins,
     check_floating,
@@ -172,6 +173,7 @@ def localize(
         raise ValueError(f"variance is only used by metric='enmi', got metric={metric!r}; pass variance=None")
     elif log_prior is not None:
         raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
+    check_search_memory(local, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
         local_valid = _local_valid(local, local_mask, variance)
