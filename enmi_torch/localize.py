@@ -41,6 +41,7 @@ from enmi_torch._checks import (
     check_tensor,
     check_value_range,
 )
+from enmi_torch._files import read_npy
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
 from enmi_torch.score_surface import METRICS, Surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance.base import VarianceModel
@@ -704,13 +705,20 @@ def _read_array(path: str, name: str):
 
     suffix = Path(path).suffix.lower()
     if suffix == ".npy":
-        return np.load(path)
+        try:
+            return read_npy(path, f"--{name}")
+        except ValueError as error:
+            raise SystemExit(f"error: {error}") from None
     if suffix == ".png":
         try:
             from PIL import Image
         except ImportError as error:
             raise SystemExit(f"--{name}: reading PNG needs Pillow (pip install 'enmi_torch[train]')") from error
-        return np.array(Image.open(path).convert("L"))
+        try:
+            with Image.open(path) as opened:
+                return np.array(opened.convert("L"))
+        except Exception as error:  # any decoder failure (missing, corrupt, too large) becomes one message
+            raise SystemExit(f"error: --{name} {path!r} is not a readable PNG image: {error}") from None
     raise SystemExit(f"--{name} must be a .npy or .png file, got {path!r}")
 
 
