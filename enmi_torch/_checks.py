@@ -119,6 +119,12 @@ def check_non_negative_int(name: str, value: Any) -> int:
     return value
 
 
+def check_not_empty(name: str, images: Tensor) -> None:
+    """Raise ``ValueError`` unless the batch ``images`` ``(B, ...)`` holds at least one sample and one pixel."""
+    if images.numel() == 0:
+        raise ValueError(f"{name} must hold at least one sample and one pixel, got shape {tuple(images.shape)}")
+
+
 def check_image_shape(name: str, value: Any) -> tuple[int, int]:
     """Raise unless ``value`` is a pair of positive integers ``(H, W)``; returns it as a tuple."""
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != 2:
@@ -190,8 +196,9 @@ def check_local_in_map(local: Any, map_image: Any, map_name: str, map_dims: str)
     Returns ``(B, h, w)``.
     """
     check_floating("local", local)
-    if local.ndim != 4 or local.shape[1] != 1 or 0 in local.shape:
-        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
+    if local.ndim != 4 or local.shape[1] != 1:
+        raise ValueError(f"local must have shape (B, 1, h, w), got {tuple(local.shape)}")
+    check_not_empty("local", local)
     check_floating(map_name, map_image)
     batch, _, height, width = local.shape
     if map_image.ndim != 4 or map_image.shape[1] != 1 or map_image.shape[0] not in (1, batch):

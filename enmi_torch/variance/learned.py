@@ -28,6 +28,7 @@ from enmi_torch._checks import (
     check_floating,
     check_image_shape,
     check_non_negative_int,
+    check_not_empty,
     check_option,
     check_positive_number,
     check_tensor,
@@ -71,6 +72,7 @@ def gaussian_nll(
     check_option("reduction", reduction, REDUCTIONS)
     if residual.ndim not in (3, 4):
         raise ValueError(f"residual must have shape (B, 1, H, W) or (B, H, W), got {tuple(residual.shape)}")
+    check_not_empty("residual", residual)
     flat = residual.reshape(residual.shape[0], -1)
     log_map = broadcast_map("log_variance", log_variance, residual, "residual").to(flat.dtype)
     valid = None
@@ -332,6 +334,7 @@ class LearnedVariance(VarianceModel):
         if prior.shape != local.shape:
             raise ValueError(f"prior must have the shape of local {tuple(local.shape)}, got {tuple(prior.shape)}")
         self._check_images("local", local)
+        check_not_empty("local", local)
         valid = self.valid_mask(local)
         if valid_mask is not None:
             check_tensor("valid_mask", valid_mask)
