@@ -83,6 +83,11 @@ def joint_histogram(
         total weight of 1, so a sample's counts sum to its number of valid pixels. Same dtype as ``captured``
         (half precision is accumulated in float32 and cast back).
 
+    Raises:
+        MemoryBudgetError: before allocating, when the ``(C, B, bins, bins)`` counts (and the dense bin weights of
+            the Parzen kernels) would exceed the memory budget, 4 GiB unless raised with
+            :func:`~enmi_torch.set_memory_budget` or :func:`~enmi_torch.memory_budget`.
+
     Convention:
         Gradients flow to ``captured`` and ``captured_variance`` for the differentiable kernels and to
         ``reference`` for soft reference kernels. With a hard reference and a likelihood kernel the histogram is

@@ -91,6 +91,10 @@ def nmi(
         ``(H[A] + H[B]) / H[A, B]`` in ``[1, 2]``: 2 for images that determine each other, about 1 for independent
         ones; ``(B,)``, or ``(C, B)`` for candidates. Same dtype as ``captured``.
 
+    Raises:
+        MemoryBudgetError: for soft kernels whose ``(C, B, bins, bins)`` histograms and entropies would exceed the
+            memory budget (see :func:`~enmi_torch.histogram.joint_histogram`); hard bins need no ``bins^2`` table.
+
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> nmi(image, image, bins=4)
@@ -157,6 +161,10 @@ def enmi(
     Returns:
         ENMI in ``[1, 2]``, ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``; it tends to hard
         :func:`nmi` as the variance tends to 0.
+
+    Raises:
+        MemoryBudgetError: when the ``(C, B, bins, bins)`` histograms and their entropies would exceed the memory
+            budget (see :func:`~enmi_torch.histogram.joint_histogram`).
 
     Convention:
         Differentiable in ``captured`` and ``variance`` (and ``reference`` with a soft reference kernel).
