@@ -1,5 +1,6 @@
 """enmi_torch: noise-aware (enhanced) normalized mutual information for image matching and localization."""
 
+from enmi_torch._budget import MemoryBudgetError, get_memory_budget, memory_budget, set_memory_budget
 from enmi_torch._checks import value_checks
 from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likelihood_weights, parzen_weights
 from enmi_torch.camera import RoadCamera
@@ -29,6 +30,7 @@ __all__ = [
     "EmpiricalVariance",
     "GroundGrid",
     "LearnedVariance",
+    "MemoryBudgetError",
     "NMILoss",
     "PerspectiveVariance",
     "RoadCamera",
@@ -42,13 +44,16 @@ __all__ = [
     "entropies",
     "gaussian_log_prior",
     "gaussian_nll",
+    "get_memory_budget",
     "joint_histogram",
     "likelihood_weights",
+    "memory_budget",
     "nmi",
     "nmi_from_joint_histogram",
     "parzen_weights",
     "perspective_variance",
     "rectify",
+    "set_memory_budget",
     "unrectify",
     "value_checks",
 ]

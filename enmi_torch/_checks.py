@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 _VALUE_CHECKS_ON_ACCELERATORS = os.environ.get("ENMI_TORCH_VALUE_CHECKS", "0") == "1"
+MAX_BINS = 1 << 24
 
 
 @contextlib.contextmanager
@@ -69,11 +70,14 @@ def check_option(name: str, value: Any, allowed: Sequence[str]) -> str:
 
 
 def check_bins(bins: Any) -> int:
-    """Raise unless ``bins`` is an integer of at least 2."""
+    """Raise unless ``bins`` is an integer in ``[2, 2**24]``."""
     if isinstance(bins, bool) or not isinstance(bins, int):
         raise TypeError(f"bins must be an int >= 2, got {type(bins).__name__} {bins!r}")
     if bins < 2:
         raise ValueError(f"bins must be an int >= 2, got {bins}")
+    if bins > MAX_BINS:
+        # Beyond 2**24 float32 values no longer tell neighbouring bins apart (and bins**2 cell indices near int64's).
+        raise ValueError(f"bins must be at most {MAX_BINS} (2**24), got {bins}")
     return bins
 
 
@@ -113,6 +117,12 @@ def check_non_negative_int(name: str, value: Any) -> int:
     if value < 0:
         raise ValueError(f"{name} must be an int >= 0, got {value}")
     return value
+
+
+def check_not_empty(name: str, images: Tensor) -> None:
+    """Raise ``ValueError`` unless the batch ``images`` ``(B, ...)`` holds at least one sample and one pixel."""
+    if images.numel() == 0:
+        raise ValueError(f"{name} must hold at least one sample and one pixel, got shape {tuple(images.shape)}")
 
 
 def check_image_shape(name: str, value: Any) -> tuple[int, int]:
@@ -186,8 +196,9 @@ def check_local_in_map(local: Any, map_image: Any, map_name: str, map_dims: str)
     Returns ``(B, h, w)``.
     """
     check_floating("local", local)
-    if local.ndim != 4 or local.shape[1] != 1 or 0 in local.shape:
-        raise ValueError(f"local must have shape (B, 1, h, w) with B, h, w >= 1, got {tuple(local.shape)}")
+    if local.ndim != 4 or local.shape[1] != 1:
+        raise ValueError(f"local must have shape (B, 1, h, w), got {tuple(local.shape)}")
+    check_not_empty("local", local)
     check_floating(map_name, map_image)
     batch, _, height, width = local.shape
     if map_image.ndim != 4 or map_image.shape[1] != 1 or map_image.shape[0] not in (1, batch):

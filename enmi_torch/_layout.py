@@ -8,7 +8,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_mask_not_empty, check_positive_where, check_tensor
+from enmi_torch._checks import (
+    check_floating,
+    check_mask_not_empty,
+    check_not_empty,
+    check_positive_where,
+    check_tensor,
+)
 
 
 def spatial_shape(name: str, image: Tensor) -> tuple[int, ...]:
@@ -26,8 +32,7 @@ def flatten_image(name: str, image: Tensor) -> Tensor:
     """``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)`` to ``(B, N)``."""
     check_floating(name, image)
     spatial_shape(name, image)
-    if image.shape[0] == 0 or image[0].numel() == 0:
-        raise ValueError(f"{name} must hold at least one sample and one pixel, got shape {tuple(image.shape)}")
+    check_not_empty(name, image)
     return image.reshape(image.shape[0], -1)
 
 

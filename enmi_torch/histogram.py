@@ -11,6 +11,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from enmi_torch._budget import check_histogram_memory
 from enmi_torch._checks import (
     check_bins,
     check_finite_where,
@@ -36,6 +37,8 @@ CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
 
 # Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements (8 MiB in float64).
 _CHUNK_ELEMENTS = 1 << 20
+# Hard entropies count pixels in a table of every cell up to this many cells (or 16 per pixel), else by sorting.
+_TABLE_CELLS = 1 << 20
 
 
 def joint_histogram(
@@ -80,6 +83,11 @@ def joint_histogram(
         total weight of 1, so a sample's counts sum to its number of valid pixels. Same dtype as ``captured``
         (half precision is accumulated in float32 and cast back).
 
+    Raises:
+        MemoryBudgetError: before allocating, when the ``(C, B, bins, bins)`` counts (and the dense bin weights of
+            the Parzen kernels) would exceed the memory budget, 4 GiB unless raised with
+            :func:`~enmi_torch.set_memory_budget` or :func:`~enmi_torch.memory_budget`.
+
     Convention:
         Gradients flow to ``captured`` and ``captured_variance`` for the differentiable kernels and to
         ``reference`` for soft reference kernels. With a hard reference and a likelihood kernel the histogram is
@@ -98,9 +106,28 @@ def joint_histogram(
     inputs = _prepare(
         captured, reference, bins, value_range, captured_variance, valid_mask, kernel, reference_kernel, log_prior
     )
-    with torch.autocast(device_type=captured.device.type, enabled=False):
-        if inputs.kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard":
-            batch, pixels = inputs.captured.shape
+    return _joint_histogram(inputs)
+
+
+def _joint_histogram(inputs: _Inputs, *, scored: bool = False) -> Tensor:
+    """The counts of checked inputs, after checking that they fit the memory budget.
+
+    ``scored``: the caller turns the counts into entropies, which holds three more tensors of their size.
+    """
+    reference_kernel = inputs.reference_kernel
+    candidates, batch, pixels = inputs.reference.shape
+    streamed = inputs.kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard"
+    dense_weights = not streamed and (inputs.kernel, reference_kernel) != ("hard", "hard")
+    check_histogram_memory(
+        inputs.captured,
+        inputs.bins,
+        candidates if inputs.with_candidates else None,
+        captured_planes=dense_weights,
+        reference_planes=reference_kernel != "hard" or (dense_weights and candidates > 1),
+        scored=scored,
+    )
+    with torch.autocast(device_type=inputs.captured.device.type, enabled=False):
+        if streamed:
             rows = _reference_rows(inputs.reference, inputs.bins, inputs.value_range)
             spare_row = rows.numel() // pixels * inputs.bins
             if inputs.valid is not None:
@@ -170,15 +197,32 @@ def hard_entropies(
 def _mean_surprisal(cells: Tensor, cell_count: int, weight: Tensor) -> Tensor:
     """Entropy of the cells ``(..., N)`` (in ``[0, cell_count)``) of each sample, pixels weighted by ``weight``."""
     weight = weight.expand(cells.shape)
-    samples = cells.shape[:-1]
-    offsets = torch.arange(samples.numel(), device=cells.device).view(*samples, 1) * cell_count
-    flat = (cells + offsets).flatten()
-    counts = weight.new_zeros(samples.numel() * cell_count).index_add_(0, flat, weight.flatten())
     total = weight.sum(dim=-1, keepdim=True)
     # log n - log c: exactly 0 when c = n. Masked pixels weigh 0; the clamp keeps their log finite in empty cells.
-    pixel_counts = counts.index_select(0, flat).view(cells.shape).clamp_min(torch.finfo(weight.dtype).tiny)
+    pixel_counts = _cell_weights(cells, cell_count, weight).clamp_min(torch.finfo(weight.dtype).tiny)
     surprisal = total.log() - pixel_counts.log_()
     return torch.linalg.vecdot(weight, surprisal) / total.squeeze(-1)
+
+
+def _cell_weights(cells: Tensor, cell_count: int, weight: Tensor) -> Tensor:
+    """``(..., N)``: the summed ``weight`` of the pixels in each pixel's cell, within its sample.
+
+    A table of every cell of every sample while it stays small next to the pixels; beyond that (many bins, e.g.
+    ``bins=100000`` has 1e10 joint cells) each sample's cells are sorted and the runs of equal cells summed, in
+    memory linear in the pixels. Both sum the same 0/1 weights, so the counts are the same exact integers.
+    """
+    samples = cells.shape[:-1].numel()
+    if samples * cell_count <= max(_TABLE_CELLS, 16 * cells.numel()):
+        offsets = torch.arange(samples, device=cells.device).view(*cells.shape[:-1], 1) * cell_count
+        flat = (cells + offsets).flatten()
+        counts = weight.new_zeros(samples * cell_count).index_add_(0, flat, weight.flatten())
+        return counts.index_select(0, flat).view(cells.shape)
+    sorted_cells, order = cells.sort(dim=-1)
+    starts = torch.ones_like(sorted_cells, dtype=torch.bool)
+    starts[..., 1:] = sorted_cells[..., 1:] != sorted_cells[..., :-1]
+    runs = starts.flatten().cumsum(0) - 1  # each sample starts a new run
+    run_weights = weight.new_zeros(cells.numel()).index_add_(0, runs, weight.gather(-1, order).flatten())
+    return torch.empty_like(weight).scatter_(-1, order, run_weights[runs].view(cells.shape))
 
 
 class _Inputs(NamedTuple):
@@ -193,14 +237,27 @@ class _Inputs(NamedTuple):
     bins: int
     value_range: tuple[float, float]
     kernel: str
+    reference_kernel: str
     with_candidates: bool
     out_dtype: torch.dtype
 
 
 def _prepare(
-    captured, reference, bins, value_range, captured_variance, valid_mask, kernel, reference_kernel, log_prior
+    captured,
+    reference,
+    bins,
+    value_range,
+    captured_variance,
+    valid_mask,
+    kernel,
+    reference_kernel,
+    log_prior,
+    variance_name="captured_variance",
 ) -> _Inputs:
-    """Check the arguments of :func:`joint_histogram` and bring them to the flat layout and compute dtype."""
+    """Check the arguments of :func:`joint_histogram` and bring them to the flat layout and compute dtype.
+
+    ``variance_name`` is the name the caller's users give ``captured_variance`` (``"variance"`` for ENMI).
+    """
     check_floating("captured", captured)
     check_tensor("reference", reference)
     with_candidates = reference.ndim == captured.ndim + 1 and reference.shape[1:] == captured.shape
@@ -217,9 +274,9 @@ def _prepare(
     check_option("kernel", kernel, CAPTURED_KERNELS)
     check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
     if kernel in LIKELIHOOD_WEIGHTS and captured_variance is None:
-        raise ValueError(f"kernel={kernel!r} needs captured_variance, got None")
+        raise ValueError(f"kernel={kernel!r} needs {variance_name}, got None")
     if kernel not in LIKELIHOOD_WEIGHTS and captured_variance is not None:
-        raise ValueError(f"captured_variance is only used by kernels {list(LIKELIHOOD_WEIGHTS)}, got kernel={kernel!r}")
+        raise ValueError(f"{variance_name} is only used by kernels {list(LIKELIHOOD_WEIGHTS)}, got kernel={kernel!r}")
     if log_prior is not None and kernel not in LIKELIHOOD_WEIGHTS:
         raise ValueError(f"log_prior is only used by kernels {list(LIKELIHOOD_WEIGHTS)}, got kernel={kernel!r}")
 
@@ -241,7 +298,7 @@ def _prepare(
     pair_weight = None if valid is None else valid.to(compute_dtype)
     variance = None
     if captured_variance is not None:
-        variance = variance_map("captured_variance", captured_variance, captured, compute_dtype, valid)
+        variance = variance_map(variance_name, captured_variance, captured, compute_dtype, valid)
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).to(compute_dtype)
 
@@ -255,6 +312,7 @@ def _prepare(
         bins,
         value_range,
         kernel,
+        reference_kernel,
         with_candidates,
         out_dtype,
     )

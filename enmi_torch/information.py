@@ -7,7 +7,7 @@ from torch import Tensor
 
 from enmi_torch._checks import check_floating, check_option
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
-from enmi_torch.histogram import hard_entropies, joint_histogram
+from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
 
 
 def entropies(counts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -91,6 +91,10 @@ def nmi(
         ``(H[A] + H[B]) / H[A, B]`` in ``[1, 2]``: 2 for images that determine each other, about 1 for independent
         ones; ``(B,)``, or ``(C, B)`` for candidates. Same dtype as ``captured``.
 
+    Raises:
+        MemoryBudgetError: for soft kernels whose ``(C, B, bins, bins)`` histograms and entropies would exceed the
+            memory budget (see :func:`~enmi_torch.histogram.joint_histogram`); hard bins need no ``bins^2`` table.
+
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> nmi(image, image, bins=4)
@@ -104,16 +108,8 @@ def nmi(
         return _nmi_from_entropies(
             *hard_entropies(captured, reference, bins=bins, value_range=value_range, valid_mask=valid_mask)
         )
-    counts = joint_histogram(
-        captured,
-        reference,
-        bins=bins,
-        value_range=value_range,
-        valid_mask=valid_mask,
-        kernel=kernel,
-        reference_kernel=reference_kernel,
-    )
-    return nmi_from_joint_histogram(counts)
+    inputs = _prepare(captured, reference, bins, value_range, None, valid_mask, kernel, reference_kernel, None)
+    return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))
 
 
 def _few_pixels(captured: Tensor, bins: int) -> bool:
@@ -124,6 +120,8 @@ def _few_pixels(captured: Tensor, bins: int) -> bool:
     """
     if not isinstance(captured, Tensor) or captured.ndim < 2 or isinstance(bins, bool) or not isinstance(bins, int):
         return False
+    if captured.shape[0] == 0:
+        return False  # the joint histogram's checks refuse an empty batch
     return 4 * captured[0].numel() < bins * bins
 
 
@@ -164,6 +162,10 @@ def enmi(
         ENMI in ``[1, 2]``, ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``; it tends to hard
         :func:`nmi` as the variance tends to 0.
 
+    Raises:
+        MemoryBudgetError: when the ``(C, B, bins, bins)`` histograms and their entropies would exceed the memory
+            budget (see :func:`~enmi_torch.histogram.joint_histogram`).
+
     Convention:
         Differentiable in ``captured`` and ``variance`` (and ``reference`` with a soft reference kernel).
 
@@ -182,15 +184,7 @@ def enmi(
     check_option("weights", weights, LIKELIHOOD_WEIGHTS)
     if variance is None:
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
-    counts = joint_histogram(
-        captured,
-        reference,
-        bins=bins,
-        value_range=value_range,
-        captured_variance=variance,
-        valid_mask=valid_mask,
-        kernel=weights,
-        reference_kernel=reference_kernel,
-        log_prior=log_prior,
+    inputs = _prepare(
+        captured, reference, bins, value_range, variance, valid_mask, weights, reference_kernel, log_prior, "variance"
     )
-    return nmi_from_joint_histogram(counts)
+    return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))

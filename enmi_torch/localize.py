@@ -32,6 +32,7 @@ import torch
 from kornia.geometry.transform import rotate
 from torch import Tensor, nn
 
+from enmi_torch._budget import check_search_memory
 from enmi_torch._checks import (
     check_bins,
     check_floating,
@@ -40,6 +41,7 @@ from enmi_torch._checks import (
     check_tensor,
     check_value_range,
 )
+from enmi_torch._files import read_npy
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
 from enmi_torch.correlation_ratio import check_model_variance
 from enmi_torch.score_surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
@@ -181,6 +183,7 @@ def localize(
         raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
     if metric == "ecr":
         check_model_variance(model_variance, bins, value_range)
+    check_search_memory(local, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
         local_valid = _local_valid(local, local_mask, variance)
@@ -727,13 +730,20 @@ def _read_array(path: str, name: str):
 
     suffix = Path(path).suffix.lower()
     if suffix == ".npy":
-        return np.load(path)
+        try:
+            return read_npy(path, f"--{name}")
+        except ValueError as error:
+            raise SystemExit(f"error: {error}") from None
     if suffix == ".png":
         try:
             from PIL import Image
         except ImportError as error:
             raise SystemExit(f"--{name}: reading PNG needs Pillow (pip install 'enmi_torch[train]')") from error
-        return np.array(Image.open(path).convert("L"))
+        try:
+            with Image.open(path) as opened:
+                return np.array(opened.convert("L"))
+        except Exception as error:  # any decoder failure (missing, corrupt, too large) becomes one message
+            raise SystemExit(f"error: --{name} {path!r} is not a readable PNG image: {error}") from None
     raise SystemExit(f"--{name} must be a .npy or .png file, got {path!r}")
 
 

@@ -32,6 +32,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from enmi_torch._budget import check_surface_memory
 from enmi_torch._checks import (
     check_bins,
     check_finite_where,
@@ -118,6 +119,7 @@ def enmi_surface(
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    check_surface_memory(inputs.local, inputs.window, bins)
     batch = inputs.local.shape[0]
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).to(inputs.local.dtype).unsqueeze(1)
@@ -208,6 +210,7 @@ def nmi_surface(
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     inputs = _check_inputs(local, window, local_mask, window_mask, value_range)
+    check_surface_memory(inputs.local, inputs.window, bins)
     with torch.no_grad():
         one_hot = torch.nn.functional.one_hot(hard_bin_index(inputs.local, bins, value_range), bins)
         return _information_surface(one_hot.to(inputs.local.dtype), inputs, bins, value_range)
@@ -238,6 +241,7 @@ def ncc_surface(
         1.0
     """
     inputs = _check_inputs(local, window, local_mask, window_mask, (0.0, 1.0))
+    check_surface_memory(inputs.local, inputs.window, None)
     with torch.no_grad():
         return _ncc_surface(inputs)
 

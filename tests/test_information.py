@@ -221,7 +221,7 @@ INVALID_INPUTS = [
     ({"variance": torch.zeros(4, 4)}, ValueError, "variance must be finite and > 0"),
     ({"variance": -1.0}, ValueError, "variance must be finite and > 0"),
     ({"variance": torch.ones(3, 4)}, ValueError, r"variance must have the spatial shape of captured \(4, 4\)"),
-    ({"variance": torch.ones(3, 1, 4, 4)}, ValueError, "captured_variance must have the spatial shape"),
+    ({"variance": torch.ones(3, 1, 4, 4)}, ValueError, "^variance must have the spatial shape"),
     ({"variance": None}, ValueError, "variance must be a number or a tensor"),
     ({"bins": 1}, ValueError, "bins must be an int >= 2, got 1"),
     ({"bins": 8.0}, TypeError, "bins must be an int >= 2"),

@@ -10,7 +10,8 @@ Run from the repository root::
     python train/fit_mask.py --help
 
 It writes the mask (``variance_mask.pt``, ``.npy``, ``.png``) and ``summary.json`` under ``<log dir>/mask`` (or
-``--output_dir``), TensorBoard dashboards and checkpoints under the log dir, and prints a summary.
+``--output_dir``), TensorBoard dashboards and checkpoints under the log dir, and prints a summary. It refuses, before
+training, an ``--output_dir`` that holds an earlier run's mask files, unless given ``--overwrite true``.
 """
 
 from __future__ import annotations
@@ -33,17 +34,21 @@ from enmi_torch.data import PairDataModule  # noqa: E402
 from train.mask_module import MaskFitModule  # noqa: E402
 
 DEFAULT_CONFIG = ROOT / "configs" / "fit_mask.yaml"
+OUTPUT_FILES = ("variance_mask.pt", "variance_mask.npy", "variance_mask.png", "summary.json")
 
 
 class FitMaskCLI(LightningCLI):
     """LightningCLI with the image shape linked from the data and the run options of this command."""
 
     def add_arguments_to_parser(self, parser) -> None:
-        """Link ``model.shape`` to ``data.shape``; add ``--ckpt_path``, ``--output_dir`` and ``--torch_threads``."""
+        """Link ``model.shape`` to ``data.shape``; add ``--ckpt_path``, ``--output_dir``, ``--overwrite``, threads."""
         parser.link_arguments("data.shape", "model.shape", apply_on="instantiate")
         parser.add_argument("--ckpt_path", type=str | None, default=None, help="resume from this checkpoint file")
         parser.add_argument(
             "--output_dir", type=str | None, default=None, help="folder for the mask files (default: <log dir>/mask)"
+        )
+        parser.add_argument(
+            "--overwrite", type=bool, default=False, help="replace the mask files of an earlier run in --output_dir"
         )
         parser.add_argument(
             "--torch_threads", type=int | None, default=None, help="torch.set_num_threads per process (null: torch's)"
@@ -62,10 +67,23 @@ def check_checkpoint(path: str) -> None:
         ) from None
 
 
-def write_outputs(model: MaskFitModule, trainer, output_dir: Path, log_dir: str, seconds: float) -> dict:
-    """Write the mask files and ``summary.json``; returns the summary."""
+def check_output_dir(output_dir: Path, overwrite: bool) -> None:
+    """Refuse an ``output_dir`` holding an earlier run's files unless ``overwrite``."""
+    earlier = [name for name in OUTPUT_FILES if (output_dir / name).exists()]
+    if earlier and not overwrite:
+        raise FileExistsError(
+            f"--output_dir {str(output_dir)!r} already holds {', '.join(earlier)} from an earlier run; choose another "
+            "--output_dir, or pass --overwrite true to replace them"
+        )
+
+
+def write_outputs(
+    model: MaskFitModule, trainer, output_dir: Path, log_dir: str, seconds: float, *, overwrite: bool = False
+) -> dict:
+    """Write the mask files and ``summary.json``, refusing to replace an earlier run's unless ``overwrite``."""
     import matplotlib.pyplot as plt
 
+    check_output_dir(output_dir, overwrite)
     output_dir.mkdir(parents=True, exist_ok=True)
     paths = {suffix: output_dir / f"variance_mask.{suffix}" for suffix in ("pt", "npy", "png")}
     model.mask.save(paths["pt"])
@@ -135,6 +153,8 @@ def main(args: list[str] | None = None) -> dict | None:
     ckpt_path = cli.config["ckpt_path"]
     if ckpt_path is not None:
         check_checkpoint(ckpt_path)
+    if cli.config["output_dir"] is not None:
+        check_output_dir(Path(cli.config["output_dir"]), cli.config["overwrite"])
     start = time.perf_counter()
     cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path, weights_only=True)
     seconds = time.perf_counter() - start
@@ -142,7 +162,7 @@ def main(args: list[str] | None = None) -> dict | None:
     if not cli.trainer.is_global_zero:
         return None
     output_dir = Path(cli.config["output_dir"] or Path(log_dir) / "mask")
-    summary = write_outputs(cli.model, cli.trainer, output_dir, log_dir, seconds)
+    summary = write_outputs(cli.model, cli.trainer, output_dir, log_dir, seconds, overwrite=cli.config["overwrite"])
     print_summary(summary)
     return summary
 

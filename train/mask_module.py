@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 from lightning.pytorch import LightningModule
 from torch import Tensor
 
+from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
@@ -180,7 +180,7 @@ class MaskFitModule(LightningModule):
     def _reference_map(self) -> Tensor:
         path = self.hparams.reference
         if path is not None:
-            reference = torch.from_numpy(np.load(Path(path), allow_pickle=False).astype(np.float64))
+            reference = torch.from_numpy(read_npy(path, "reference (--model.reference)").astype(np.float64))
         elif self.truth is not None:
             reference = self.truth.variance
         else:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_tensor
+from enmi_torch._checks import check_floating, check_not_empty, check_tensor
 
 
 def match_intensity(prior: Tensor, local: Tensor, valid_mask: Tensor | None = None) -> Tensor:
@@ -34,6 +34,7 @@ def match_intensity(prior: Tensor, local: Tensor, valid_mask: Tensor | None = No
     check_floating("local", local)
     if local.shape != prior.shape or prior.ndim < 2:
         raise ValueError(f"local must have the shape of prior {tuple(prior.shape)}, got {tuple(local.shape)}")
+    check_not_empty("prior", prior)
     if valid_mask is None:
         valid_mask = torch.ones_like(prior, dtype=torch.bool)
     check_tensor("valid_mask", valid_mask)

@@ -26,6 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from enmi_torch._checks import check_image_shape, check_option
+from enmi_torch._files import read_npy
 from enmi_torch.data.truth import VarianceTruth
 
 PAIR_FORMAT = "enmi_torch.pairs"
@@ -113,7 +114,7 @@ def _read_truth(root: Path, truth: object, shape: tuple[int, int]) -> VarianceTr
     if not isinstance(truth, dict) or not isinstance(truth.get("variance"), str):
         raise ValueError(f"{root / 'meta.json'} truth must be {{'variance': 'FILE.npy'}}, got {truth!r}")
     path = root / truth["variance"]
-    variance = _read_image(path)
+    variance = _read_image(path, source="meta.json truth variance")
     if variance.shape != shape:
         raise ValueError(f"{path} has shape {variance.shape}, expected {shape} like the images")
     valid = np.isfinite(variance)
@@ -150,20 +151,23 @@ def _check_partners(root: Path, local: dict[str, Path], other: dict[str, Path], 
             )
 
 
-def _read_image(path: Path, *, as_mask: bool = False) -> np.ndarray:
-    """A single-channel ``(H, W)`` array from ``.npy`` (no pickles) or ``.png``; bool when ``as_mask``."""
-    try:
-        if path.suffix.lower() == ".npy":
-            image = np.load(path, allow_pickle=False)
-        else:
+def _read_image(path: Path, *, as_mask: bool = False, source: str = "pair image") -> np.ndarray:
+    """A single-channel ``(H, W)`` array from ``.npy`` (no pickles) or ``.png``; bool when ``as_mask``.
+
+    ``source`` names the file's role in messages about ``.npy`` files.
+    """
+    if path.suffix.lower() == ".npy":
+        image = read_npy(path, source)
+    else:
+        try:
             from PIL import Image
 
             with Image.open(path) as opened:
                 if opened.mode not in ("L", "I;16", "I", "1"):
                     raise ValueError(f"expected a single-channel (grey) PNG, got mode {opened.mode}")
                 image = np.asarray(opened)
-    except Exception as error:  # every reader failure becomes one message naming the file
-        raise ValueError(f"{path} is not a readable image: {error}") from None
+        except Exception as error:  # every reader failure becomes one message naming the file
+            raise ValueError(f"{path} is not a readable image: {error}") from None
     if image.ndim == 3 and image.shape[0] == 1:
         image = image[0]
     if image.ndim != 2:

@@ -12,7 +12,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_finite_where, check_floating, check_image_shape, check_non_negative_int
+from enmi_torch._checks import (
+    check_finite_where,
+    check_floating,
+    check_image_shape,
+    check_non_negative_int,
+    check_not_empty,
+)
 from enmi_torch._layout import broadcast_map, spatial_shape
 
 
@@ -58,6 +64,7 @@ def _accumulate(local: Tensor, prior: Tensor, valid_mask: Tensor | None) -> tupl
     if prior.shape != local.shape:
         raise ValueError(f"prior must have the shape of local {tuple(local.shape)}, got {tuple(prior.shape)}")
     shape = spatial_shape("local", local)
+    check_not_empty("local", local)
     residual = (local.to(torch.float64) - prior.to(torch.float64)).reshape(local.shape[0], -1)
     if valid_mask is None:
         valid = torch.ones_like(residual, dtype=torch.bool)

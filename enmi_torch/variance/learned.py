@@ -28,10 +28,12 @@ from enmi_torch._checks import (
     check_floating,
     check_image_shape,
     check_non_negative_int,
+    check_not_empty,
     check_option,
     check_positive_number,
     check_tensor,
 )
+from enmi_torch._files import read_npy
 from enmi_torch._layout import broadcast_map
 from enmi_torch.variance.base import VarianceModel
 
@@ -70,6 +72,7 @@ def gaussian_nll(
     check_option("reduction", reduction, REDUCTIONS)
     if residual.ndim not in (3, 4):
         raise ValueError(f"residual must have shape (B, 1, H, W) or (B, H, W), got {tuple(residual.shape)}")
+    check_not_empty("residual", residual)
     flat = residual.reshape(residual.shape[0], -1)
     log_map = broadcast_map("log_variance", log_variance, residual, "residual").to(flat.dtype)
     valid = None
@@ -331,6 +334,7 @@ class LearnedVariance(VarianceModel):
         if prior.shape != local.shape:
             raise ValueError(f"prior must have the shape of local {tuple(local.shape)}, got {tuple(prior.shape)}")
         self._check_images("local", local)
+        check_not_empty("local", local)
         valid = self.valid_mask(local)
         if valid_mask is not None:
             check_tensor("valid_mask", valid_mask)
@@ -398,10 +402,7 @@ class LearnedVariance(VarianceModel):
 
     @classmethod
     def _load_npy(cls, path: Path) -> LearnedVariance:
-        try:
-            variance = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as error:
-            raise ValueError(f"{path} is refused: not a plain .npy array readable without pickles ({error})") from None
+        variance = read_npy(path, "path")
         if variance.ndim != 2 or variance.dtype.kind != "f":
             raise ValueError(f"{path} must hold a floating (H, W) variance map, got {variance.dtype} {variance.shape}")
         valid = np.isfinite(variance)

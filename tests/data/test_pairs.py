@@ -57,7 +57,7 @@ def test_images_are_read_lazily(folder):
     (folder / "local" / "000004.npy").write_bytes(b"garbage")
     dataset = PairDataset(folder)
     dataset[0]
-    with pytest.raises(ValueError, match=r"local/000004\.npy is not a readable image"):
+    with pytest.raises(ValueError, match=r"local/000004\.npy' is not a \.npy file"):
         dataset[4]
 
 
@@ -86,7 +86,7 @@ def test_bad_folders_are_refused_at_construction(folder, damage, match):
         (lambda root: np.save(root / "local" / "000000.npy", np.zeros((2, 12, 10))), r"local/000000\.npy must hold"),
         (
             lambda root: np.save(root / "local" / "000000.npy", np.array([{}], dtype=object), allow_pickle=True),
-            r"local/000000\.npy is not a readable image",
+            r"local/000000\.npy' is refused: it holds Python objects",
         ),
         (lambda root: np.save(root / "valid" / "000000.npy", np.ones((12, 10))), r"valid/000000\.npy must hold a bool"),
         (

@@ -175,6 +175,19 @@ def test_cli_resume_continues_the_run(tmp_path):
     assert checkpoint["global_step"] == 2 * torch.load(first["last_checkpoint"], weights_only=True)["global_step"]
 
 
+def test_an_earlier_runs_mask_files_are_kept_unless_overwrite(tmp_path):
+    output_dir = tmp_path / "mask"
+    output_dir.mkdir()
+    (output_dir / "variance_mask.pt").write_bytes(b"an earlier run's mask")
+    (output_dir / "summary.json").write_text("{}")
+    with pytest.raises(FileExistsError, match=r"--output_dir '.*mask' already holds variance_mask\.pt, summary\.json"):
+        run(tmp_path, "--output_dir", str(output_dir))
+    assert (output_dir / "variance_mask.pt").read_bytes() == b"an earlier run's mask"
+    summary = run(tmp_path, "--output_dir", str(output_dir), "--overwrite", "true")
+    assert LearnedVariance.load(output_dir / "variance_mask.pt").shape == (32, 32)
+    assert json.loads((output_dir / "summary.json").read_text()) == summary
+
+
 def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
     generator = torch.Generator().manual_seed(0)
     prior = torch.rand(3, 1, 20, 24, generator=generator) * 255

@@ -1,0 +1,88 @@
+"""Reading ``.npy`` arrays that users name: the header is checked against the file before any data is read.
+
+``numpy.load`` allocates the array its header states before reading the data, so a 4 KiB file whose header states
+``(100000, 100000)`` float64 asks for 74.5 GiB. :func:`read_npy` reads the header alone first and refuses a file that
+holds fewer bytes than it states, an array over the memory budget, pickles and arrays of Python objects; every
+message names the file and where its path came from (a command-line flag or an argument).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from enmi_torch._budget import budget_error, format_bytes, within_budget
+
+_MAGIC = np.lib.format.MAGIC_PREFIX
+_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def read_npy(path: str | Path, source: str) -> np.ndarray:
+    """The array of the ``.npy`` file at ``path``, read without pickles once its header is found consistent.
+
+    Args:
+        path: the file.
+        source: where the path came from, named in messages: a flag (``"--map"``) or an argument (``"path"``).
+
+    Raises:
+        ValueError: naming ``source`` and the file, when it cannot be opened, is not a ``.npy`` file (a pickle, say),
+            has a damaged header, holds Python objects, or holds fewer bytes than its header states.
+        MemoryBudgetError: when the array is larger than the memory budget (:func:`~enmi_torch.set_memory_budget`).
+
+    Example:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "map.npy"
+        >>> np.save(path, np.eye(2))
+        >>> read_npy(path, "--map")
+        array([[1., 0.],
+               [0., 1.]])
+    """
+    path = Path(path)
+    named = f"{source} {str(path)!r}"
+    try:
+        stream = path.open("rb")
+    except OSError as error:
+        raise ValueError(f"{named} cannot be read: {error.strerror or error}") from None
+    with stream:
+        start = stream.read(len(_MAGIC))
+        if start != _MAGIC:
+            raise ValueError(f"{named} is not a .npy file: {_describe(start)}")
+        stream.seek(0)
+        try:
+            version = np.lib.format.read_magic(stream)
+            if version not in _HEADER_READERS:
+                raise ValueError(f"format version {version[0]}.{version[1]} is not read here (1.0 and 2.0 are)")
+            shape, _, dtype = _HEADER_READERS[version](stream)
+            if any(size < 0 for size in shape):
+                raise ValueError(f"negative size in shape {shape}")
+        except Exception as error:  # numpy parses the header text with ast and tokenize, which raise their own kinds
+            raise ValueError(f"{named} has a damaged .npy header: {error}") from None
+        if dtype.hasobject:
+            raise ValueError(f"{named} is refused: it holds Python objects (dtype {dtype}), which load only as pickles")
+        stated = math.prod(shape) * dtype.itemsize
+        held = os.fstat(stream.fileno()).st_size - stream.tell()
+        if held < stated:
+            raise ValueError(
+                f"{named} is truncated or its header is wrong: the header states a {shape} {dtype} array of "
+                f"{format_bytes(stated)}, the file holds {format_bytes(held)} of data"
+            )
+        if not within_budget(stated):
+            raise budget_error(stated, named, f"its {shape} {dtype} array", "crop or downsample the array")
+        stream.seek(0)
+        return np.lib.format.read_array(stream, allow_pickle=False)
+
+
+def _describe(start: bytes) -> str:
+    """What a file that does not start with NumPy's header seems to be, from its first bytes."""
+    if not start:
+        return "it is empty"
+    if start[:1] == b"\x80":
+        return "it is a Python pickle, which is never loaded"
+    if start[:2] == b"PK":
+        return "it is a zip archive (an .npz or a torch file?)"
+    if start[:4] == b"\x89PNG":
+        return "it is a PNG image; give it the .png suffix"
+    return f"it starts with {start!r}, not with NumPy's header {_MAGIC!r}"

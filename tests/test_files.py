@@ -1,0 +1,115 @@
+"""``.npy`` files named by users: headers checked before reading, messages naming the file and where it came from."""
+
+import pickle
+
+import numpy as np
+import pytest
+
+from enmi_torch import LearnedVariance, MemoryBudgetError, memory_budget
+from enmi_torch._files import read_npy
+from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
+from enmi_torch.localize import main
+
+TRUNCATED = (
+    r"is truncated or its header is wrong: the header states a \(100000, 100000\) float64 array of 74\.5 GiB, "
+    r"the file holds 4\.0 KiB of data"
+)
+
+
+def _giant_header(path):
+    """A 4 KiB ``.npy`` whose header states a (100000, 100000) float64 array (74.5 GiB)."""
+    with path.open("wb") as stream:
+        np.lib.format.write_array_header_1_0(
+            stream, {"descr": "<f8", "fortran_order": False, "shape": (100000, 100000)}
+        )
+        stream.write(bytes(4096))
+    return path
+
+
+@pytest.fixture
+def local_file(tmp_path):
+    path = tmp_path / "local.npy"
+    np.save(path, np.random.default_rng(0).uniform(0, 255, (16, 16)).astype(np.float32))
+    return str(path)
+
+
+def test_a_giant_header_is_refused_by_the_mask_loader(tmp_path):
+    with pytest.raises(ValueError, match=rf"^path '.*big\.npy' {TRUNCATED}"):
+        LearnedVariance.load(_giant_header(tmp_path / "big.npy"))
+
+
+def test_a_giant_header_is_refused_by_the_command_line(tmp_path, local_file):
+    big = str(_giant_header(tmp_path / "big.npy"))
+    with pytest.raises(SystemExit, match=rf"^error: --map '.*big\.npy' {TRUNCATED}"):
+        main(["--map", big, "--local", local_file, "--variance", "4"])
+    with pytest.raises(SystemExit, match=rf"^error: --variance '.*big\.npy' {TRUNCATED}"):
+        main(["--map", local_file, "--local", local_file, "--variance", big])
+
+
+def test_a_giant_header_is_refused_by_the_pair_reader(tmp_path):
+    truth = lidar_truth((12, 10))
+    root = tmp_path / "pairs"
+    write_pairs(root, SyntheticPairs(truth, 2, seed=1))
+    _giant_header(root / "prior" / "000001.npy")
+    dataset = PairDataset(root)
+    dataset[0]
+    with pytest.raises(ValueError, match=rf"^pair image '.*prior/000001\.npy' {TRUNCATED}"):
+        dataset[1]
+
+
+def test_the_command_line_names_the_flag_of_a_pickle_or_a_random_file(tmp_path, local_file):
+    pickled = tmp_path / "pickled.npy"
+    pickled.write_bytes(pickle.dumps({"a": 1}))
+    noise = tmp_path / "noise.npy"
+    noise.write_bytes(np.random.default_rng(1).integers(0, 256, 300, dtype=np.uint8).tobytes())
+    with pytest.raises(SystemExit, match=r"^error: --map '.*pickled\.npy' is not a \.npy file: it is a Python pickle"):
+        main(["--map", str(pickled), "--local", local_file, "--variance", "4"])
+    with pytest.raises(SystemExit, match=r"^error: --local-mask '.*noise\.npy' is not a \.npy file: it starts with b'"):
+        main(["--map", local_file, "--local", local_file, "--variance", "4", "--local-mask", str(noise)])
+    with pytest.raises(SystemExit, match=r"^error: --local '.*missing\.png' is not a readable PNG image"):
+        main(["--map", local_file, "--local", str(tmp_path / "missing.png"), "--variance", "4"])
+
+
+def test_an_array_over_the_budget_is_refused_before_reading(tmp_path, local_file):
+    path = tmp_path / "map.npy"
+    np.save(path, np.zeros((64, 64)))
+    with memory_budget(10_000):
+        with pytest.raises(MemoryBudgetError, match=r"^--map '.*map\.npy' needs about 32\.0 KiB for its \(64, 64\)"):
+            read_npy(path, "--map")
+        with pytest.raises(SystemExit, match=r"^error: --map '.*map\.npy' needs about 32\.0 KiB .* budget of 9\.8 KiB"):
+            main(["--map", str(path), "--local", local_file, "--variance", "4"])
+    assert read_npy(path, "--map").shape == (64, 64)
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (b"", "is not a .npy file: it is empty"),
+        (b"PK\x03\x04rest", r"is not a \.npy file: it is a zip archive"),
+        (b"\x89PNG\r\n\x1a\n", r"is not a \.npy file: it is a PNG image"),
+        (b"\x93NUMPY\x01\x00\x10\x00{'descr': '<f8',", r"has a damaged \.npy header"),
+        (b"\x93NUMPY\x07\x00", r"has a damaged \.npy header"),
+    ],
+)
+def test_damaged_files_are_named(tmp_path, content, match):
+    path = tmp_path / "bad.npy"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=rf"^path '.*bad\.npy' {match}"):
+        read_npy(path, "path")
+
+
+def test_object_arrays_and_missing_files_are_refused(tmp_path):
+    path = tmp_path / "objects.npy"
+    np.save(path, np.array([{}], dtype=object), allow_pickle=True)
+    with pytest.raises(ValueError, match=r"objects\.npy' is refused: it holds Python objects \(dtype object\)"):
+        read_npy(path, "--map")
+    with pytest.raises(ValueError, match=r"^--map '.*missing\.npy' cannot be read: No such file"):
+        read_npy(tmp_path / "missing.npy", "--map")
+
+
+def test_plain_arrays_round_trip(tmp_path):
+    array = np.arange(12, dtype=np.int16).reshape(3, 4)
+    np.save(tmp_path / "plain.npy", array)
+    np.save(tmp_path / "fortran.npy", np.asfortranarray(array.astype(np.float32)))
+    assert np.array_equal(read_npy(tmp_path / "plain.npy", "path"), array)
+    assert np.array_equal(read_npy(tmp_path / "fortran.npy", "path"), array)
