@@ -176,6 +176,7 @@ def ecr_surface(
     value_range = check_value_range(value_range)
     model_variance = check_model_variance(model_variance, bins, value_range)
     inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    check_surface_memory(inputs.local, inputs.window, bins)
     with torch.no_grad():
         return _ecr_surface(inputs, model_variance, bins, value_range)
 
