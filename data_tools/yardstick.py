@@ -338,6 +338,8 @@ def _plot(table, keys, path: Path) -> None:
                     rates.append(np.mean([table[(*key, method)][1] / table[(*key, method)][2] for key in group]))
                 axis.plot(levels, rates, styles[method], label=method)
             axis.set_xscale("log")
+            axis.set_xticks(levels, [f"{level:g}" for level in levels])
+            axis.minorticks_off()
             axis.set(title=f"{profile} variance, {response}", ylim=(-0.03, 1.03))
             axis.grid(alpha=0.3)
             if row == len(responses) - 1:
