@@ -206,3 +206,31 @@ def likelihood_weights_vjp(
         grad_values = torch.linalg.vecdot(grad_score, offset) / variance
         grad_variance = torch.linalg.vecdot(grad_score, offset.square_()) / (2 * variance.square())
     return grad_values, torch.where(clamped, 0.0, grad_variance)
+
+
+def reliability_weights(values: Tensor, variance: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Reliability ``s^2 / (s^2 + sigma_n^2)`` of each noisy value ``(B, N)``: the share of its variance that is signal.
+
+    ``s^2`` is each sample's signal variance, estimated from the values themselves: their variance over the valid
+    pixels less the mean noise variance (method of moments), at least 1 % of the value variance. The weights are
+    1 for noiseless pixels, equal for equal noise (so a uniform variance changes no normalised score), and fall as
+    ``1 / sigma^2`` for the noisiest. Not differentiated (a data-derived constant).
+
+    Args:
+        values: ``(B, N)`` noisy values.
+        variance: ``(B, N)`` or ``(1, N)`` noise variances, > 0 where valid.
+        valid: optional bool ``(B, N)``; invalid pixels get weight 0 and are left out of ``s^2``.
+
+    Example:
+        >>> values = torch.tensor([[0.0, 10.0, 20.0, 30.0]])
+        >>> reliability_weights(values, torch.tensor([[1.0, 1.0, 100.0, 100.0]]))
+        tensor([[0.9868, 0.9868, 0.4269, 0.4269]])
+    """
+    with torch.no_grad():
+        weight = torch.ones_like(values) if valid is None else valid.to(values.dtype)
+        count = weight.sum(-1, keepdim=True).clamp_min(1)
+        mean = (weight * values).sum(-1, keepdim=True) / count
+        spread = (weight * (values - mean).square()).sum(-1, keepdim=True) / count
+        noise = (weight * variance).sum(-1, keepdim=True) / count
+        signal = (spread - noise).clamp_min(0.01 * spread).clamp_min(torch.finfo(values.dtype).tiny)
+        return weight * signal / (signal + variance)

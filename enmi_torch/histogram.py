@@ -21,7 +21,7 @@ from enmi_torch._checks import (
     check_tensor,
     check_value_range,
 )
-from enmi_torch._layout import flatten_image, mask_map, variance_map
+from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_map
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
@@ -52,6 +52,7 @@ def joint_histogram(
     kernel: str | None = None,
     reference_kernel: str = "hard",
     log_prior: Tensor | None = None,
+    pixel_weight: Tensor | None = None,
 ) -> Tensor:
     """Joint histogram (counts) of a captured image and a reference image, ``(B, bins, bins)``.
 
@@ -76,6 +77,9 @@ def joint_histogram(
             reference gets a gradient).
         log_prior: optional log prior of the amplitude per bin, ``(bins,)`` or ``(B, bins)``, for the likelihood
             kernels (MAP weights). Not differentiated.
+        pixel_weight: optional weight >= 0 of each captured pixel (e.g.
+            :func:`~enmi_torch.binning.reliability_weights`), broadcast like ``captured_variance``: a valid pixel adds
+            this total weight instead of 1. Not differentiated; takes the dense (autograd) path.
 
     Returns:
         Counts ``(B, bins, bins)`` (``(C, B, bins, bins)`` for candidates): captured bins on axis -2, reference
@@ -106,7 +110,22 @@ def joint_histogram(
     inputs = _prepare(
         captured, reference, bins, value_range, captured_variance, valid_mask, kernel, reference_kernel, log_prior
     )
+    if pixel_weight is not None:
+        inputs = with_pixel_weight(inputs, pixel_weight, captured)
     return _joint_histogram(inputs)
+
+
+def with_pixel_weight(inputs: _Inputs, pixel_weight: Tensor | float, captured: Tensor) -> _Inputs:
+    """``inputs`` whose valid pixels count with ``pixel_weight`` (checked finite and >= 0 there)."""
+    weight = scalar_or_map("pixel_weight", pixel_weight, captured).detach().to(inputs.captured.dtype)
+    weight = weight.expand_as(inputs.captured)
+    check_finite_where("pixel_weight", weight, inputs.valid)
+    negative = weight < 0 if inputs.valid is None else (weight < 0) & inputs.valid
+    if bool(negative.any()):
+        raise ValueError("pixel_weight must be >= 0 where valid, got a negative weight")
+    if inputs.pair_weight is not None:
+        weight = weight * inputs.pair_weight
+    return inputs._replace(pair_weight=weight, weighted=True)
 
 
 def _joint_histogram(inputs: _Inputs, *, scored: bool = False) -> Tensor:
@@ -116,7 +135,7 @@ def _joint_histogram(inputs: _Inputs, *, scored: bool = False) -> Tensor:
     """
     reference_kernel = inputs.reference_kernel
     candidates, batch, pixels = inputs.reference.shape
-    streamed = inputs.kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard"
+    streamed = inputs.kernel in LIKELIHOOD_WEIGHTS and reference_kernel == "hard" and not inputs.weighted
     dense_weights = not streamed and (inputs.kernel, reference_kernel) != ("hard", "hard")
     check_histogram_memory(
         inputs.captured,
@@ -240,6 +259,8 @@ class _Inputs(NamedTuple):
     reference_kernel: str
     with_candidates: bool
     out_dtype: torch.dtype
+    # True when pair_weight holds real per-pixel weights (reliability), not a 0/1 mask: the dense path takes them.
+    weighted: bool = False
 
 
 def _prepare(

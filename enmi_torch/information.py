@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from enmi_torch._checks import check_floating, check_option
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, reliability_weights
 from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
 
 
@@ -136,6 +136,7 @@ def enmi(
     log_prior: Tensor | None = None,
     reference_kernel: str = "hard",
     valid_mask: Tensor | None = None,
+    reliability: bool = False,
 ) -> Tensor:
     """Enhanced NMI: each captured pixel spreads its unit weight over the bins by its Gaussian likelihood, ``(B,)``.
 
@@ -157,6 +158,10 @@ def enmi(
             :func:`~enmi_torch.binning.gaussian_log_prior`): weights become the MAP posterior.
         reference_kernel: ``"hard"`` (noiseless map, default) or ``"triangular"``/``"xu"`` for a reference gradient.
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
+        reliability: each pixel counts with its reliability ``s^2 / (s^2 + sigma^2)``
+            (:func:`~enmi_torch.binning.reliability_weights`) instead of a unit weight, so very noisy pixels weigh
+            less in the histogram; with one variance for all pixels the score is unchanged. Uses the dense
+            (autograd) histogram path.
 
     Returns:
         ENMI in ``[1, 2]``, ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``; it tends to hard
@@ -184,7 +189,12 @@ def enmi(
     check_option("weights", weights, LIKELIHOOD_WEIGHTS)
     if variance is None:
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    if not isinstance(reliability, bool):
+        raise TypeError(f"reliability must be True or False, got {reliability!r}")
     inputs = _prepare(
         captured, reference, bins, value_range, variance, valid_mask, weights, reference_kernel, log_prior, "variance"
     )
+    if reliability:
+        pixel_weight = reliability_weights(inputs.captured, inputs.variance, inputs.valid)
+        inputs = inputs._replace(pair_weight=pixel_weight, weighted=True)
     return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))

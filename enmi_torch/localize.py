@@ -91,6 +91,7 @@ def localize(
     weights: str = "mass",
     log_prior: Tensor | None = None,
     model_variance: float | None = None,
+    reliability: bool = False,
     local_mask: Tensor | None = None,
     map_mask: Tensor | None = None,
     min_overlap: float = 0.5,
@@ -120,6 +121,7 @@ def localize(
         weights: ``"mass"`` or ``"density"`` likelihood weights (ENMI).
         log_prior: optional log prior of the amplitudes per bin (ENMI).
         model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
+        reliability: reliability-weighted counts (ENMI, see :func:`~enmi_torch.information.enmi`).
         local_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
         map_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
         min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) local image's
@@ -183,13 +185,15 @@ def localize(
         raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
     if metric == "ecr":
         check_model_variance(model_variance, bins, value_range)
+    if reliability is not False and metric != "enmi":
+        raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
     check_search_memory(local, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
         local_valid = _local_valid(local, local_mask, variance)
         variance_map = _variance_map(local, variance)
         map_valid = _map_valid(prior_map, map_mask)
-        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, model_variance)
+        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, model_variance, reliability)
         search = _Search(
             local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
         )
@@ -410,9 +414,10 @@ def _map_valid(prior_map: Tensor, map_mask: Tensor | None) -> Tensor:
 class _ScoreFunction:
     """The chosen surface function with its settings."""
 
-    def __init__(self, metric, bins, value_range, weights, log_prior, model_variance) -> None:
+    def __init__(self, metric, bins, value_range, weights, log_prior, model_variance, reliability) -> None:
         self.metric, self.bins, self.value_range = metric, bins, value_range
         self.weights, self.log_prior, self.model_variance = weights, log_prior, model_variance
+        self.reliability = reliability
 
     def __call__(self, local, window, variance, local_mask, window_mask) -> Surface:
         masks = {"local_mask": local_mask, "window_mask": window_mask}
@@ -438,6 +443,7 @@ class _ScoreFunction:
             value_range=self.value_range,
             weights=self.weights,
             log_prior=self.log_prior,
+            reliability=self.reliability,
             **masks,
         )
 

@@ -87,6 +87,7 @@ class ENMILoss(nn.Module):
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel`.
         reference_kernel: ``"hard"`` (default), ``"triangular"`` or ``"xu"``.
         reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+        reliability: reliability-weighted counts (see :func:`~enmi_torch.information.enmi`).
 
     Example:
         >>> from enmi_torch.variance import ConstantVariance
@@ -105,10 +106,14 @@ class ENMILoss(nn.Module):
         variance_model: VarianceModel | None = None,
         reference_kernel: str = "hard",
         reduction: str = "mean",
+        reliability: bool = False,
     ) -> None:
         super().__init__()
         _store_histogram_options(self, bins, value_range, reference_kernel, reduction)
         self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        if not isinstance(reliability, bool):
+            raise TypeError(f"reliability must be True or False, got {reliability!r}")
+        self.reliability = reliability
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
             raise TypeError(
                 f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
@@ -135,6 +140,7 @@ class ENMILoss(nn.Module):
             log_prior=self.log_prior,
             reference_kernel=self.reference_kernel,
             valid_mask=valid_mask,
+            reliability=self.reliability,
         )
         return _reduce(2 - score, self.reduction)
 

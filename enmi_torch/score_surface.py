@@ -25,7 +25,6 @@ Convention:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from typing import NamedTuple
 
@@ -42,7 +41,7 @@ from enmi_torch._checks import (
     check_value_range,
 )
 from enmi_torch._layout import mask_map, variance_map
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights, reliability_weights
 from enmi_torch.correlation_ratio import BinSums, check_model_variance, ecr, ecr_from_bin_sums
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
@@ -86,6 +85,7 @@ def enmi_surface(
     log_prior: Tensor | None = None,
     local_mask: Tensor | None = None,
     window_mask: Tensor | None = None,
+    reliability: bool = False,
 ) -> Surface:
     """ENMI of ``local`` at every placement inside ``window``, by FFT correlation of bin planes.
 
@@ -100,10 +100,13 @@ def enmi_surface(
         log_prior: optional log prior of the amplitudes per bin, ``(bins,)``, ``(1, bins)`` or ``(B, bins)``.
         local_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
         window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window; ``False`` cells are left out.
+        reliability: each local pixel counts with its reliability (see :func:`~enmi_torch.information.enmi`),
+            estimated once per local image over its valid pixels.
 
     Returns:
         :class:`Surface` with ``score`` ``(B, Hw - h + 1, Ww - w + 1)``: entry ``[b, u, v]`` equals
-        ``enmi(local[b], window[b, :, u:u + h, v:v + w], variance, valid_mask=local_mask & window_mask[...])``.
+        ``enmi(local[b], window[b, :, u:u + h, v:v + w], variance, valid_mask=local_mask & window_mask[...])``
+        (with ``reliability``, :func:`direct_surface`'s histogram of the local image's reliability weights).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -123,9 +126,16 @@ def enmi_surface(
     batch = inputs.local.shape[0]
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).to(inputs.local.dtype).unsqueeze(1)
+    if not isinstance(reliability, bool):
+        raise TypeError(f"reliability must be True or False, got {reliability!r}")
     with torch.no_grad():
         plane_weights = likelihood_weights(inputs.local, inputs.variance, bins, value_range, weights, log_prior)
-        return _information_surface(plane_weights, inputs, bins, value_range)
+        pixel_weight = None
+        if reliability:
+            pixel_weight = reliability_weights(
+                inputs.local.flatten(1), inputs.variance.flatten(1), inputs.local_valid.flatten(1)
+            ).view_as(inputs.local)
+        return _information_surface(plane_weights, inputs, bins, value_range, pixel_weight)
 
 
 def ecr_surface(
@@ -260,6 +270,7 @@ def direct_surface(
     model_variance: float | None = None,
     local_mask: Tensor | None = None,
     window_mask: Tensor | None = None,
+    reliability: bool = False,
 ) -> Surface:
     """The reference for the FFT surfaces: a loop over placements, one joint histogram (or Pearson sum) each.
 
@@ -277,6 +288,7 @@ def direct_surface(
         weights: ``"mass"`` or ``"density"`` (ENMI).
         log_prior: optional log prior per bin (ENMI).
         model_variance: ``tau^2`` (ECR).
+        reliability: reliability-weighted counts (ENMI), weights from each whole local image's valid pixels.
         local_mask: as in :func:`enmi_surface`.
         window_mask: as in :func:`enmi_surface`.
 
@@ -301,6 +313,13 @@ def direct_surface(
         log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins)
     rows = inputs.window.shape[1] - height + 1
     cols = inputs.window.shape[2] - width + 1
+    pixel_weight = None
+    if reliability:
+        if metric != "enmi":
+            raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
+        pixel_weight = reliability_weights(
+            inputs.local.flatten(1), inputs.variance.flatten(1), inputs.local_valid.flatten(1)
+        ).view_as(inputs.local)
     score = inputs.local.new_empty(batch, rows, cols)
     overlap = inputs.local.new_empty(batch, rows, cols)
     for sample in range(batch):
@@ -343,6 +362,7 @@ def direct_surface(
                         valid_mask=valid[None, None],
                         kernel="hard" if metric == "nmi" else weights,
                         log_prior=None if log_prior is None else log_prior[min(sample, log_prior.shape[0] - 1)],
+                        pixel_weight=None if pixel_weight is None else pixel_weight[sample][None, None],
                     )
                     score[sample, row, col] = nmi_from_joint_histogram(counts)[0]
     return Surface(score, overlap)
@@ -532,7 +552,11 @@ class _ReferencePlanes:
 
 
 def _information_surface(
-    plane_weights: Tensor, inputs: _Inputs, bins: int, value_range: tuple[float, float]
+    plane_weights: Tensor,
+    inputs: _Inputs,
+    bins: int,
+    value_range: tuple[float, float],
+    pixel_weight: Tensor | None = None,
 ) -> Surface:
     """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard window.
 
@@ -541,15 +565,18 @@ def _information_surface(
     local and the window masks, where these leave pixels out. Where they do not, the captured marginals are constant
     (each pixel's weights sum to 1 and every placement lies inside the window), and the reference marginals and the
     overlap are box sums of indicator planes, exact integers. Entropies come from ``H = log T - sum(c log c) / T``
-    with ``T`` the overlap.
+    with ``T`` the overlap. With ``pixel_weight`` ``(B, h, w)`` (reliability; 0 where invalid) each pixel counts
+    with its weight: the weight plane gives the reference marginals and ``T``, the mask plane the overlap count.
+    A placement whose joint histogram holds all but half a pixel's weight in one cell (a constant overlap, up to
+    round-off) scores 1, as the core does for a zero joint entropy.
     """
     batch, height, width = inputs.local.shape
     windows = inputs.window.shape[0]
     correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
     dtype = inputs.local.dtype
-    # FFT round-off leaves a joint entropy of order eps where the overlap is constant: score it 1, as the core does.
-    informative_above = math.sqrt(torch.finfo(dtype).eps)
-    plane_weights = (plane_weights * inputs.local_valid.unsqueeze(-1)).permute(0, 3, 1, 2)
+    weighted = pixel_weight is not None
+    pixel_planes = pixel_weight if weighted else inputs.local_valid.to(dtype)
+    plane_weights = (plane_weights * pixel_planes.unsqueeze(-1)).permute(0, 3, 1, 2)
     window_bins = torch.where(inputs.window_valid, hard_bin_index(inputs.window, bins, value_range), bins)
     shape = (correlator.rows, correlator.cols)
     scores, overlaps = [], []
@@ -561,25 +588,32 @@ def _information_surface(
                 correlator, window_bins[window_index], inputs.window_valid[window_index], bins, dtype
             )
         local_valid = inputs.local_valid[sample]
-        local_complete = bool(local_valid.all())
+        local_complete = bool(local_valid.all()) and not weighted
         weights = plane_weights[sample]
         weights = weights[weights.flatten(1).amax(1).nonzero()[:, 0]]
-        planes = weights if local_complete else torch.cat([weights, local_valid[None].to(dtype)])
+        extra = [] if local_complete else [pixel_planes[sample]] + ([local_valid.to(dtype)] if weighted else [])
+        planes = torch.cat([weights, *(plane[None] for plane in extra)])
         captured = correlator.spectra(planes, captured=True)
 
         scratch = inputs.local.new_empty(reference.spectra.shape[0], *shape)
         joint, captured_sum, reference_sum = _EntropySum(scratch), _EntropySum(scratch), _EntropySum(scratch)
-        overlap = None
+        joint_peak = inputs.local.new_zeros(shape)
+        overlap = total = None
         for index, start, block in correlator.blocks(captured, reference.spectra):
             bin_rows = block[: max(0, reference.bin_count - start)]
             mask_row = block[-1:] if start + block.shape[0] > reference.bin_count else block[:0]
             if index < weights.shape[0]:
+                if bin_rows.shape[0]:
+                    torch.maximum(joint_peak, bin_rows.amax(0), out=joint_peak)
                 joint.add(bin_rows)
                 captured_sum.add(mask_row)  # this captured bin's marginal: its correlation with the window mask
-            else:
-                reference_sum.add(bin_rows)  # the reference marginals: the local mask against each bin plane
+            elif index == weights.shape[0]:
+                reference_sum.add(bin_rows)  # the reference marginals: the local weights against each bin plane
                 if mask_row.shape[0]:
-                    overlap = mask_row[0].round()
+                    total = mask_row[0].clone()
+                    overlap = None if weighted else total.round()
+            elif mask_row.shape[0]:
+                overlap = mask_row[0].round()  # the valid-pixel count of a weighted histogram
         if reference.complete:
             marginals = weights.sum((-2, -1))
             captured_sum.total += torch.special.xlogy(marginals, marginals).sum()
@@ -587,15 +621,18 @@ def _information_surface(
             counts = reference.counts(height, width, dtype)
             reference_sum.total += torch.special.xlogy(counts[:-1], counts[:-1]).sum(0)
             overlap = counts[-1]
-        elif overlap is None:
+        if overlap is None:
             overlap = local_valid.sum().to(dtype).expand(shape)
+        if total is None:
+            total = overlap if not weighted else pixel_planes[sample].sum().expand(shape)
+        smallest = pixel_planes[sample][pixel_planes[sample] > 0].amin() if weighted else 1.0
 
-        total = overlap.clamp_min(1)
-        log_total = total.log()
-        joint_entropy = log_total - joint.total / total
-        captured_entropy = log_total - captured_sum.total / total
-        reference_entropy = log_total - reference_sum.total / total
-        informative = (joint_entropy > informative_above) & (overlap > 0)
+        positive = total.clamp_min(torch.finfo(dtype).tiny)
+        log_total = positive.log()
+        joint_entropy = log_total - joint.total / positive
+        captured_entropy = log_total - captured_sum.total / positive
+        reference_entropy = log_total - reference_sum.total / positive
+        informative = (total - joint_peak > 0.5 * smallest) & (joint_entropy > 0) & (overlap > 0)
         score = _nmi_from_entropies(captured_entropy, reference_entropy, joint_entropy, informative)
         scores.append(score)
         overlaps.append(overlap)

@@ -119,3 +119,25 @@ def test_tiny_variance_gives_unit_counts_and_finite_gradients(mode, dtype):
     grads = likelihood_weights_vjp(values.detach(), variance.detach(), torch.ones(3, 32, dtype=dtype), 32, RANGE, mode)
     assert all(torch.isfinite(grad).all() for grad in grads)
     assert min_variance(32, RANGE) == pytest.approx((8e-6) ** 2)
+
+
+def test_reliability_weights_follow_the_signal_share_of_the_variance():
+    from enmi_torch.binning import reliability_weights
+
+    generator = torch.Generator().manual_seed(2)
+    values = torch.randn(2, 50, generator=generator, dtype=torch.float64) * 30 + 100
+    variance = torch.rand(2, 50, generator=generator, dtype=torch.float64) * 400 + 1
+    valid = torch.rand(2, 50, generator=generator) > 0.3
+    result = reliability_weights(values, variance, valid)
+    for sample in range(2):
+        kept = valid[sample]
+        signal = max(
+            values[sample][kept].var(unbiased=False) - variance[sample][kept].mean(),
+            0.01 * values[sample][kept].var(unbiased=False),
+        )
+        expected = torch.where(kept, signal / (signal + variance[sample]), 0.0)
+        torch.testing.assert_close(result[sample], expected)
+    # Equal noise gives equal weights; the noisier pixel weighs less.
+    equal = reliability_weights(values, torch.full_like(values, 50.0))
+    assert torch.allclose(equal, equal[:, :1].expand_as(equal))
+    assert result[0, variance[0].argmax()] <= result[0][valid[0]].min() + 1e-12 or not valid[0, variance[0].argmax()]

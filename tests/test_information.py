@@ -282,3 +282,57 @@ def test_autocast_computes_in_float32(generator):
         score = enmi(captured, reference, 50.0)
     assert score.dtype == torch.float32
     torch.testing.assert_close(score, enmi(captured, reference, 50.0))
+
+
+def _numpy_weighted_nmi(counts):
+    probability = counts / counts.sum()
+
+    def entropy(p):
+        p = p[p > 0]
+        return -(p * np.log(p)).sum()
+
+    return (entropy(probability.sum(1)) + entropy(probability.sum(0))) / entropy(probability)
+
+
+def test_enmi_with_reliability_equals_a_weighted_numpy_histogram(dtype, tolerance):
+    from enmi_torch.binning import likelihood_weights, reliability_weights
+
+    generator = torch.Generator().manual_seed(4)
+    reference = torch.rand(2, 1, 6, 9, generator=generator, dtype=torch.float64) * 256
+    variance = torch.logspace(0, 3, 54, dtype=torch.float64).reshape(1, 1, 6, 9)
+    captured = reference + torch.randn(reference.shape, generator=generator, dtype=torch.float64) * variance.sqrt()
+    valid = torch.rand(2, 1, 6, 9, generator=generator) > 0.2
+    result = enmi(
+        captured.to(dtype), reference.to(dtype), variance.to(dtype), bins=6, valid_mask=valid, reliability=True
+    )
+    for sample in range(2):
+        keep = valid[sample].flatten()
+        values, variances = captured[sample].flatten(), variance.flatten()
+        weight = reliability_weights(values[None], variances[None], keep[None])[0].numpy()
+        spread = likelihood_weights(values, variances, 6, (0.0, 256.0), "mass").numpy()
+        bins = np.clip((reference[sample].flatten().numpy() // (256 / 6)).astype(int), 0, 5)
+        counts = np.zeros((6, 6))
+        for pixel in np.flatnonzero(keep.numpy()):
+            counts[:, bins[pixel]] += weight[pixel] * spread[pixel]
+        assert result[sample].item() == pytest.approx(_numpy_weighted_nmi(counts), rel=tolerance["rtol"] * 10)
+    # With one variance for every pixel the weights are all equal: the score does not change.
+    plain = enmi(captured, reference, 90.0, bins=6, valid_mask=valid)
+    torch.testing.assert_close(enmi(captured, reference, 90.0, bins=6, valid_mask=valid, reliability=True), plain)
+    # ... while a strongly non-uniform variance changes it.
+    assert not torch.allclose(result.double(), enmi(captured, reference, variance, bins=6, valid_mask=valid), rtol=1e-3)
+
+
+def test_enmi_with_reliability_has_finite_gradients():
+    generator = torch.Generator().manual_seed(5)
+    reference = torch.rand(1, 1, 4, 5, generator=generator, dtype=torch.float64) * 256
+    captured = (
+        reference + torch.randn(reference.shape, generator=generator, dtype=torch.float64) * 20
+    ).requires_grad_()
+    variance = torch.linspace(5, 900, 20, dtype=torch.float64).reshape(1, 1, 4, 5)
+
+    def score(captured):
+        return enmi(captured, reference, variance, bins=5, reliability=True)
+
+    assert torch.autograd.gradcheck(score, (captured,))
+    with pytest.raises(TypeError, match="reliability must be True or False"):
+        enmi(captured, reference, variance, reliability="yes")

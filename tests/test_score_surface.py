@@ -309,3 +309,34 @@ def test_ecr_fft_surface_equals_direct_loop(masks, dtype):
     if masks in ("none", "local"):
         # The noisy cut of sample 0 sits at window cell (3, 4) (the window mask hides part of it).
         assert divmod(int(fast.score[0].flatten().argmax()), 9) == (3, 4)
+
+
+@pytest.mark.parametrize("masks", ["none", "local", "window", "both"])
+def test_reliability_weighted_enmi_surface_equals_direct_loop(masks, dtype):
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    variance = variance**2  # 4 to 3800: strongly non-uniform
+    chosen = {
+        "local_mask": local_mask if masks in ("local", "both") else None,
+        "window_mask": window_mask if masks in ("window", "both") else None,
+    }
+    fast = enmi_surface(local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, reliability=True, **chosen)
+    slow = direct_surface(local, window, variance, metric="enmi", bins=12, reliability=True, **chosen)
+    plain = direct_surface(local, window, variance, metric="enmi", bins=12, **chosen)
+    tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-4, "atol": 1e-4}
+    torch.testing.assert_close(fast.score.double(), slow.score, **tolerance)
+    torch.testing.assert_close(fast.overlap.double(), slow.overlap, rtol=0, atol=0)
+    assert not torch.allclose(slow.score, plain.score, rtol=1e-3)
+
+
+def test_float32_surface_scores_a_nearly_constant_overlap_like_nmi():
+    # A flat patch with one odd pixel: the joint entropy is tiny but real, and NMI is 2, not the constant-overlap 1.
+    window = torch.full((1, 1, 210, 210), 100.0)
+    window[..., 105, 105] = 200.0
+    local = window[..., 5:205, 5:205].clone()
+    expected = nmi(local.double(), local.double())
+    assert expected.item() == pytest.approx(2.0)
+    surface = nmi_surface(local, window)
+    assert surface.score[0, 5, 5].item() == pytest.approx(2.0, abs=1e-2)  # float32 round-off of a 2e-4 entropy
+    # A truly constant overlap still scores 1 (the odd pixel outside the local footprint).
+    flat = torch.full((1, 1, 210, 210), 100.0)
+    assert nmi_surface(flat[..., :200, :200], flat).score[0, 5, 5].item() == 1.0
