@@ -1,7 +1,14 @@
 """enmi_torch: noise-aware (enhanced) normalized mutual information for image matching and localization."""
 
 from enmi_torch._checks import value_checks
-from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likelihood_weights, parzen_weights
+from enmi_torch.binning import (
+    bin_centers,
+    bin_edges,
+    gaussian_log_prior,
+    likelihood_weights,
+    parzen_weights,
+    truncated_likelihood_weights,
+)
 from enmi_torch.camera import RoadCamera
 from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
 from enmi_torch.histogram import joint_histogram
@@ -49,6 +56,7 @@ __all__ = [
     "parzen_weights",
     "perspective_variance",
     "rectify",
+    "truncated_likelihood_weights",
     "unrectify",
     "value_checks",
 ]

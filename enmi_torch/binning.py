@@ -143,6 +143,76 @@ def likelihood_weights(
     return torch.softmax(score, dim=-1)
 
 
+def truncated_likelihood_weights(
+    values: Tensor, variance: Tensor, bins: int, value_range: tuple[float, float]
+) -> Tensor:
+    """Weights ``(..., bins)``: the mass ``N(v, sigma^2)`` puts in each bin, truncated to the range; rows sum to 1.
+
+    Unlike the ``"mass"`` weights of :func:`likelihood_weights`, the tails outside ``[low, high)`` are dropped, not
+    folded into the edge bins, and the masses are normalised over the bins. For an amplitude uniform in bin ``i``
+    observed with noise ``N(0, sigma^2)``, the density of ``v`` is proportional to the mass ``N(v, sigma^2)`` puts in
+    bin ``i``: the weights are the bins' likelihoods, up to a factor per value.
+
+    Args:
+        values: observed values ``v``, any shape ``(...)``.
+        variance: noise variance ``sigma^2`` of each value, broadcastable to ``values``, > 0.
+        bins: number of bins.
+        value_range: ``(low, high)``.
+
+    Convention:
+        Computed in log space (an ``erf`` or ``erfc`` difference where precise, ``log_ndtr`` beyond 10 standard
+        deviations), so values far outside the range and tiny variances stay finite: a value far above the range
+        gives its weight to the top bin. Differentiable in ``values`` and ``variance``; variances below
+        :func:`min_variance` are clamped to it, values to ``max(8 sigma, 64 sigma^2 / bin width)`` outside the range
+        (one-hot weights there and beyond, to e^-64). Largest error against 60-digit mpmath (8 bins, values out to 200
+        standard deviations beyond the range): float64 5e-15 for a standard deviation up to 10 bin widths, 5e-9 at
+        10^4; float32 3e-6 up to 10 bin widths, 4e-4 at 100 (the standardised edges themselves are rounded).
+
+    Example:
+        >>> w = truncated_likelihood_weights(torch.tensor([3.0, 1e6]), torch.tensor([1.0, 1.0]), 4, (0.0, 8.0))
+        >>> [[round(x, 4) for x in row] for row in w.tolist()]
+        [[0.1575, 0.6836, 0.1575, 0.0014], [0.0, 0.0, 0.0, 1.0]]
+    """
+    return torch.softmax(_log_bin_masses(values, variance, bins, value_range), dim=-1)
+
+
+def _log_bin_masses(values: Tensor, variance: Tensor, bins: int, value_range: tuple[float, float]) -> Tensor:
+    """``log P(edge_i <= X < edge_i+1)`` for ``X ~ N(v, sigma^2)``, ``(..., bins)``, finite for any finite input."""
+    low, high = value_range
+    std = variance.clamp_min(min_variance(bins, value_range)).sqrt()
+    # Beyond this margin outside the range, neighbouring bins' masses differ by more than e^64: the weights are one-hot
+    # to float precision, and clamping the value there keeps z^2 finite for any value.
+    margin = std.detach() * torch.clamp_min(64 * std.detach() / bin_width(bins, value_range), 8)
+    values = torch.minimum(torch.maximum(values, low - margin), high + margin)
+    edges = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)
+    standardized = (edges - values.unsqueeze(-1)) / std.unsqueeze(-1)
+    lower, upper = standardized[..., :-1], standardized[..., 1:]
+    # A bin above the value is mirrored below it (P(a < X < b) = P(-b < X < -a)): then upper <= 0 or a < 0 < b.
+    above = lower > 0
+    lower, upper = torch.where(above, -upper, lower), torch.where(above, -lower, upper)
+    # Three forms, each where it is precise; each gets harmless inputs where it is not used (no NaN in gradients):
+    # within a standard deviation (or across the value) an erf difference; in the tail an erfc difference, relative
+    # precision kept; beyond 10 standard deviations, before erfc underflows, a log_ndtr difference.
+    near, tail = upper > -1, upper > -10
+    scale = math.sqrt(0.5)
+    chosen_upper, chosen_lower = torch.where(near, upper, 0.0) * scale, torch.where(near, lower, -1.0) * scale
+    tiny = torch.finfo(values.dtype).tiny
+    # The clamps keep a rounded-off 0 finite (intervals below eps standard deviations: a flat likelihood anyway).
+    near_log = torch.log((torch.erf(chosen_upper) - torch.erf(chosen_lower)).clamp_min(tiny))
+    tail_only = tail & ~near
+    chosen_upper, chosen_lower = (
+        torch.where(tail_only, upper, -2.0) * scale,
+        torch.where(tail_only, lower, -3.0) * scale,
+    )
+    tail_log = torch.log((torch.erfc(-chosen_upper) - torch.erfc(-chosen_lower)).clamp_min(tiny))
+    chosen_upper, chosen_lower = torch.where(tail, -11.0, upper), torch.where(tail, -12.0, lower)
+    log_upper = torch.special.log_ndtr(chosen_upper)
+    # log(Phi(b) - Phi(a)) = log Phi(b) + log(1 - Phi(a) / Phi(b)).
+    log_ratio = (torch.special.log_ndtr(chosen_lower) - log_upper).clamp_max(-tiny)
+    far_log = log_upper + torch.log(-torch.expm1(log_ratio)) + math.log(2)
+    return torch.where(near, near_log, torch.where(tail, tail_log, far_log)) - math.log(2)
+
+
 def gaussian_log_prior(
     mean: float, std: float, bins: int, value_range: tuple[float, float], *, dtype=None, device=None
 ) -> Tensor:
