@@ -6,8 +6,73 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import truncated_likelihood_weights
+from enmi_torch import mixture_information, truncated_likelihood_weights
 from enmi_torch.binning import _log_bin_masses, likelihood_weights
+from enmi_torch.mixture import _mixture_log_likelihoods
+
+
+def _numpy_weights(values, variance, bins, value_range):
+    """Independent reference: Gaussian bin masses from math.erf, truncated to the range and normalised."""
+    edges = np.linspace(*value_range, bins + 1)
+    rows = []
+    for value, var in zip(np.ravel(values), np.ravel(variance), strict=True):
+        scale = math.sqrt(2 * var)
+        cdf = np.array([math.erf((edge - value) / scale) for edge in edges])
+        masses = np.diff(cdf)
+        rows.append(masses / masses.sum())
+    return np.array(rows)
+
+
+def _numpy_mixture(captured, reference, variance, bins, value_range, valid, em_steps=0):
+    """Independent reference: the soft joint histogram and both mixture models, one pixel at a time, float64."""
+    keep = np.asarray(valid, bool).ravel()
+    values = np.asarray(captured, np.float64).ravel()[keep]
+    likelihoods = _numpy_weights(values, np.asarray(variance, np.float64).ravel()[keep], bins, value_range)
+    width = (value_range[1] - value_range[0]) / bins
+    reference_bins = np.clip(
+        np.floor((np.asarray(reference, np.float64).ravel()[keep] - value_range[0]) / width), 0, bins - 1
+    )
+    reference_bins = reference_bins.astype(int)
+    pixels = len(values)
+
+    def conditional_from(joint):
+        totals = joint.sum(0, keepdims=True)
+        return np.divide(joint, totals, out=np.zeros_like(joint), where=totals > 0)
+
+    joint = np.zeros((bins, bins))
+    for likelihood, column in zip(likelihoods, reference_bins, strict=True):
+        joint[:, column] += likelihood
+    conditional, marginal = conditional_from(joint), joint.sum(1) / pixels
+    for _ in range(em_steps):
+        joint, new_marginal = np.zeros((bins, bins)), np.zeros(bins)
+        for likelihood, column in zip(likelihoods, reference_bins, strict=True):
+            responsibility = likelihood * conditional[:, column]
+            joint[:, column] += responsibility / responsibility.sum()
+            responsibility = likelihood * marginal
+            new_marginal += responsibility / responsibility.sum()
+        conditional, marginal = conditional_from(joint), new_marginal / pixels
+    total = 0.0
+    for likelihood, column in zip(likelihoods, reference_bins, strict=True):
+        total += math.log(likelihood @ conditional[:, column]) - math.log(likelihood @ marginal)
+    return total / pixels
+
+
+def _numpy_hard_mutual_information(captured, reference, bins, value_range):
+    counts, _, _ = np.histogram2d(np.ravel(captured), np.ravel(reference), bins=bins, range=[value_range] * 2)
+    joint = counts / counts.sum()
+    outer = joint.sum(1, keepdims=True) * joint.sum(0, keepdims=True)
+    nonzero = joint > 0
+    return float(np.sum(joint[nonzero] * np.log(joint[nonzero] / outer[nonzero])))
+
+
+def _case(dtype, shape=(2, 1, 7, 5), seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    reference = torch.rand(shape, generator=generator, dtype=torch.float64) * 256
+    # Non-monotonic response, noise of per-pixel variance, some values beyond the range.
+    captured = 300 * (reference / 256 - 0.4).abs() + torch.randn(shape, generator=generator, dtype=torch.float64) * 20
+    variance = torch.rand(shape, generator=generator, dtype=torch.float64) * 900 + 4
+    valid = torch.rand(shape, generator=generator) > 0.2
+    return captured.to(dtype), reference.to(dtype), variance.to(dtype), valid
 
 
 def test_truncated_weights_equal_trapezoid_integration_of_the_density(dtype, tolerance):
@@ -90,3 +155,131 @@ def test_truncated_log_masses_gradcheck_in_every_form():
     values = torch.tensor([3.3, 5.0, -2.5, 12.0, -30.0, 50.0], dtype=torch.float64, requires_grad=True)
     variance = torch.tensor([1.0, 0.2, 2.0, 1.5, 4.0, 9.0], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda v, s: _log_bin_masses(v, s, 4, (0.0, 8.0)), (values, variance))
+
+
+@pytest.mark.parametrize("em_steps", [0, 2])
+def test_mixture_equals_numpy_loop(dtype, tolerance, em_steps):
+    captured, reference, variance, valid = _case(dtype)
+    bins, value_range = 6, (0.0, 256.0)
+    result = mixture_information(captured, reference, variance, bins=bins, em_steps=em_steps, valid_mask=valid)
+    expected = [
+        _numpy_mixture(captured[b, 0], reference[b, 0], variance[b, 0], bins, value_range, valid[b, 0], em_steps)
+        for b in range(captured.shape[0])
+    ]
+    assert result.dtype == dtype
+    torch.testing.assert_close(result, torch.tensor(expected, dtype=dtype), **tolerance)
+
+
+def test_mixture_candidates_equal_one_call_each_and_roles_are_not_symmetric(dtype, tolerance):
+    captured, reference, variance, valid = _case(dtype)
+    candidates = torch.stack([reference, reference.flip(-1), captured])
+    together = mixture_information(captured, candidates, variance, bins=5, em_steps=1, valid_mask=valid)
+    assert together.shape == (3, 2)
+    for index in range(3):
+        alone = mixture_information(captured, candidates[index], variance, bins=5, em_steps=1, valid_mask=valid)
+        torch.testing.assert_close(together[index], alone, **tolerance)
+    swapped = mixture_information(reference, captured, variance, bins=5, em_steps=1, valid_mask=valid)
+    assert not torch.allclose(swapped, together[0], rtol=1e-2)
+
+
+@pytest.mark.parametrize("em_steps", [0, 3])
+def test_noiseless_limit_is_plugin_mutual_information_of_the_hard_histogram(em_steps):
+    captured, reference, _, _ = _case(torch.float64, shape=(1, 1, 13, 9), seed=1)
+    bins, value_range = 7, (0.0, 256.0)
+    clipped = captured.clamp(0, 255.999)  # numpy's histogram drops values outside, the hard bins clip them
+    result = mixture_information(captured, reference, 1e-12, bins=bins, em_steps=em_steps)
+    expected = _numpy_hard_mutual_information(clipped.numpy(), reference.numpy(), bins, value_range)
+    assert math.isclose(result.item(), expected, rel_tol=1e-12)
+
+
+def test_a_pixel_with_a_flat_likelihood_adds_nothing_of_its_own():
+    captured, reference, _, _ = _case(torch.float64, shape=(1, 1, 12, 12))
+    bins, value_range = 4, (0.0, 256.0)
+    base = mixture_information(captured, reference, 1e-12, bins=bins) * 144
+    # One more pixel over the first pixel's reference bin, with an enormous noise variance and a wild value.
+    variance = torch.cat([torch.full((1, 144), 1e-12, dtype=torch.float64), torch.tensor([[1e16]])], 1)
+    grown = (
+        mixture_information(
+            torch.cat([captured.flatten(1), torch.tensor([[1e4]], dtype=torch.float64)], 1),
+            torch.cat([reference.flatten(1), reference.flatten(1)[:, :1]], 1),
+            variance,
+            bins=bins,
+        )
+        * 145
+    )
+    # Its own term is log(1/K) - log(1/K) = 0: the change is only the 1/K per bin it adds to its column's histogram,
+    # diluting the other pixels' p(i | j) of that column and p(i).
+    clipped = captured.clamp(0, 255.999).flatten().numpy()
+    counts, _, _ = np.histogram2d(clipped, reference.flatten().numpy(), bins=bins, range=[value_range] * 2)
+    column = int(reference.flatten()[0] // (256 / bins))
+    in_column, column_total = counts[:, column], counts[:, column].sum()
+    rows, total = counts.sum(1), counts.sum()
+    occupied, row_occupied = in_column > 0, rows > 0
+    conditional = np.sum(
+        in_column[occupied]
+        * (np.log((in_column[occupied] + 1 / bins) / (column_total + 1)) - np.log(in_column[occupied] / column_total))
+    )
+    marginal = np.sum(
+        rows[row_occupied]
+        * (np.log((rows[row_occupied] + 1 / bins) / (total + 1)) - np.log(rows[row_occupied] / total))
+    )
+    assert math.isclose((grown - base).item(), conditional - marginal, rel_tol=1e-6, abs_tol=1e-9)
+    assert abs(conditional - marginal) > 0.05  # the dilution is there, and it is what the test measures
+
+
+def test_mixture_masked_equals_cropped_and_masked_pixels_may_hold_nan(dtype, tolerance):
+    captured, reference, variance, _ = _case(dtype, shape=(1, 1, 6, 8))
+    mask = torch.zeros(1, 1, 6, 8, dtype=torch.bool)
+    mask[..., 1:5, 2:7] = True
+    poisoned = torch.where(mask, captured, torch.nan)
+    masked = mixture_information(poisoned, reference, variance, bins=5, em_steps=2, valid_mask=mask)
+    cropped = mixture_information(
+        captured[..., 1:5, 2:7], reference[..., 1:5, 2:7], variance[..., 1:5, 2:7], bins=5, em_steps=2
+    )
+    torch.testing.assert_close(masked, cropped, **tolerance)
+
+
+@pytest.mark.parametrize("em_steps", [0, 1])
+def test_mixture_gradcheck_in_captured_and_variance(em_steps):
+    captured, reference, variance, valid = _case(torch.float64, shape=(2, 1, 4, 3))
+    captured.requires_grad_()
+    variance.requires_grad_()
+
+    def score(captured, variance):
+        return mixture_information(captured, reference, variance, bins=4, em_steps=em_steps, valid_mask=valid)
+
+    assert torch.autograd.gradcheck(score, (captured, variance))
+    score(captured, variance).sum().backward()
+    assert (captured.grad[~valid] == 0).all() and (variance.grad[~valid] == 0).all()
+
+
+def test_em_steps_never_decrease_either_model_log_likelihood():
+    captured, reference, variance, valid = _case(torch.float64, shape=(2, 1, 9, 7), seed=2)
+    weights = truncated_likelihood_weights(captured.flatten(1), variance.flatten(1), 6, (0.0, 256.0))
+    reference_bins = (reference.flatten(1) / (256 / 6)).floor().long().clamp(0, 5)[None]
+    history = [
+        _mixture_log_likelihoods(weights, reference_bins, valid.flatten(1).double(), 6, steps) for steps in range(6)
+    ]
+    for before, after in itertools.pairwise(history):
+        assert (after[0] >= before[0] - 1e-9).all() and (after[1] >= before[1] - 1e-9).all()
+    assert (history[-1][0] > history[0][0] + 1e-3).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"variance": None}, ValueError, "variance must be"),
+        ({"em_steps": -1}, ValueError, "em_steps must be an int >= 0, got -1"),
+        ({"em_steps": 1.5}, TypeError, "em_steps must be an int >= 0"),
+        ({"variance": -1.0}, ValueError, "variance"),
+        ({"bins": 1}, ValueError, "bins"),
+        ({"value_range": (5.0, 5.0)}, ValueError, "value_range"),
+        ({"reference": torch.zeros(2, 1, 5, 7)}, ValueError, "reference must have the shape of captured"),
+    ],
+)
+def test_mixture_refuses_bad_arguments(kwargs, error, message):
+    captured, reference, variance, _ = _case(torch.float64)
+    arguments = {"variance": variance, "reference": reference, **kwargs}
+    variance, reference = arguments.pop("variance"), arguments.pop("reference")
+    with pytest.raises(error, match=message):
+        mixture_information(captured, reference, variance, **arguments)

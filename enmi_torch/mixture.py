@@ -1,0 +1,158 @@
+"""The mixture-likelihood score: mutual information with each captured pixel's noise integrated out.
+
+Model: a captured pixel ``v_n`` is a true amplitude in some bin ``i``, seen through Gaussian noise of variance
+``sigma_n^2``; for an amplitude uniform in bin ``i`` the density of ``v_n`` is proportional to ``L_n(i)``, the mass
+``N(v_n, sigma_n^2)`` puts in bin ``i`` (:func:`~enmi_torch.binning.truncated_likelihood_weights`: tails outside the
+range dropped, rows normalised). The reference (map) pixel is hard-binned, ``j_n``. The soft joint histogram
+
+    ``J[i, j] = sum_n L_n(i) [j_n = j]``,  ``p(i | j) = J[i, j] / sum_i J[i, j]``,  ``p(i) = sum_j J[i, j] / n``
+
+gives two mixture models of the captured pixels, one given the reference bin, one without it, and the score is their
+log-likelihood ratio per valid pixel, in nats:
+
+    ``M = (1 / n) sum_n [log sum_i L_n(i) p(i | j_n) - log sum_i L_n(i) p(i)]``.
+
+A pixel whose likelihood is flat over the bins adds ``log(1 / K) - log(1 / K) = 0`` of its own instead of a full unit
+of histogram weight (its ``1 / K`` per bin still enters ``J``: the other pixels' ``p(i | j)`` and ``p(i)`` move by
+``O(1 / n)``), and as ``sigma -> 0`` (``L_n`` one-hot) ``M`` is the plug-in mutual information
+``H[A] + H[B] - H[A, B]`` of the hard joint histogram.
+
+``em_steps`` deconvolve the noise: each step replaces each model's bin probabilities by the mean responsibilities of
+its pixels, ``r_n(i) ∝ L_n(i) p(i | j_n)`` (so ``J[i, j] = sum_n r_n(i) [j_n = j]``) for the conditional model and
+``r_n(i) ∝ L_n(i) p(i)`` for the marginal one. Each step is an EM step of that model's likelihood, which never
+decreases; both models are fitted alike so that the ratio compares two fits of equal effort.
+
+Convention:
+    Captured values are weighted over ``bins`` equal bins of ``value_range``, truncated to it (a value far above the
+    range counts in the top bin); reference values are hard-binned, clipped into the edge bins. The score is not a
+    sum over batches: the per-pixel terms need the whole joint histogram first.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from enmi_torch._checks import check_floating, check_non_negative_int
+from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
+from enmi_torch.histogram import _prepare
+
+# Candidates per chunk are chosen so one chunk's (C, B, N, bins) per-pixel tensors stay near this many elements.
+_CHUNK_ELEMENTS = 1 << 21
+
+
+def mixture_information(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    em_steps: int = 0,
+    valid_mask: Tensor | None = None,
+) -> Tensor:
+    """Mixture-likelihood mutual information: the noise-aware log-likelihood ratio per valid pixel, nats, ``(B,)``.
+
+    Args:
+        captured: noisy image ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        reference: noiseless map section, same shape; or ``(C, *captured.shape)``, ``C`` candidates per image (the
+            captured likelihoods are computed once).
+        variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
+            ``(1, 1, H, W)`` or ``(B, 1, H, W)``.
+        bins: number of equal-width bins over ``value_range``, for both images.
+        value_range: ``(low, high)`` of the bins.
+        em_steps: EM steps fitting the bin probabilities of both models to the noisy pixels (see the module
+            docstring); 0 scores the plug-in soft histogram.
+        valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
+
+    Returns:
+        ``M`` ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: the plug-in mutual information of
+        the hard histogram in the noiseless limit, with noisy pixels counting by how much their likelihood tells
+        the bins apart.
+
+    Convention:
+        Differentiable in ``captured`` and ``variance`` (the reference is hard-binned).
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = torch.rand(1, 1, 16, 16, generator=generator) * 256
+        >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator)
+        >>> mixture_information(captured, torch.stack([reference, reference.roll(1, -1)]), 64.0, bins=8)
+        tensor([[1.5302],
+                [0.0894]])
+    """
+    if variance is None:
+        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_floating("captured", captured)
+    em_steps = check_non_negative_int("em_steps", em_steps)
+    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None)
+    weights = truncated_likelihood_weights(inputs.captured, inputs.variance, inputs.bins, inputs.value_range)
+    reference_bins = hard_bin_index(inputs.reference, inputs.bins, inputs.value_range)
+    score = _mixture_score(weights, reference_bins, inputs.pair_weight, inputs.bins, em_steps)
+    return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
+
+
+def _mixture_score(weights: Tensor, reference_bins: Tensor, valid: Tensor | None, bins: int, em_steps: int) -> Tensor:
+    """``M`` ``(C, B)`` from captured weights ``(B, N, K)`` and reference bins ``(C, B, N)``, in candidate chunks.
+
+    ``valid`` is float 0/1, ``(B, N)`` (shared by the candidates), ``(C, B, N)`` (one mask per candidate) or
+    ``None``. A candidate without any valid pixel scores 0.
+    """
+    candidates, batch, pixels = reference_bins.shape
+    step = max(1, _CHUNK_ELEMENTS // (batch * pixels * bins))
+    scores = []
+    for start in range(0, candidates, step):
+        part = slice(start, start + step)
+        chunk_valid = None if valid is None else (valid if valid.ndim == 2 else valid[part])
+        conditional, marginal, count = _mixture_log_likelihoods(
+            weights, reference_bins[part], chunk_valid, bins, em_steps
+        )
+        scores.append(torch.where(count > 0.5, (conditional - marginal) / count.clamp_min(1), 0.0))
+    return torch.cat(scores)
+
+
+def _mixture_log_likelihoods(
+    weights: Tensor, reference_bins: Tensor, valid: Tensor | None, bins: int, em_steps: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Summed log-likelihoods of the conditional and the marginal mixture models, and the valid pixels, ``(C, B)``.
+
+    ``weights`` ``(B, N, K)``, rows summing to 1; ``reference_bins`` ``(C, B, N)`` int64; ``valid`` as in
+    :func:`_mixture_score`. The log-likelihoods leave out the per-pixel factor that turns ``L_n`` into a density.
+    """
+    candidates, batch, _ = reference_bins.shape
+    valid = weights.new_ones(()) if valid is None else valid
+    valid = valid.expand(reference_bins.shape)
+    count = valid.sum(-1)
+    offsets = torch.arange(candidates * batch, device=weights.device).view(candidates, batch, 1) * bins
+    # Row (c, b, j) of the transposed histogram holds J[:, j] of candidate c and sample b.
+    rows = (reference_bins + offsets).flatten()
+    pixel_weights = weights * valid.unsqueeze(-1)
+    transposed = _add_rows(pixel_weights, rows, candidates * batch * bins)
+    marginal_probability = transposed.view(candidates, batch, bins, bins).sum(-2) / count.clamp_min(1).unsqueeze(-1)
+    for step in range(em_steps + 1):
+        # Each reference bin's column sum is its number of valid pixels, also after an EM step.
+        conditional_probability = transposed / transposed.sum(-1, keepdim=True).clamp_min(1)
+        per_pixel_conditional = conditional_probability.index_select(0, rows).view(*reference_bins.shape, bins)
+        conditional = torch.linalg.vecdot(weights, per_pixel_conditional)
+        marginal = (weights @ marginal_probability.unsqueeze(-1)).squeeze(-1)
+        if step == em_steps:
+            break
+        responsibilities = pixel_weights * per_pixel_conditional / _safe(conditional).unsqueeze(-1)
+        transposed = _add_rows(responsibilities, rows, candidates * batch * bins)
+        responsibilities = pixel_weights * marginal_probability.unsqueeze(-2) / _safe(marginal).unsqueeze(-1)
+        marginal_probability = responsibilities.sum(-2) / count.clamp_min(1).unsqueeze(-1)
+    valid_pixel = valid > 0
+    conditional = torch.where(valid_pixel, _safe(conditional).log(), 0.0).sum(-1)
+    marginal = torch.where(valid_pixel, _safe(marginal).log(), 0.0).sum(-1)
+    return conditional, marginal, count
+
+
+def _add_rows(per_pixel: Tensor, rows: Tensor, row_count: int) -> Tensor:
+    """``(row_count, K)``: the ``(C, B, N, K)`` rows of ``per_pixel`` added into their ``rows`` ``(C * B * N,)``."""
+    bins = per_pixel.shape[-1]
+    return per_pixel.new_zeros(row_count, bins).index_add(0, rows, per_pixel.reshape(-1, bins))
+
+
+def _safe(probability: Tensor) -> Tensor:
+    """Per-pixel mixture probabilities of masked pixels can be 0 (an empty column): keep their log finite."""
+    return probability.clamp_min(torch.finfo(probability.dtype).tiny)
