@@ -160,8 +160,8 @@ def truncated_likelihood_weights(
         value_range: ``(low, high)``.
 
     Convention:
-        Computed in log space (an ``erf`` or ``erfc`` difference where precise, ``log_ndtr`` beyond 10 standard
-        deviations), so values far outside the range and tiny variances stay finite: a value far above the range
+        Computed in log space (an ``erf`` difference within a standard deviation of the value, a ``log_ndtr``
+        difference beyond), so values far outside the range and tiny variances stay finite: a value far above the range
         gives its weight to the top bin. Differentiable in ``values`` and ``variance``; variances below
         :func:`min_variance` are clamped to it, values to ``max(8 sigma, 64 sigma^2 / bin width)`` outside the range
         (one-hot weights there and beyond, to e^-64). Largest error against 60-digit mpmath (8 bins, values out to 200
@@ -190,27 +190,21 @@ def _log_bin_masses(values: Tensor, variance: Tensor, bins: int, value_range: tu
     # A bin above the value is mirrored below it (P(a < X < b) = P(-b < X < -a)): then upper <= 0 or a < 0 < b.
     above = lower > 0
     lower, upper = torch.where(above, -upper, lower), torch.where(above, -lower, upper)
-    # Three forms, each where it is precise; each gets harmless inputs where it is not used (no NaN in gradients):
-    # within a standard deviation (or across the value) an erf difference; in the tail an erfc difference, relative
-    # precision kept; beyond 10 standard deviations, before erfc underflows, a log_ndtr difference.
-    near, tail = upper > -1, upper > -10
-    scale = math.sqrt(0.5)
-    chosen_upper, chosen_lower = torch.where(near, upper, 0.0) * scale, torch.where(near, lower, -1.0) * scale
+    # Two forms, each where it is precise, each given harmless inputs where unused (no NaN in gradients): within a
+    # standard deviation of the value (or across it) an erf difference, free of the cancellation a log_ndtr difference
+    # has there; beyond, where the masses underflow, a log_ndtr difference.
+    near = upper > -1
     tiny = torch.finfo(values.dtype).tiny
-    # The clamps keep a rounded-off 0 finite (intervals below eps standard deviations: a flat likelihood anyway).
-    near_log = torch.log((torch.erf(chosen_upper) - torch.erf(chosen_lower)).clamp_min(tiny))
-    tail_only = tail & ~near
-    chosen_upper, chosen_lower = (
-        torch.where(tail_only, upper, -2.0) * scale,
-        torch.where(tail_only, lower, -3.0) * scale,
-    )
-    tail_log = torch.log((torch.erfc(-chosen_upper) - torch.erfc(-chosen_lower)).clamp_min(tiny))
-    chosen_upper, chosen_lower = torch.where(tail, -11.0, upper), torch.where(tail, -12.0, lower)
-    log_upper = torch.special.log_ndtr(chosen_upper)
+    scale = math.sqrt(0.5)
+    near_upper, near_lower = torch.where(near, upper, 0.0) * scale, torch.where(near, lower, -1.0) * scale
+    # The clamp keeps a rounded-off 0 finite (an interval below eps standard deviations: a flat likelihood anyway).
+    near_log = torch.log((torch.erf(near_upper) - torch.erf(near_lower)).clamp_min(tiny)) - math.log(2)
+    far_upper, far_lower = torch.where(near, -2.0, upper), torch.where(near, -3.0, lower)
+    log_upper = torch.special.log_ndtr(far_upper)
     # log(Phi(b) - Phi(a)) = log Phi(b) + log(1 - Phi(a) / Phi(b)).
-    log_ratio = (torch.special.log_ndtr(chosen_lower) - log_upper).clamp_max(-tiny)
-    far_log = log_upper + torch.log(-torch.expm1(log_ratio)) + math.log(2)
-    return torch.where(near, near_log, torch.where(tail, tail_log, far_log)) - math.log(2)
+    log_ratio = (torch.special.log_ndtr(far_lower) - log_upper).clamp_max(-tiny)
+    far_log = log_upper + torch.log(-torch.expm1(log_ratio))
+    return torch.where(near, near_log, far_log)
 
 
 def gaussian_log_prior(
