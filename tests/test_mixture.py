@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import mixture_information, truncated_likelihood_weights
-from enmi_torch.binning import _log_bin_masses, likelihood_weights
-from enmi_torch.mixture import _mixture_log_likelihoods
+from enmi_torch import mixture_information, mixture_surface
+from enmi_torch.binning import _log_bin_masses, likelihood_weights, truncated_likelihood_weights
+from enmi_torch.mixture import _mixture_log_likelihoods, _rescore_peaks, direct_mixture_surface
+from enmi_torch.score_surface import ecr_surface
 
 
 def _numpy_weights(values, variance, bins, value_range):
@@ -107,7 +108,7 @@ def test_truncated_weights_drop_the_tails_that_mass_weights_fold():
 def test_truncated_weights_in_the_tails_equal_mpmath():
     mpmath.mp.dps = 60
     bins, value_range = 5, (0.0, 10.0)
-    # Each form: erf (across the value), erfc (within 10 standard deviations), log_ndtr (beyond); values inside the
+    # Each form: erf (across the value or within a standard deviation), log_ndtr (beyond); values inside the
     # clamp (max(8 sigma, 64 sigma^2 / bin width) outside the range), but for the last, one-hot anyway.
     cases = [(-25.0, 1.0), (3.0, 1e-6), (25.0, 1.0), (70.0, 9.0), (5.0, 1e10), (-1e4, 1e6), (13.0, 0.25), (-40.0, 1.0)]
     edges = [mpmath.mpf(edge) for edge in np.linspace(*value_range, bins + 1)]
@@ -151,7 +152,7 @@ def test_far_values_and_tiny_variances_stay_finite_and_one_hot(dtype, value):
 
 
 def test_truncated_log_masses_gradcheck_in_every_form():
-    # Across the value (erf), within ten standard deviations (erfc), beyond (log_ndtr), below and above the range.
+    # Across the value and within a standard deviation (erf), beyond (log_ndtr), below and above the range.
     values = torch.tensor([3.3, 5.0, -2.5, 12.0, -30.0, 50.0], dtype=torch.float64, requires_grad=True)
     variance = torch.tensor([1.0, 0.2, 2.0, 1.5, 4.0, 9.0], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda v, s: _log_bin_masses(v, s, 4, (0.0, 8.0)), (values, variance))
@@ -283,3 +284,128 @@ def test_mixture_refuses_bad_arguments(kwargs, error, message):
     variance, reference = arguments.pop("variance"), arguments.pop("reference")
     with pytest.raises(error, match=message):
         mixture_information(captured, reference, variance, **arguments)
+
+
+def _surface_case(seed, batch=1, windows=1, masks=False):
+    generator = torch.Generator().manual_seed(seed)
+    window = torch.rand(windows, 1, 16, 13, generator=generator, dtype=torch.float64) * 256
+    window = torch.nn.functional.avg_pool2d(window, 3, 1, 1, count_include_pad=False) * 2 - 128  # some texture
+    tops, lefts = [4, 2], [6, 1]
+    local = torch.cat(
+        [
+            window[min(b, windows - 1) : min(b, windows - 1) + 1, :, tops[b] : tops[b] + 7, lefts[b] : lefts[b] + 6]
+            for b in range(batch)
+        ]
+    )
+    local = 280 * (local / 256 - 0.3).abs() + 12 * torch.randn(local.shape, generator=generator, dtype=torch.float64)
+    variance = torch.rand(batch, 1, 7, 6, generator=generator, dtype=torch.float64) * 300 + 50
+    options = {}
+    if masks:
+        options["local_mask"] = torch.rand(batch, 1, 7, 6, generator=generator) > 0.15
+        window_mask = torch.ones(windows, 1, 16, 13, dtype=torch.bool)
+        window_mask[..., :3, :4] = False
+        options["window_mask"] = window_mask
+    return local, window, variance, options
+
+
+@pytest.mark.parametrize(
+    ("seed", "batch", "windows", "masks", "em_steps"),
+    [(0, 1, 1, False, 0), (1, 2, 1, True, 0), (2, 2, 2, True, 1), (3, 1, 1, True, 2)],
+)
+def test_two_stage_surface_equals_direct_where_rescored_and_has_its_argmax(seed, batch, windows, masks, em_steps):
+    local, window, variance, options = _surface_case(seed, batch, windows, masks)
+    fast = mixture_surface(local, window, variance, bins=8, em_steps=em_steps, candidates=2, **options)
+    slow = direct_mixture_surface(local, window, variance, bins=8, em_steps=em_steps, **options)
+    rescored = torch.isfinite(fast.score)
+    assert fast.score.shape == slow.score.shape == (batch, 10, 8)
+    assert rescored.sum() >= 9 * batch and (~rescored).any()
+    torch.testing.assert_close(fast.score[rescored], slow.score[rescored], rtol=1e-9, atol=1e-9)
+    assert torch.equal(fast.score.flatten(1).argmax(1), slow.score.flatten(1).argmax(1))
+    torch.testing.assert_close(fast.overlap, slow.overlap)
+    cheap = ecr_surface(local, window, variance, bins=8, **options)
+    torch.testing.assert_close(fast.overlap, cheap.overlap)
+
+
+def test_two_stage_surface_in_float32_agrees_with_float64():
+    local, window, variance, options = _surface_case(1, 2, 1, True)
+    double = mixture_surface(local, window, variance, bins=8, **options)
+    single = mixture_surface(local.float(), window.float(), variance.float(), bins=8, **options)
+    assert single.score.dtype == torch.float32
+    rescored = torch.isfinite(double.score) & torch.isfinite(single.score)
+    torch.testing.assert_close(single.score[rescored], double.score[rescored].float(), rtol=1e-4, atol=1e-5)
+
+
+def _peaks_case():
+    """A cheap surface with 20 isolated peaks of decreasing height on a flat floor."""
+    cheap = torch.zeros(12, 15, dtype=torch.float64)
+    peaks = [(row, col) for row in range(1, 12, 3) for col in range(1, 15, 3)]
+    for rank, (row, col) in enumerate(peaks):
+        cheap[row, col] = 100.0 - rank
+    return cheap, peaks
+
+
+def _exact_favouring(peaks, target=None):
+    """Exact scores: 1000 at ``target``, else the cheap rank of the peak whose 3 x 3 block holds the placement."""
+
+    def exact(placements):
+        rows, cols = placements.unbind(-1)
+        ranks = torch.tensor([peaks.index((row // 3 * 3 + 1, col // 3 * 3 + 1)) for row, col in placements.tolist()])
+        hit = (rows == target[0]) & (cols == target[1]) if target else torch.zeros_like(rows, dtype=torch.bool)
+        return torch.where(hit, 1000.0, ranks.double())
+
+    return exact
+
+
+@pytest.mark.parametrize(
+    ("best_rank", "expected_peaks"), [(0, 8), (3, 8), (4, 16), (7, 16), (8, 20), (12, 20), (19, 20)]
+)
+def test_rescoring_doubles_while_the_exact_best_comes_from_the_lower_half(best_rank, expected_peaks):
+    cheap, peaks = _peaks_case()
+    best = peaks[best_rank]
+    # Until the target's peak is rescored, the exact best sits by the lowest-ranked peak rescored (the lower half).
+    exact = _exact_favouring(peaks, (best[0], best[1] + 1))
+
+    score = _rescore_peaks(cheap, exact, 8, 64)
+    rescored_peaks = sum(bool(torch.isfinite(score[row, col])) for row, col in peaks)
+    assert rescored_peaks == expected_peaks
+    # Each rescored peak brings its 8 neighbours (none shared here, none outside).
+    assert int(torch.isfinite(score).sum()) == 9 * expected_peaks
+    assert divmod(int(score.argmax()), 15) == (best[0], best[1] + 1)
+
+
+def test_rescoring_takes_separated_peaks_not_the_shoulders_of_one():
+    cheap = torch.zeros(9, 10, dtype=torch.float64)
+    cheap[5, 5], cheap[5, 6], cheap[4, 5] = 10.0, 9.9, 9.8  # one broad peak
+    cheap[1, 1] = 5.0  # a second, lower one
+
+    def exact(placements):
+        return -placements.sum(-1).double()
+
+    score = _rescore_peaks(cheap, exact, 2, 2)
+    assert torch.isfinite(score[1, 1]) and torch.isfinite(score[5, 5])
+    assert int(torch.isfinite(score).sum()) == 18
+
+
+def test_rescoring_stops_at_max_candidates():
+    cheap, peaks = _peaks_case()
+
+    score = _rescore_peaks(cheap, _exact_favouring(peaks), 2, 5)  # always best by the lowest-ranked peak
+    assert sum(bool(torch.isfinite(score[row, col])) for row, col in peaks) == 5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"variance": None}, ValueError, "variance must be"),
+        ({"candidates": 0}, ValueError, "candidates must be an int >= 1"),
+        ({"max_candidates": 4, "candidates": 8}, ValueError, r"max_candidates must be >= candidates \(8\), got 4"),
+        ({"em_steps": -2}, ValueError, "em_steps must be an int >= 0"),
+        ({"window": torch.zeros(1, 1, 5, 5, dtype=torch.float64)}, ValueError, "local must not be larger than window"),
+    ],
+)
+def test_mixture_surface_refuses_bad_arguments(kwargs, error, message):
+    local, window, variance, _ = _surface_case(0)
+    arguments = {"variance": variance, "window": window, **kwargs}
+    variance, window = arguments.pop("variance"), arguments.pop("window")
+    with pytest.raises(error, match=message):
+        mixture_surface(local, window, variance, **arguments)
