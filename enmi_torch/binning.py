@@ -187,24 +187,20 @@ def _log_bin_masses(values: Tensor, variance: Tensor, bins: int, value_range: tu
     edges = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)
     standardized = (edges - values.unsqueeze(-1)) / std.unsqueeze(-1)
     lower, upper = standardized[..., :-1], standardized[..., 1:]
-    # A bin above the value is mirrored below it (P(a < X < b) = P(-b < X < -a)): then upper <= 0 or a < 0 < b.
-    above = lower > 0
-    lower, upper = torch.where(above, -upper, lower), torch.where(above, -lower, upper)
-    # Two forms, each where it is precise, each given harmless inputs where unused (no NaN in gradients): within a
-    # standard deviation of the value (or across it) an erf difference, free of the cancellation a log_ndtr difference
-    # has there; beyond, where the masses underflow, a log_ndtr difference.
-    near = upper > -1
     tiny = torch.finfo(values.dtype).tiny
-    scale = math.sqrt(0.5)
-    near_upper, near_lower = torch.where(near, upper, 0.0) * scale, torch.where(near, lower, -1.0) * scale
-    # The clamp keeps a rounded-off 0 finite (an interval below eps standard deviations: a flat likelihood anyway).
-    near_log = torch.log((torch.erf(near_upper) - torch.erf(near_lower)).clamp_min(tiny)) - math.log(2)
-    far_upper, far_lower = torch.where(near, -2.0, upper), torch.where(near, -3.0, lower)
-    log_upper = torch.special.log_ndtr(far_upper)
-    # log(Phi(b) - Phi(a)) = log Phi(b) + log(1 - Phi(a) / Phi(b)).
-    log_ratio = (torch.special.log_ndtr(far_lower) - log_upper).clamp_max(-tiny)
-    far_log = log_upper + torch.log(-torch.expm1(log_ratio))
-    return torch.where(near, near_log, far_log)
+    # Two forms, each where it is precise, each computed once per edge. Within a standard deviation of the value (or
+    # across it), an erf difference, free of the cancellation a log_ndtr difference has there; the clamp keeps a
+    # rounded-off 0 finite (an interval below eps standard deviations: a flat likelihood anyway).
+    erf_edges = torch.erf(standardized * math.sqrt(0.5))
+    near_log = torch.log((erf_edges[..., 1:] - erf_edges[..., :-1]).clamp_min(tiny)) - math.log(2)
+    # Beyond, where masses underflow, a log_ndtr difference on the value's side (P(a < X < b) = P(-b < X < -a)):
+    # Phi(-|z|) of the edge nearer the value less that of the farther one.
+    tail_edges = torch.special.log_ndtr(-standardized.abs())
+    above = lower > 0
+    log_inner = torch.where(above, tail_edges[..., :-1], tail_edges[..., 1:])
+    log_outer = torch.where(above, tail_edges[..., 1:], tail_edges[..., :-1])
+    far_log = log_inner + torch.log(-torch.expm1((log_outer - log_inner).clamp_max(-tiny)))
+    return torch.where((upper > -1) & (lower < 1), near_log, far_log)
 
 
 def gaussian_log_prior(
