@@ -130,41 +130,53 @@ def _mixture_log_likelihoods(
     :func:`_mixture_score`. The log-likelihoods leave out the per-pixel factor that turns ``L_n`` into a density.
     """
     candidates, batch, _ = reference_bins.shape
-    valid = weights.new_ones(()) if valid is None else valid
-    valid = valid.expand(reference_bins.shape)
-    count = valid.sum(-1)
+    valid_pixel = (
+        torch.ones_like(reference_bins, dtype=torch.bool) if valid is None else valid.expand_as(reference_bins) > 0
+    )
+    count = valid_pixel.sum(-1).to(weights.dtype).unsqueeze(-1)
+    spare_row = candidates * batch * bins
     offsets = torch.arange(candidates * batch, device=weights.device).view(candidates, batch, 1) * bins
-    # Row (c, b, j) of the transposed histogram holds J[:, j] of candidate c and sample b.
-    rows = (reference_bins + offsets).flatten()
-    pixel_weights = weights * valid.unsqueeze(-1)
-    transposed = _add_rows(pixel_weights, rows, candidates * batch * bins)
-    marginal_probability = transposed.view(candidates, batch, bins, bins).sum(-2) / count.clamp_min(1).unsqueeze(-1)
+    # Row (c, b, j) of the transposed histogram holds J[:, j] of candidate c and sample b; masked pixels go to a spare
+    # last row that nothing reads.
+    rows = torch.where(valid_pixel, reference_bins + offsets, spare_row)
+    columns = (reference_bins + torch.arange(candidates, device=weights.device).view(-1, 1, 1) * bins).permute(1, 2, 0)
+    transposed = _add_rows(weights, rows, spare_row + 1)
+    marginal_probability = transposed[:-1].view(candidates, batch, bins, bins).sum(-2) / count.clamp_min(1)
     for step in range(em_steps + 1):
         # Each reference bin's column sum is its number of valid pixels, also after an EM step.
         conditional_probability = transposed / transposed.sum(-1, keepdim=True).clamp_min(1)
-        per_pixel_conditional = conditional_probability.index_select(0, rows).view(*reference_bins.shape, bins)
-        conditional = torch.linalg.vecdot(weights, per_pixel_conditional)
-        marginal = (weights @ marginal_probability.unsqueeze(-1)).squeeze(-1)
+        # sum_i L_n(i) p(i | j) for every pixel, candidate and bin j in one product, then each pixel's own j_n.
+        stacked = conditional_probability[:-1].view(candidates, batch, bins, bins).permute(1, 3, 0, 2)
+        every_bin = weights @ stacked.reshape(batch, bins, candidates * bins)
+        conditional = every_bin.gather(-1, columns).permute(2, 0, 1)
+        marginal = (weights @ marginal_probability.permute(1, 2, 0)).permute(2, 0, 1)
         if step == em_steps:
             break
-        responsibilities = pixel_weights * per_pixel_conditional / _safe(conditional).unsqueeze(-1)
-        transposed = _add_rows(responsibilities, rows, candidates * batch * bins)
-        responsibilities = pixel_weights * marginal_probability.unsqueeze(-2) / _safe(marginal).unsqueeze(-1)
-        marginal_probability = responsibilities.sum(-2) / count.clamp_min(1).unsqueeze(-1)
-    valid_pixel = valid > 0
+        # sum_n r_n(i) [j_n = j] with r_n(i) = L_n(i) p(i | j) / conditional_n is p(i | j) sum_n L_n(i) / conditional_n.
+        transposed = conditional_probability * _add_rows(weights, rows, spare_row + 1, valid_pixel / _safe(conditional))
+        inverse = (valid_pixel / _safe(marginal)).transpose(0, 1)
+        marginal_probability = marginal_probability * (inverse @ weights).transpose(0, 1) / count.clamp_min(1)
     conditional = torch.where(valid_pixel, _safe(conditional).log(), 0.0).sum(-1)
     marginal = torch.where(valid_pixel, _safe(marginal).log(), 0.0).sum(-1)
-    return conditional, marginal, count
+    return conditional, marginal, count.squeeze(-1)
 
 
-def _add_rows(per_pixel: Tensor, rows: Tensor, row_count: int) -> Tensor:
-    """``(row_count, K)``: the ``(C, B, N, K)`` rows of ``per_pixel`` added into their ``rows`` ``(C * B * N,)``."""
-    bins = per_pixel.shape[-1]
-    return per_pixel.new_zeros(row_count, bins).index_add(0, rows, per_pixel.reshape(-1, bins))
+def _add_rows(weights: Tensor, rows: Tensor, row_count: int, scale: Tensor | None = None) -> Tensor:
+    """``(row_count, K)``: pixel weights ``(B, N, K)``, times ``scale`` ``(C, B, N)``, added into ``rows``.
+
+    ``rows`` is ``(C, B, N)``. One ``index_add_`` per candidate from the shared weights: no ``(C, B, N, K)`` copy
+    where ``scale`` is ``None``.
+    """
+    bins = weights.shape[-1]
+    result = weights.new_zeros(row_count, bins)
+    for candidate, candidate_rows in enumerate(rows):
+        source = weights if scale is None else weights * scale[candidate].unsqueeze(-1)
+        result.index_add_(0, candidate_rows.flatten(), source.reshape(-1, bins))
+    return result
 
 
 def _safe(probability: Tensor) -> Tensor:
-    """Per-pixel mixture probabilities of masked pixels can be 0 (an empty column): keep their log finite."""
+    """Per-pixel mixture probabilities of masked pixels can be 0: keep their log and reciprocal finite."""
     return probability.clamp_min(torch.finfo(probability.dtype).tiny)
 
 

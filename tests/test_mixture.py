@@ -288,9 +288,9 @@ def test_mixture_refuses_bad_arguments(kwargs, error, message):
 
 def _surface_case(seed, batch=1, windows=1, masks=False):
     generator = torch.Generator().manual_seed(seed)
-    window = torch.rand(windows, 1, 16, 13, generator=generator, dtype=torch.float64) * 256
+    window = torch.rand(windows, 1, 13, 11, generator=generator, dtype=torch.float64) * 256
     window = torch.nn.functional.avg_pool2d(window, 3, 1, 1, count_include_pad=False) * 2 - 128  # some texture
-    tops, lefts = [4, 2], [6, 1]
+    tops, lefts = [4, 2], [4, 1]
     local = torch.cat(
         [
             window[min(b, windows - 1) : min(b, windows - 1) + 1, :, tops[b] : tops[b] + 7, lefts[b] : lefts[b] + 6]
@@ -302,7 +302,7 @@ def _surface_case(seed, batch=1, windows=1, masks=False):
     options = {}
     if masks:
         options["local_mask"] = torch.rand(batch, 1, 7, 6, generator=generator) > 0.15
-        window_mask = torch.ones(windows, 1, 16, 13, dtype=torch.bool)
+        window_mask = torch.ones(windows, 1, 13, 11, dtype=torch.bool)
         window_mask[..., :3, :4] = False
         options["window_mask"] = window_mask
     return local, window, variance, options
@@ -317,7 +317,7 @@ def test_two_stage_surface_equals_direct_where_rescored_and_has_its_argmax(seed,
     fast = mixture_surface(local, window, variance, bins=8, em_steps=em_steps, candidates=2, **options)
     slow = direct_mixture_surface(local, window, variance, bins=8, em_steps=em_steps, **options)
     rescored = torch.isfinite(fast.score)
-    assert fast.score.shape == slow.score.shape == (batch, 10, 8)
+    assert fast.score.shape == slow.score.shape == (batch, 7, 6)
     assert rescored.sum() >= 9 * batch and (~rescored).any()
     torch.testing.assert_close(fast.score[rescored], slow.score[rescored], rtol=1e-9, atol=1e-9)
     assert torch.equal(fast.score.flatten(1).argmax(1), slow.score.flatten(1).argmax(1))
@@ -333,6 +333,27 @@ def test_two_stage_surface_in_float32_agrees_with_float64():
     assert single.score.dtype == torch.float32
     rescored = torch.isfinite(double.score) & torch.isfinite(single.score)
     torch.testing.assert_close(single.score[rescored], double.score[rescored].float(), rtol=1e-4, atol=1e-5)
+
+
+def test_mixture_runs_on_the_device(device):
+    local, window, variance, options = _surface_case(2, 2, 2, True)
+    expected = mixture_surface(local, window, variance, bins=8, em_steps=1, **options)
+    moved = mixture_surface(
+        local.to(device),
+        window.to(device),
+        variance.to(device),
+        bins=8,
+        em_steps=1,
+        **{name: mask.to(device) for name, mask in options.items()},
+    )
+    torch.testing.assert_close(moved.score.cpu(), expected.score)
+    captured, reference, variance, valid = _case(torch.float64)
+    captured.requires_grad_()
+    score = mixture_information(
+        captured.to(device), reference.to(device), variance.to(device), bins=5, valid_mask=valid.to(device)
+    )
+    score.sum().backward()
+    assert score.device.type == device.type and torch.isfinite(captured.grad).all()
 
 
 def _peaks_case():
