@@ -2,12 +2,20 @@
 
 from enmi_torch._budget import MemoryBudgetError, get_memory_budget, memory_budget, set_memory_budget
 from enmi_torch._checks import value_checks
-from enmi_torch.binning import bin_centers, bin_edges, gaussian_log_prior, likelihood_weights, parzen_weights
+from enmi_torch.binning import (
+    bin_centers,
+    bin_edges,
+    gaussian_log_prior,
+    likelihood_weights,
+    parzen_weights,
+    truncated_likelihood_weights,
+)
 from enmi_torch.camera import RoadCamera
 from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
 from enmi_torch.losses import ECRLoss, ENMILoss, NMILoss
+from enmi_torch.mixture import mixture_information, mixture_surface
 from enmi_torch.rectify import GroundGrid, rectify, unrectify
 from enmi_torch.variance import (
     ConstantVariance,
@@ -48,12 +56,15 @@ __all__ = [
     "joint_histogram",
     "likelihood_weights",
     "memory_budget",
+    "mixture_information",
+    "mixture_surface",
     "nmi",
     "nmi_from_joint_histogram",
     "parzen_weights",
     "perspective_variance",
     "rectify",
     "set_memory_budget",
+    "truncated_likelihood_weights",
     "unrectify",
     "value_checks",
 ]

@@ -143,6 +143,66 @@ def likelihood_weights(
     return torch.softmax(score, dim=-1)
 
 
+def truncated_likelihood_weights(
+    values: Tensor, variance: Tensor, bins: int, value_range: tuple[float, float]
+) -> Tensor:
+    """Weights ``(..., bins)``: the mass ``N(v, sigma^2)`` puts in each bin, truncated to the range; rows sum to 1.
+
+    Unlike the ``"mass"`` weights of :func:`likelihood_weights`, the tails outside ``[low, high)`` are dropped, not
+    folded into the edge bins, and the masses are normalised over the bins. For an amplitude uniform in bin ``i``
+    observed with noise ``N(0, sigma^2)``, the density of ``v`` is proportional to the mass ``N(v, sigma^2)`` puts in
+    bin ``i``: the weights are the bins' likelihoods, up to a factor per value.
+
+    Args:
+        values: observed values ``v``, any shape ``(...)``.
+        variance: noise variance ``sigma^2`` of each value, broadcastable to ``values``, > 0.
+        bins: number of bins.
+        value_range: ``(low, high)``.
+
+    Convention:
+        Computed in log space (an ``erf`` difference within a standard deviation of the value, a ``log_ndtr``
+        difference beyond), so values far outside the range and tiny variances stay finite: a value far above the range
+        gives its weight to the top bin. Differentiable in ``values`` and ``variance``; variances below
+        :func:`min_variance` are clamped to it, values to ``max(8 sigma, 64 sigma^2 / bin width)`` outside the range
+        (one-hot weights there and beyond, to e^-64). Largest error against 60-digit mpmath (8 bins, values out to 200
+        standard deviations beyond the range): float64 5e-15 for a standard deviation up to 10 bin widths, 5e-9 at
+        10^4; float32 3e-6 up to 10 bin widths, 4e-4 at 100 (the standardised edges themselves are rounded).
+
+    Example:
+        >>> w = truncated_likelihood_weights(torch.tensor([3.0, 1e6]), torch.tensor([1.0, 1.0]), 4, (0.0, 8.0))
+        >>> [[round(x, 4) for x in row] for row in w.tolist()]
+        [[0.1575, 0.6836, 0.1575, 0.0014], [0.0, 0.0, 0.0, 1.0]]
+    """
+    return torch.softmax(_log_bin_masses(values, variance, bins, value_range), dim=-1)
+
+
+def _log_bin_masses(values: Tensor, variance: Tensor, bins: int, value_range: tuple[float, float]) -> Tensor:
+    """``log P(edge_i <= X < edge_i+1)`` for ``X ~ N(v, sigma^2)``, ``(..., bins)``, finite for any finite input."""
+    low, high = value_range
+    std = variance.clamp_min(min_variance(bins, value_range)).sqrt()
+    # Beyond this margin outside the range, neighbouring bins' masses differ by more than e^64: the weights are one-hot
+    # to float precision, and clamping the value there keeps z^2 finite for any value.
+    margin = std.detach() * torch.clamp_min(64 * std.detach() / bin_width(bins, value_range), 8)
+    values = torch.minimum(torch.maximum(values, low - margin), high + margin)
+    edges = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)
+    standardized = (edges - values.unsqueeze(-1)) / std.unsqueeze(-1)
+    lower, upper = standardized[..., :-1], standardized[..., 1:]
+    tiny = torch.finfo(values.dtype).tiny
+    # Two forms, each where it is precise, each computed once per edge. Within a standard deviation of the value (or
+    # across it), an erf difference, free of the cancellation a log_ndtr difference has there; the clamp keeps a
+    # rounded-off 0 finite (an interval below eps standard deviations: a flat likelihood anyway).
+    erf_edges = torch.erf(standardized * math.sqrt(0.5))
+    near_log = torch.log((erf_edges[..., 1:] - erf_edges[..., :-1]).clamp_min(tiny)) - math.log(2)
+    # Beyond, where masses underflow, a log_ndtr difference on the value's side (P(a < X < b) = P(-b < X < -a)):
+    # Phi(-|z|) of the edge nearer the value less that of the farther one.
+    tail_edges = torch.special.log_ndtr(-standardized.abs())
+    above = lower > 0
+    log_inner = torch.where(above, tail_edges[..., :-1], tail_edges[..., 1:])
+    log_outer = torch.where(above, tail_edges[..., 1:], tail_edges[..., :-1])
+    far_log = log_inner + torch.log(-torch.expm1((log_outer - log_inner).clamp_max(-tiny)))
+    return torch.where((upper > -1) & (lower < 1), near_log, far_log)
+
+
 def gaussian_log_prior(
     mean: float, std: float, bins: int, value_range: tuple[float, float], *, dtype=None, device=None
 ) -> Tensor:
