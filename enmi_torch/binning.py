@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 PARZEN_KERNELS = ("hard", "triangular", "xu")
-LIKELIHOOD_WEIGHTS = ("mass", "density")
+LIKELIHOOD_WEIGHTS = ("mass", "density", "truncated")
 
 # Below this standard deviation (in bin widths) a likelihood is already a unit count in float64; clamping the
 # variance here keeps (c - v)^2 / var^2 finite in gradients.
@@ -112,7 +112,9 @@ def likelihood_weights(
         bins: number of bins.
         value_range: ``(low, high)``.
         weights: ``"mass"``: the probability ``N(v, sigma^2)`` puts in each bin, the tails folded into the edge
-            bins; ``"density"``: the Gaussian density at the bin centres, normalised over the bins.
+            bins (the paper's ENMI); ``"density"``: the Gaussian density at the bin centres, normalised over the
+            bins; ``"truncated"``: the masses inside the range only, renormalised (the bins' likelihoods, see
+            :func:`truncated_likelihood_weights`; a noisy value near an edge no longer piles its tail there).
         log_prior: optional ``(bins,)`` or ``(B, bins)``-broadcastable log prior of the amplitude per bin; the
             weights become the posterior (likelihood times prior, normalised), the MAP view of the paper.
 
@@ -125,6 +127,9 @@ def likelihood_weights(
         >>> [round(x, 4) for x in w[0].tolist()]
         [0.1587, 0.6827, 0.1573, 0.0013]
     """
+    if weights == "truncated":
+        log_weights = _log_bin_masses(values, variance, bins, value_range)
+        return torch.softmax(log_weights if log_prior is None else log_weights + log_prior, dim=-1)
     variance = variance.clamp_min(min_variance(bins, value_range))
     if weights == "mass":
         interior = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)[1:-1]
@@ -233,12 +238,13 @@ def likelihood_weights_vjp(
     """Vector-Jacobian product of :func:`likelihood_weights`: ``upstream`` ``(..., bins)`` to (d values, d variance).
 
     Closed-form derivatives (one exp per bin edge or centre, no erf, in-place where possible), used by the chunked
-    joint histogram's backward pass; the ``"mass"`` weights with a prior fall back to autograd.
+    joint histogram's backward pass; the ``"mass"`` weights with a prior and the ``"truncated"`` weights fall back to
+    autograd.
     """
     floor = min_variance(bins, value_range)
     clamped = variance < floor
     variance = variance.clamp_min(floor)
-    if weights == "mass" and log_prior is not None:
+    if weights == "truncated" or (weights == "mass" and log_prior is not None):
         with torch.enable_grad():
             values = values.detach().requires_grad_()
             variance = variance.detach().requires_grad_()

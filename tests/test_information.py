@@ -336,3 +336,20 @@ def test_enmi_with_reliability_has_finite_gradients():
     assert torch.autograd.gradcheck(score, (captured,))
     with pytest.raises(TypeError, match="reliability must be True or False"):
         enmi(captured, reference, variance, reliability="yes")
+
+
+def test_truncated_weights_keep_the_tails_out_of_the_edge_bins_and_tend_to_nmi(dtype, tolerance):
+    generator = torch.Generator().manual_seed(6)
+    reference = torch.rand(2, 1, 8, 6, generator=generator, dtype=dtype) * 256
+    captured = reference + torch.randn(reference.shape, generator=generator, dtype=dtype) * 3
+    # Variance to 0: a unit count in the pixel's bin, the hard NMI (values kept away from bin edges).
+    centred = (captured // 16) * 16 + 8
+    tiny = enmi(centred, reference, 1e-6, bins=16, weights="truncated")
+    torch.testing.assert_close(tiny, nmi(centred, reference, bins=16), **tolerance)
+    # Far from the range's ends the truncated and the folded masses agree; near them they do not.
+    inner = enmi(centred.clamp(40, 200), reference, 4.0, bins=16, weights="truncated")
+    torch.testing.assert_close(inner, enmi(centred.clamp(40, 200), reference, 4.0, bins=16), **tolerance)
+    edge = 225 + reference / 10
+    folded = enmi(edge, reference, 400.0, bins=16, weights="mass")
+    truncated = enmi(edge, reference, 400.0, bins=16, weights="truncated")
+    assert not torch.allclose(folded, truncated, rtol=1e-3)

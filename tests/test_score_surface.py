@@ -40,6 +40,7 @@ def _case(dtype, *, batch=2, local_shape=(9, 7), window_shape=(16, 15), seed=0):
     [
         ("enmi", {"weights": "mass"}),
         ("enmi", {"weights": "density"}),
+        ("enmi", {"weights": "truncated"}),
         ("enmi", {"weights": "mass", "log_prior": "prior"}),
         ("nmi", {}),
         ("ncc", {}),
