@@ -44,6 +44,7 @@ from enmi_torch._checks import (
 from enmi_torch._files import read_npy
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
 from enmi_torch.correlation_ratio import check_model_variance
+from enmi_torch.mixture import mixture_surface
 from enmi_torch.score_surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance.base import VarianceModel
 
@@ -92,6 +93,7 @@ def localize(
     log_prior: Tensor | None = None,
     model_variance: float | None = None,
     reliability: bool = False,
+    em_steps: int = 0,
     local_mask: Tensor | None = None,
     map_mask: Tensor | None = None,
     min_overlap: float = 0.5,
@@ -115,13 +117,16 @@ def localize(
         yaws: yaw angles to search, in degrees; ``None`` for ``[0]``.
         metric: ``"ecr"`` (the noise-aware correlation ratio, :func:`~enmi_torch.correlation_ratio.ecr`: the
             per-pixel variance weighs each pixel's evidence; the best of the library's scores on
-            ``data_tools/yardstick.py``), ``"enmi"`` (the paper's score), ``"nmi"`` (hard bins) or ``"ncc"``.
+            ``data_tools/yardstick.py``), ``"enmi"`` (the paper's score), ``"mixture"`` (the noise-integrated mutual
+            information, :func:`~enmi_torch.mixture.mixture_information`), ``"nmi"`` (hard bins) or ``"ncc"``.
         bins: number of equal-width bins over ``value_range`` (ECR: reference bins; ENMI, NMI).
         value_range: ``(low, high)`` of the bins.
         weights: ``"mass"`` or ``"density"`` likelihood weights (ENMI).
         log_prior: optional log prior of the amplitudes per bin (ENMI).
         model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
         reliability: reliability-weighted counts (ENMI, see :func:`~enmi_torch.information.enmi`).
+        em_steps: EM steps of the mixture score (``metric="mixture"``, see :func:`~enmi_torch.mixture.mixture_surface`:
+            shifts that its cheap first stage does not rescore are ``-inf`` in ``surface``).
         local_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
         map_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
         min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) local image's
@@ -173,12 +178,14 @@ def localize(
     if metric != "ncc":
         check_bins(bins)
         check_value_range(value_range)
-    if metric in ("ecr", "enmi"):
+    if metric in ("ecr", "enmi", "mixture"):
         check_option("weights", weights, LIKELIHOOD_WEIGHTS)
         if variance is None:
             raise ValueError(f"variance must be given for metric={metric!r} (a number, a tensor or a VarianceModel)")
     elif variance is not None:
-        raise ValueError(f"variance is only used by metric='ecr' or 'enmi', got metric={metric!r}; pass variance=None")
+        raise ValueError(
+            f"variance is only used by metric='ecr', 'enmi' or 'mixture', got metric={metric!r}; pass variance=None"
+        )
     if log_prior is not None and metric != "enmi":
         raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
     if model_variance is not None and metric != "ecr":
@@ -187,13 +194,15 @@ def localize(
         check_model_variance(model_variance, bins, value_range)
     if reliability is not False and metric != "enmi":
         raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
+    if em_steps != 0 and metric != "mixture":
+        raise ValueError(f"em_steps is only used by metric='mixture', got metric={metric!r}")
     check_search_memory(local, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
         local_valid = _local_valid(local, local_mask, variance)
         variance_map = _variance_map(local, variance)
         map_valid = _map_valid(prior_map, map_mask)
-        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, model_variance, reliability)
+        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, model_variance, reliability, em_steps)
         search = _Search(
             local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
         )
@@ -414,10 +423,10 @@ def _map_valid(prior_map: Tensor, map_mask: Tensor | None) -> Tensor:
 class _ScoreFunction:
     """The chosen surface function with its settings."""
 
-    def __init__(self, metric, bins, value_range, weights, log_prior, model_variance, reliability) -> None:
+    def __init__(self, metric, bins, value_range, weights, log_prior, model_variance, reliability, em_steps) -> None:
         self.metric, self.bins, self.value_range = metric, bins, value_range
         self.weights, self.log_prior, self.model_variance = weights, log_prior, model_variance
-        self.reliability = reliability
+        self.reliability, self.em_steps = reliability, em_steps
 
     def __call__(self, local, window, variance, local_mask, window_mask) -> Surface:
         masks = {"local_mask": local_mask, "window_mask": window_mask}
@@ -425,6 +434,16 @@ class _ScoreFunction:
             return ncc_surface(local, window, **masks)
         if self.metric == "nmi":
             return nmi_surface(local, window, bins=self.bins, value_range=self.value_range, **masks)
+        if self.metric == "mixture":
+            return mixture_surface(
+                local,
+                window,
+                variance,
+                bins=self.bins,
+                value_range=self.value_range,
+                em_steps=self.em_steps,
+                **masks,
+            )
         if self.metric == "ecr":
             return ecr_surface(
                 local,

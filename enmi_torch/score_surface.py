@@ -46,7 +46,7 @@ from enmi_torch.correlation_ratio import BinSums, check_model_variance, ecr, ecr
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
 
-METRICS = ("ecr", "enmi", "nmi", "ncc")
+METRICS = ("ecr", "enmi", "mixture", "nmi", "ncc")
 
 # The product of one captured plane with a block of reference planes (whole half spectra) stays near this many complex
 # elements (4 MiB in complex64, 16 reference planes for a 128 x 128 image in a 228 x 228 window): batched enough for
@@ -271,6 +271,7 @@ def direct_surface(
     local_mask: Tensor | None = None,
     window_mask: Tensor | None = None,
     reliability: bool = False,
+    em_steps: int = 0,
 ) -> Surface:
     """The reference for the FFT surfaces: a loop over placements, one joint histogram (or Pearson sum) each.
 
@@ -281,14 +282,16 @@ def direct_surface(
     Args:
         local: ``(B, 1, h, w)``.
         window: ``(1 or B, 1, Hw, Ww)``.
-        variance: as in :func:`enmi_surface`, for ``metric="ecr"`` and ``"enmi"`` only.
-        metric: ``"ecr"``, ``"enmi"``, ``"nmi"`` or ``"ncc"``.
+        variance: as in :func:`enmi_surface`, for ``metric="ecr"``, ``"enmi"`` and ``"mixture"`` only.
+        metric: ``"ecr"``, ``"enmi"``, ``"mixture"``, ``"nmi"`` or ``"ncc"``.
         bins: number of bins (ECR, ENMI, NMI).
         value_range: ``(low, high)`` of the bins (ECR, ENMI, NMI).
         weights: ``"mass"`` or ``"density"`` (ENMI).
         log_prior: optional log prior per bin (ENMI).
         model_variance: ``tau^2`` (ECR).
         reliability: reliability-weighted counts (ENMI), weights from each whole local image's valid pixels.
+        em_steps: EM steps of the mixture score (``metric="mixture"``, every placement scored exactly by
+            :func:`~enmi_torch.mixture.direct_mixture_surface`).
         local_mask: as in :func:`enmi_surface`.
         window_mask: as in :func:`enmi_surface`.
 
@@ -301,8 +304,23 @@ def direct_surface(
         tensor(2.)
     """
     check_option("metric", metric, METRICS)
-    if (metric in ("ecr", "enmi")) != (variance is not None):
-        raise ValueError(f"variance must be given for metric='ecr' or 'enmi' and only then, got metric={metric!r}")
+    if (metric in ("ecr", "enmi", "mixture")) != (variance is not None):
+        raise ValueError(
+            f"variance must be given for metric='ecr', 'enmi' or 'mixture' and only then, got metric={metric!r}"
+        )
+    if metric == "mixture":
+        from enmi_torch.mixture import direct_mixture_surface  # mixture builds on this module
+
+        return direct_mixture_surface(
+            local,
+            window,
+            variance,
+            bins=bins,
+            value_range=value_range,
+            em_steps=em_steps,
+            local_mask=local_mask,
+            window_mask=window_mask,
+        )
     if metric == "ncc":
         value_range = (0.0, 1.0)
     bins = check_bins(bins)

@@ -242,7 +242,9 @@ def _invalid_localize_cases(gravel_map):
         ({"variance": torch.ones(1, 1, 31, 32)}, ValueError, r"variance must have shape \(32, 32\)"),
         ({"variance": -torch.ones(32, 32)}, ValueError, "variance must be finite and > 0"),
         ({"metric": "enmi", "variance": None}, ValueError, "variance must be given for metric='enmi'"),
-        ({"metric": "nmi"}, ValueError, "variance is only used by metric='ecr' or 'enmi'"),
+        ({"metric": "nmi"}, ValueError, "variance is only used by metric='ecr', 'enmi' or 'mixture'"),
+        ({"metric": "ecr", "reliability": True}, ValueError, "reliability is only used by metric='enmi'"),
+        ({"em_steps": 2}, ValueError, "em_steps is only used by metric='mixture'"),
         ({"metric": "ecr", "variance": None}, ValueError, "variance must be given for metric='ecr'"),
         ({"metric": "ecr", "model_variance": -1.0}, ValueError, "model_variance must be a number >= 0"),
         ({"metric": "enmi", "model_variance": 1.0}, ValueError, "model_variance is only used by metric='ecr'"),
@@ -267,7 +269,7 @@ def _invalid_localize_cases(gravel_map):
     ], local
 
 
-@pytest.mark.parametrize("index", range(28))
+@pytest.mark.parametrize("index", range(30))
 def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     cases, local = _invalid_localize_cases(gravel_map)
     change, error, message = cases[index]
@@ -319,3 +321,17 @@ def test_ecr_search_with_unequal_radii_and_a_noisy_far_half_equals_the_direct_lo
     window = gravel_map[..., 80 - 12 - 3 : 80 - 12 + 24 + 3, 80 - 10 - 5 : 80 - 10 + 20 + 5]
     expected = direct_surface(local, window, variance, metric="ecr")
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
+
+
+def test_mixture_search_rescores_its_best_shifts_exactly_and_finds_the_pose(gravel_map):
+    local = _noisy(_cut(gravel_map, 83, 78, size=20)[..., :, :18], 6.0)
+    variance = torch.linspace(4, 400, 20 * 18, dtype=torch.float64).reshape(20, 18)
+    result = localize(local, gravel_map, variance, shifts=(3, 4), center=(80, 80), metric="mixture", bins=16)
+    assert result.surface.shape == (1, 1, 7, 9)
+    assert result.pose[0, :2].round().tolist() == [-3.0, 3.0]
+    window = gravel_map[..., 80 - 10 - 3 : 80 - 10 + 20 + 3, 80 - 9 - 4 : 80 - 9 + 18 + 4]
+    expected = direct_surface(local, window, variance, metric="mixture", bins=16).score
+    rescored = torch.isfinite(result.surface[:, 0])
+    assert 9 <= int(rescored.sum()) < 63
+    torch.testing.assert_close(result.surface[:, 0][rescored], expected[rescored], rtol=0, atol=1e-9)
+    assert int(expected.flatten().argmax()) == int(result.surface[:, 0].flatten().argmax())

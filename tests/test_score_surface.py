@@ -275,11 +275,11 @@ def test_direct_surface_checks_its_metric_and_variance():
     local, window, variance, _, _ = _case(torch.float64)
     with pytest.raises(ValueError, match="metric must be one of"):
         direct_surface(local, window, variance, metric="mi")
-    with pytest.raises(ValueError, match="variance must be given for metric='ecr' or 'enmi' and only then"):
+    with pytest.raises(ValueError, match="variance must be given for metric='ecr', 'enmi' or 'mixture' and only then"):
         direct_surface(local, window, variance, metric="nmi")
-    with pytest.raises(ValueError, match="variance must be given for metric='ecr' or 'enmi' and only then"):
+    with pytest.raises(ValueError, match="variance must be given for metric='ecr', 'enmi' or 'mixture' and only then"):
         direct_surface(local, window, metric="enmi")
-    with pytest.raises(ValueError, match="variance must be given for metric='ecr' or 'enmi' and only then"):
+    with pytest.raises(ValueError, match="variance must be given for metric='ecr', 'enmi' or 'mixture' and only then"):
         direct_surface(local, window, metric="ecr")
     with pytest.raises(ValueError, match="model_variance must be a number >= 0"):
         score_surface.ecr_surface(local, window, variance, model_variance=-2.0)
