@@ -24,6 +24,9 @@ Methods (32 bins for the binned scores):
   mask (the paper's empirical variance, :func:`enmi_torch.empirical_variance`, over 1000 aligned pairs), and with
   one uniform variance equal to the true map's mean (ablation);
 * ENMI (the paper's, mass weights) with the true variance and with the learned mask;
+* the other noise-aware scores, with the true variance: the mixture-likelihood score
+  (:func:`enmi_torch.mixture_surface`: the ECR surface picks the peaks, rescored exactly), ENMI with truncated
+  likelihood weights (``weights="truncated"``) and with reliability-weighted counts (``reliability=True``);
 * controls: ENMI with one uniform variance equal to the map's mean; ENMI with the *best* uniform variance of the grid
   mean x {1/16, 1/4, 1, 4, 16} picked per cell after the fact (an oracle no user has); hard NMI; NCC.
 
@@ -51,6 +54,7 @@ from skimage import color, data
 
 from enmi_torch.camera import RoadCamera
 from enmi_torch.data.truth import camera_truth
+from enmi_torch.mixture import mixture_surface
 from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance import empirical_variance
 
@@ -67,6 +71,9 @@ METHODS = (
     "ECR true",
     "ECR learned",
     "ECR uniform mean",
+    "Mixture true",
+    "ENMI truncated true",
+    "ENMI reliability true",
     "ENMI true",
     "ENMI learned",
     "ENMI uniform mean",
@@ -166,6 +173,9 @@ def run_cell(
             "ECR true": ecr_surface(local, window, true_variance, **options),
             "ECR learned": ecr_surface(local, window, learned, **options),
             "ECR uniform mean": ecr_surface(local, window, mean, **options),
+            "Mixture true": mixture_surface(local, window, true_variance, **options),
+            "ENMI truncated true": enmi_surface(local, window, true_variance, weights="truncated", **options),
+            "ENMI reliability true": enmi_surface(local, window, true_variance, reliability=True, **options),
             "ENMI true": enmi_surface(local, window, true_variance, **options),
             "ENMI learned": enmi_surface(local, window, learned, **options),
             "NMI": nmi_surface(local, window, **options),
@@ -326,6 +336,9 @@ def _plot(table, keys, path: Path) -> None:
         "NCC": "+-",
         "ECR uniform mean": ".:",
         "ENMI learned": "<--",
+        "Mixture true": "*-",
+        "ENMI truncated true": "1-",
+        "ENMI reliability true": "2-",
     }
     for row, response in enumerate(responses):
         for col, profile in enumerate(profiles):
