@@ -722,20 +722,39 @@ def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion
 
 
 def _quadratic_peak(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor]:
-    """Sub-cell ``(dx, dy)`` offset and covariance ``inverse(-H)`` from the 3 x 3 neighbourhood of a grid peak."""
+    """Sub-cell ``(dx, dy)`` offset and covariance ``inverse(-H)`` from the 3 x 3 neighbourhood of a grid peak.
+
+    When the fitted vertex lies more than half a cell away, the fit is re-centred on the neighbouring cell it points
+    to and refitted once (kornia's ``geometry/subpix`` habit); if that vertex is not within half a cell of its own
+    centre either, or a fit is not a maximum, the fit failed: offset 0 and an infinite covariance.
+    """
     unknown = (torch.zeros(2, dtype=torch.float64), torch.diag(torch.full((2,), math.inf, dtype=torch.float64)))
-    if not (0 < row < plane.shape[0] - 1 and 0 < col < plane.shape[1] - 1):
+    fit = _quadratic_fit(plane, row, col)
+    if fit is None:
         return unknown
+    offset, covariance = fit
+    if bool((offset.abs() <= 0.5).all()):
+        return offset, covariance
+    step = offset.sign() * (offset.abs() > 0.5)
+    fit = _quadratic_fit(plane, row + int(step[1]), col + int(step[0]))
+    if fit is None or not bool((fit[0].abs() <= 0.5).all()):
+        return unknown
+    return fit[0] + step, fit[1]
+
+
+def _quadratic_fit(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor] | None:
+    """Vertex offset ``(dx, dy)`` and ``inverse(-H)`` of the quadratic fitted to the 3 x 3 cells around a cell."""
+    if not (0 < row < plane.shape[0] - 1 and 0 < col < plane.shape[1] - 1):
+        return None
     values = plane[row - 1 : row + 2, col - 1 : col + 2].double().flatten()
     if not bool(torch.isfinite(values).all()):
-        return unknown
+        return None
     _, slope_x, slope_y, curve_xx, curve_xy, curve_yy = (_FIT @ values).unbind()
     hessian = torch.stack([torch.stack([2 * curve_xx, curve_xy]), torch.stack([curve_xy, 2 * curve_yy])])
     if not (hessian[0, 0] < 0 and torch.linalg.det(hessian) > 0):
-        return unknown
+        return None
     offset = -torch.linalg.solve(hessian, torch.stack([slope_x, slope_y]))
-    # The grid maximum of a unimodal peak is within half a cell of the true one; a fit farther off is noise.
-    return offset.clamp(-0.5, 0.5), torch.linalg.inv(-hessian)
+    return offset, torch.linalg.inv(-hessian)
 
 
 def _parabola_offset(values: Tensor) -> Tensor:

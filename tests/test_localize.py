@@ -335,3 +335,24 @@ def test_mixture_search_rescores_its_best_shifts_exactly_and_finds_the_pose(grav
     assert 9 <= int(rescored.sum()) < 63
     torch.testing.assert_close(result.surface[:, 0][rescored], expected[rescored], rtol=0, atol=1e-9)
     assert int(expected.flatten().argmax()) == int(result.surface[:, 0].flatten().argmax())
+
+
+def test_subcell_fit_recentres_when_the_vertex_leaves_the_peak_cell():
+    # An elongated quadratic whose grid maximum (row 4, col 3) is not the cell nearest its vertex (x 3.3, y 3.4).
+    rows, cols = torch.meshgrid(torch.arange(7.0), torch.arange(8.0), indexing="ij")
+    dx, dy = cols.double() - 3.3, rows.double() - 3.4
+    plane = -(dx**2 + 1.8 * dx * dy + dy**2)
+    assert divmod(int(plane.argmax()), 8) == (4, 3)
+    offset, covariance = _quadratic_peak(plane, 4, 3)
+    assert (3 + offset[0].item(), 4 + offset[1].item()) == pytest.approx((3.3, 3.4), abs=1e-9)
+    torch.testing.assert_close(
+        covariance, torch.linalg.inv(torch.tensor([[2.0, 1.8], [1.8, 2.0]], dtype=torch.float64))
+    )
+
+
+def test_subcell_fit_that_fails_is_reported_not_clamped():
+    plane = torch.zeros(5, 5, dtype=torch.float64)
+    plane[1:4, 1:4] = torch.tensor([[68.0, 75.0, 23.0], [81.0, 93.0, 20.0], [15.0, 48.0, 92.0]], dtype=torch.float64)
+    offset, covariance = _quadratic_peak(plane, 2, 2)
+    assert offset.tolist() == [0.0, 0.0]
+    assert torch.isinf(covariance.diagonal()).all()
