@@ -37,6 +37,7 @@ from enmi_torch._checks import (
     check_bins,
     check_floating,
     check_local_in_map,
+    check_log_prior,
     check_option,
     check_tensor,
     check_value_range,
@@ -121,8 +122,9 @@ def localize(
             information, :func:`~enmi_torch.mixture.mixture_information`), ``"nmi"`` (hard bins) or ``"ncc"``.
         bins: number of equal-width bins over ``value_range`` (ECR: reference bins; ENMI, NMI).
         value_range: ``(low, high)`` of the bins.
-        weights: ``"mass"`` or ``"density"`` likelihood weights (ENMI).
-        log_prior: optional log prior of the amplitudes per bin (ENMI).
+        weights: ``"mass"``, ``"density"`` or ``"truncated"`` likelihood weights (ENMI).
+        log_prior: optional log prior of the amplitudes per bin (ENMI): ``(bins,)`` for every sample or
+            ``(B, bins)``, one per sample (applied to all of that sample's yaws).
         model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
         reliability: reliability-weighted counts (ENMI, see :func:`~enmi_torch.information.enmi`).
         em_steps: EM steps of the mixture score (``metric="mixture"``, see :func:`~enmi_torch.mixture.mixture_surface`:
@@ -188,6 +190,8 @@ def localize(
         )
     if log_prior is not None and metric != "enmi":
         raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
+    if log_prior is not None:
+        log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins).to(local.device)
     if model_variance is not None and metric != "ecr":
         raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
     if metric == "ecr":
@@ -224,7 +228,8 @@ class Localizer(nn.Module):
         metric: ``"ecr"``, ``"enmi"``, ``"nmi"`` or ``"ncc"``.
         bins: number of bins.
         value_range: ``(low, high)`` of the bins.
-        weights: ``"mass"`` or ``"density"`` (ENMI).
+        weights: ``"mass"``, ``"density"`` or ``"truncated"`` (ENMI).
+        log_prior: optional ``(bins,)`` log prior of the amplitudes (ENMI), a non-persistent buffer.
         model_variance: ``tau^2`` of ECR (see :func:`localize`).
         min_overlap: see :func:`localize`.
         exclusion_radius: see :func:`localize`.
@@ -251,6 +256,7 @@ class Localizer(nn.Module):
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
         weights: str = "mass",
+        log_prior: Tensor | None = None,
         model_variance: float | None = None,
         min_overlap: float = 0.5,
         exclusion_radius: int = 3,
@@ -273,6 +279,9 @@ class Localizer(nn.Module):
         self.model_variance = (
             None if model_variance is None else check_model_variance(model_variance, bins, value_range)
         )
+        if log_prior is not None:
+            log_prior = check_log_prior(log_prior, self.bins, 1).reshape(-1, self.bins)
+        self.register_buffer("log_prior", log_prior, persistent=False)
         self.options = {
             "min_overlap": min_overlap,
             "exclusion_radius": exclusion_radius,
@@ -305,6 +314,7 @@ class Localizer(nn.Module):
             bins=self.bins,
             value_range=self.value_range,
             weights=self.weights,
+            log_prior=self.log_prior,
             model_variance=self.model_variance,
             local_mask=local_mask,
             map_mask=map_mask,
@@ -428,7 +438,7 @@ class _ScoreFunction:
         self.weights, self.log_prior, self.model_variance = weights, log_prior, model_variance
         self.reliability, self.em_steps = reliability, em_steps
 
-    def __call__(self, local, window, variance, local_mask, window_mask) -> Surface:
+    def __call__(self, local, window, variance, local_mask, window_mask, *, sample: int = 0) -> Surface:
         masks = {"local_mask": local_mask, "window_mask": window_mask}
         if self.metric == "ncc":
             return ncc_surface(local, window, **masks)
@@ -461,7 +471,8 @@ class _ScoreFunction:
             bins=self.bins,
             value_range=self.value_range,
             weights=self.weights,
-            log_prior=self.log_prior,
+            # One prior per sample: every rotation of the sample takes that sample's row.
+            log_prior=None if self.log_prior is None else self.log_prior[min(sample, self.log_prior.shape[0] - 1)],
             reliability=self.reliability,
             **masks,
         )
@@ -548,15 +559,20 @@ class _Search:
             self.local[sample : sample + 1], variance, self.local_valid[sample : sample + 1], yaws, self.resample
         )
 
-    def _surface(self, local, variance, valid, window, window_valid, min_overlap) -> Tensor:
-        """``(Y, Sy, Sx)`` scores; ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows."""
+    def _surface(self, sample, local, variance, valid, window, window_valid, min_overlap) -> Tensor:
+        """``(Y, Sy, Sx)`` scores of one sample's rotations.
+
+        ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows.
+        """
         rows, cols = window.shape[2] - local.shape[2] + 1, window.shape[3] - local.shape[3] + 1
         result = local.new_full((local.shape[0], rows, cols), -math.inf, dtype=self.local.dtype)
         kept = valid.flatten(1).any(1)
         if not bool(window_valid.any()) or not bool(kept.any()):
             return result
         local, valid = local[kept], valid[kept]
-        surface = self.score_fn(local, window, None if variance is None else variance[kept], valid, window_valid)
+        surface = self.score_fn(
+            local, window, None if variance is None else variance[kept], valid, window_valid, sample=sample
+        )
         needed = min_overlap * valid.flatten(1).sum(1).to(surface.overlap.dtype)
         enough = surface.overlap >= needed[:, None, None] - 0.5
         result[kept] = torch.where(enough, surface.score, -math.inf).to(result.dtype)
@@ -570,7 +586,7 @@ class _Search:
         for sample in range(self.local.shape[0]):
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
             local, variance, valid = self._rotations(sample, self.yaws)
-            surfaces.append(self._surface(local, variance, valid, window, window_valid, min_overlap))
+            surfaces.append(self._surface(sample, local, variance, valid, window, window_valid, min_overlap))
         return torch.stack(surfaces)
 
     def coarse_to_fine(self, min_overlap: float, factor: int, peaks: int, exclusion_radius: int) -> Tensor:
@@ -602,7 +618,9 @@ class _Search:
                 last_col - first_col + coarse_local.shape[3],
                 factor,
             )
-            coarse = self._surface(coarse_local, coarse_variance, coarse_valid, window, window_valid, min_overlap)
+            coarse = self._surface(
+                sample, coarse_local, coarse_variance, coarse_valid, window, window_valid, min_overlap
+            )
             for yaw_index, row, col in _separated_peaks(coarse, peaks, max(1, exclusion_radius // factor)):
                 fine_row, fine_col = (first_row + row) * factor - top, (first_col + col) * factor - left
                 self._refine(full, evaluated, sample, rotations, yaw_index, fine_row, fine_col, factor, min_overlap)
@@ -635,6 +653,7 @@ class _Search:
         )
         local, variance, valid = rotations
         fine = self._surface(
+            sample,
             local[yaw_indices],
             None if variance is None else variance[yaw_indices],
             valid[yaw_indices],

@@ -356,3 +356,22 @@ def test_subcell_fit_that_fails_is_reported_not_clamped():
     offset, covariance = _quadratic_peak(plane, 2, 2)
     assert offset.tolist() == [0.0, 0.0]
     assert torch.isinf(covariance.diagonal()).all()
+
+
+@pytest.mark.parametrize("yaws", [[0.0], [-2.0, 2.0]])
+def test_a_log_prior_per_sample_applies_to_that_sample_at_every_yaw(gravel_map, yaws):
+    from enmi_torch import gaussian_log_prior
+
+    local = torch.cat([_noisy(_cut(gravel_map, 78, 83), 6.0, 1), _noisy(_cut(gravel_map, 84, 77), 6.0, 2)])
+    priors = torch.stack(
+        [gaussian_log_prior(90.0, 20.0, 16, (0.0, 256.0)), gaussian_log_prior(160.0, 50.0, 16, (0.0, 256.0))]
+    )
+    options = {"shifts": 4, "center": (80, 80), "yaws": yaws, "bins": 16, "metric": "enmi"}
+    batched = localize(local, gravel_map, 36.0, log_prior=priors.double(), **options)
+    for sample in range(2):
+        single = localize(local[sample : sample + 1], gravel_map, 36.0, log_prior=priors[sample].double(), **options)
+        torch.testing.assert_close(batched.surface[sample], single.surface[0])
+    other = localize(local[:1], gravel_map, 36.0, log_prior=priors[1].double(), **options)
+    assert not torch.allclose(batched.surface[0], other.surface[0])
+    module = Localizer(shifts=4, yaws=yaws, bins=16, metric="enmi", log_prior=priors[0].double())
+    torch.testing.assert_close(module(local[:1], gravel_map, 36.0, center=(80, 80)).surface, batched.surface[:1])
