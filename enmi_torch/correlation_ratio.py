@@ -133,7 +133,9 @@ def ecr(
     if variance is None:
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
     check_floating("captured", captured)
-    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None)
+    inputs = _prepare(
+        captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
+    )
     tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
     sums = bin_sums(
         inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight, inputs.bins, inputs.value_range

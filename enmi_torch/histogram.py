@@ -18,6 +18,7 @@ from enmi_torch._checks import (
     check_floating,
     check_log_prior,
     check_option,
+    check_resolved_by_bins,
     check_tensor,
     check_value_range,
 )
@@ -274,10 +275,12 @@ def _prepare(
     reference_kernel,
     log_prior,
     variance_name="captured_variance",
+    captured_binned=True,
 ) -> _Inputs:
     """Check the arguments of :func:`joint_histogram` and bring them to the flat layout and compute dtype.
 
-    ``variance_name`` is the name the caller's users give ``captured_variance`` (``"variance"`` for ENMI).
+    ``variance_name`` is the name the caller's users give ``captured_variance`` (``"variance"`` for ENMI);
+    ``captured_binned``: the captured values are binned (not for ECR), so they must not all fall in one bin.
     """
     check_floating("captured", captured)
     check_tensor("reference", reference)
@@ -312,6 +315,8 @@ def _prepare(
     valid = None if valid_mask is None else mask_map("valid_mask", valid_mask, captured)
     check_finite_where("captured", captured_flat, valid)
     check_finite_where("reference", reference_flat, valid)
+    if captured_binned:
+        check_resolved_by_bins("captured", captured_flat, valid, bins, value_range)
     if valid is not None:
         # Masked pixels may hold NaN (out-of-range regions): replace them so 0 * NaN never reaches the counts.
         captured_flat = torch.where(valid, captured_flat, value_range[0])

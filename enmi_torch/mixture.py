@@ -241,7 +241,7 @@ def mixture_surface(
     max_candidates = check_positive_int("max_candidates", max_candidates)
     if max_candidates < candidates:
         raise ValueError(f"max_candidates must be >= candidates ({candidates}), got {max_candidates}")
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance, bins)
     with torch.no_grad():
         cheap = _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range)
         batch, height, width = inputs.local.shape
@@ -345,7 +345,7 @@ def direct_mixture_surface(
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     em_steps = check_non_negative_int("em_steps", em_steps)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance, bins)
     batch, height, width = inputs.local.shape
     rows = inputs.window.shape[1] - height + 1
     cols = inputs.window.shape[2] - width + 1

@@ -38,6 +38,7 @@ from enmi_torch._checks import (
     check_local_in_map,
     check_log_prior,
     check_option,
+    check_resolved_by_bins,
     check_value_range,
 )
 from enmi_torch._layout import mask_map, variance_map
@@ -121,7 +122,7 @@ def enmi_surface(
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance, bins)
     check_surface_memory(inputs.local, inputs.window, bins)
     batch = inputs.local.shape[0]
     if log_prior is not None:
@@ -220,7 +221,7 @@ def nmi_surface(
     """
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range)
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, bins=bins)
     check_surface_memory(inputs.local, inputs.window, bins)
     with torch.no_grad():
         one_hot = torch.nn.functional.one_hot(hard_bin_index(inputs.local, bins, value_range), bins)
@@ -325,7 +326,8 @@ def direct_surface(
         value_range = (0.0, 1.0)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    binned = bins if metric in ("enmi", "nmi") else None
+    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance, binned)
     batch, height, width = inputs.local.shape
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins)
@@ -404,8 +406,12 @@ def _check_inputs(
     window_mask: Tensor | None,
     value_range: tuple[float, float],
     variance: Tensor | float | None = None,
+    bins: int | None = None,
 ) -> _Inputs:
-    """Shapes, masks and values checked; images as ``(B, h, w)`` and ``(Bw, Hw, Ww)`` in the compute dtype."""
+    """Shapes, masks and values checked; images as ``(B, h, w)`` and ``(Bw, Hw, Ww)`` in the compute dtype.
+
+    With ``bins`` (the local image is binned) a local image whose values all fall in one bin while varying is refused.
+    """
     batch, height, width = check_local_in_map(local, window, "window", "Hw, Ww")
     dtype = torch.float64 if local.dtype == torch.float64 else torch.float32
     local_flat = local.reshape(batch, -1).to(dtype)
@@ -415,6 +421,8 @@ def _check_inputs(
     window_valid = _mask("window_mask", window_mask, window)
     check_finite_where("local", local_flat, local_valid)
     check_finite_where("window", window_flat, window_valid)
+    if bins is not None:
+        check_resolved_by_bins("local", local_flat, local_valid, bins, value_range)
     local_flat = torch.where(local_valid, local_flat, value_range[0])
     window_flat = torch.where(window_valid, window_flat, value_range[0])
     variance_flat = None

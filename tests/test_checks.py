@@ -40,3 +40,50 @@ WINDOW = torch.zeros(1, 1, 8, 8)
 def test_an_empty_batch_is_refused_the_same_way_everywhere(name, call):
     with pytest.raises(ValueError, match=rf"^{name} must hold at least one sample and one pixel, got shape \("):
         call()
+
+
+def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
+    import enmi_torch
+    from enmi_torch.score_surface import enmi_surface, nmi_surface
+
+    unit = torch.rand(2, 1, 12, 10, generator=torch.Generator().manual_seed(0))
+    message = r"captured varies .* but all its valid pixels fall in one of the 32 bins of value_range=\(0.0, 256.0\)"
+    calls = [
+        lambda: enmi_torch.nmi(unit, unit),
+        lambda: enmi_torch.enmi(unit, unit, 0.01),
+        lambda: enmi_torch.joint_histogram(unit, unit),
+        lambda: enmi_torch.NMILoss()(unit, unit),
+        lambda: enmi_torch.ENMILoss()(unit, unit, variance=0.01),
+        lambda: enmi_torch.mixture_information(unit, unit, 0.01),
+    ]
+    for call in calls:
+        with pytest.raises(ValueError, match=message):
+            call()
+    local_message = r"local varies .* all its valid pixels fall in one of the 32 bins"
+    for call in (
+        lambda: nmi_surface(unit[..., :6, :5], unit),
+        lambda: enmi_surface(unit[..., :6, :5], unit, 0.01),
+        lambda: enmi_torch.localize.localize(unit[..., :6, :5], unit, 0.01, shifts=1, metric="enmi"),
+    ):
+        with pytest.raises(ValueError, match=local_message):
+            call()
+    # The right range scores them; a constant image is still a valid (uninformative) input.
+    assert enmi_torch.nmi(unit, unit, value_range=(0.0, 1.0)).tolist() == pytest.approx([2.0, 2.0])
+    assert enmi_torch.nmi(torch.full_like(unit, 0.5), unit * 255).tolist() == [1.0, 1.0]
+    # ECR models the captured values themselves (any units); only its reference is binned.
+    assert torch.isfinite(enmi_torch.ecr(unit, unit * 255, 0.01)).all()
+
+
+def test_value_checks_switch_turns_value_checks_off_and_on_everywhere():
+    import enmi_torch
+
+    unit = torch.rand(1, 1, 6, 6, generator=torch.Generator().manual_seed(1))
+    with enmi_torch.value_checks(False):
+        assert enmi_torch.nmi(unit, unit).tolist() == [1.0]  # unchecked: the caller's responsibility
+    with pytest.raises(ValueError, match="captured varies"):
+        enmi_torch.nmi(unit, unit)
+    with enmi_torch.value_checks(True), pytest.raises(ValueError, match="captured varies"):
+        enmi_torch.nmi(unit, unit)
+    with pytest.raises(TypeError, match="enabled must be True, False or None"):
+        with enmi_torch.value_checks("off"):
+            pass

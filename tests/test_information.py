@@ -230,7 +230,7 @@ INVALID_INPUTS = [
     ({"value_range": (5.0, 5.0)}, ValueError, "value_range must be finite with low < high"),
     ({"value_range": (0.0, float("inf"))}, ValueError, "value_range must be finite"),
     ({"value_range": 3}, ValueError, "value_range must be a pair of finite numbers"),
-    ({"weights": "gaussian"}, ValueError, r"weights must be one of \['mass', 'density'\], got 'gaussian'"),
+    ({"weights": "gaussian"}, ValueError, r"weights must be one of \['mass', 'density', 'truncated'\], got 'gaussian'"),
     ({"reference_kernel": "soft"}, ValueError, "reference_kernel must be one of"),
     ({"log_prior": torch.zeros(5)}, ValueError, r"log_prior must have shape \(32,\)"),
 ]
