@@ -237,3 +237,27 @@ def test_streaming_counts_add_across_batches(pair):
         for index in range(3)
     ]
     torch.testing.assert_close(torch.cat(parts), whole)
+
+
+@pytest.mark.parametrize("kernel", ["hard", "triangular", "xu", "mass", "density", "truncated"])
+@pytest.mark.parametrize("reference_kernel", ["hard", "triangular", "xu"])
+def test_masked_nan_pixels_in_either_image_are_left_out_for_every_kernel(kernel, reference_kernel, dtype, tolerance):
+    generator = torch.Generator().manual_seed(8)
+    captured = torch.rand(2, 1, 5, 7, generator=generator, dtype=dtype) * 256
+    reference = torch.rand(2, 1, 5, 7, generator=generator, dtype=dtype) * 256
+    mask = torch.zeros(2, 1, 5, 7, dtype=torch.bool)
+    mask[..., 1:4, 2:6] = True
+    variance = {"captured_variance": 30.0} if kernel in ("mass", "density", "truncated") else {}
+    options = {"bins": 6, "kernel": kernel, "reference_kernel": reference_kernel, **variance}
+    poisoned_reference = torch.where(mask, reference, torch.nan)
+    poisoned_captured = torch.where(mask, captured, torch.inf)
+    masked = joint_histogram(poisoned_captured, poisoned_reference, valid_mask=mask, **options)
+    cropped = joint_histogram(captured[..., 1:4, 2:6], reference[..., 1:4, 2:6], **options)
+    torch.testing.assert_close(masked, cropped, **tolerance)
+    if kernel != "hard" or reference_kernel != "hard":
+        captured_leaf = poisoned_captured.clone().requires_grad_()
+        reference_leaf = poisoned_reference.clone().requires_grad_()
+        joint_histogram(captured_leaf, reference_leaf, valid_mask=mask, **options).square().sum().backward()
+        for leaf in (captured_leaf, reference_leaf):
+            if leaf.grad is not None:
+                assert torch.isfinite(leaf.grad).all() and (leaf.grad[~mask.expand_as(leaf)] == 0).all()
