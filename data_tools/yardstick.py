@@ -218,6 +218,12 @@ def _method(label: str) -> str:
     return label.split(" (x")[0]
 
 
+def methods_in(table) -> list[str]:
+    """The methods of :data:`METHODS` that the result rows hold (older CSVs may lack some)."""
+    present = {key[4] for key in table}
+    return [method for method in METHODS if method in present]
+
+
 def report(rows: list, output: Path) -> None:
     """Tables, paired claims and the figure from the result rows."""
     table = {}
@@ -229,11 +235,11 @@ def report(rows: list, output: Path) -> None:
         groups.setdefault(key[2:0:-1], []).append(key)
     for (response, profile), group in groups.items():
         print(f"\n### {response} response, {profile} variance: success rate ± SE ({_trials(table, group[0])} trials)\n")
-        print("| map | mean sigma | " + " | ".join(METHODS) + " |")
-        print("|---|---|" + "---|" * len(METHODS))
+        print("| map | mean sigma | " + " | ".join(methods_in(table)) + " |")
+        print("|---|---|" + "---|" * len(methods_in(table)))
         for key in sorted(group, key=lambda key: (MAPS.index(key[0]), key[3])):
             cells_text = []
-            for method in METHODS:
+            for method in methods_in(table):
                 label, successes, trials, _, _ = table[(*key, method)]
                 rate = successes / trials
                 text = f"{rate:.2f} ± {math.sqrt(rate * (1 - rate) / trials):.2f}"
@@ -241,13 +247,31 @@ def report(rows: list, output: Path) -> None:
                     text += label[len(method) :]
                 cells_text.append(text)
             print(f"| {key[0]} | {key[3]:g} | " + " | ".join(cells_text) + " |")
+    _print_summary(table, keys)
     _print_claims(table, keys)
     _print_edges(table, keys)
     _plot(table, keys, output.with_suffix(".png"))
 
 
+def _print_summary(table, keys) -> None:
+    """Success rate averaged over the maps, per response, profile and noise level (the README table)."""
+    print("\n### Mean success rate over the maps (each map: 100 paired trials)\n")
+    print("| response | variance | mean sigma | " + " | ".join(methods_in(table)) + " |")
+    print("|---|---|---|" + "---|" * len(methods_in(table)))
+    groups = sorted({key[1:] for key in keys}, key=lambda g: (RESPONSES.index(g[1]), PROFILES.index(g[0]), g[2]))
+    for profile, response, level in groups:
+        group = [key for key in keys if key[1:] == (profile, response, level)]
+        rates = [
+            np.mean([table[(*key, method)][1] / table[(*key, method)][2] for key in group])
+            for method in methods_in(table)
+        ]
+        best = max(rates)
+        cells = [f"**{rate:.2f}**" if rate == best else f"{rate:.2f}" for rate in rates]
+        print(f"| {response} | {profile} | {level:g} | " + " | ".join(cells) + " |")
+
+
 def _trials(table, key) -> int:
-    return table[(*key, METHODS[0])][2]
+    return table[(*key, methods_in(table)[0])][2]
 
 
 def _paired(table, key, first: str, second: str) -> tuple[float, float]:
@@ -284,7 +308,7 @@ def _print_claims(table, keys) -> None:
     print("\n### Non-monotonic response: is ECR (true variance) the best of the other scores (within 1 SE)?\n")
     for key in keys:
         if key[2] == "nonmonotonic":
-            rates = {method: table[(*key, method)][1] for method in METHODS if not method.startswith("ECR ")}
+            rates = {method: table[(*key, method)][1] for method in methods_in(table) if not method.startswith("ECR ")}
             rates["ECR true"] = table[(*key, "ECR true")][1]
             winner = max(rates, key=rates.get)
             mean, error = _paired(table, key, "ECR true", winner)
@@ -309,7 +333,7 @@ def _print_edges(table, keys) -> None:
     print("\n### Where failures put their peak: share of failures on the window's edge (all cells)\n")
     print("| method | failures | on the edge |")
     print("|---|---|---|")
-    for method in METHODS:
+    for method in methods_in(table):
         failures = sum(table[(*key, method)][2] - table[(*key, method)][1] for key in keys)
         edge = sum(table[(*key, method)][3] for key in keys)
         print(f"| {method} | {failures} | {edge / max(failures, 1):.0%} |")
@@ -344,7 +368,7 @@ def _plot(table, keys, path: Path) -> None:
         for col, profile in enumerate(profiles):
             axis = axes[row, col]
             levels = sorted({key[3] for key in keys if key[1:3] == (profile, response)})
-            for method in METHODS:
+            for method in methods_in(table):
                 rates = []
                 for level in levels:
                     group = [key for key in keys if key[1:] == (profile, response, level)]
