@@ -14,7 +14,7 @@ from enmi_torch.camera import RoadCamera
 from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
-from enmi_torch.losses import ECRLoss, ENMILoss, NMILoss
+from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss
 from enmi_torch.mixture import mixture_information, mixture_surface
 from enmi_torch.rectify import GroundGrid, rectify, unrectify
 from enmi_torch.variance import (
@@ -39,6 +39,7 @@ __all__ = [
     "GroundGrid",
     "LearnedVariance",
     "MemoryBudgetError",
+    "MixtureLoss",
     "NMILoss",
     "PerspectiveVariance",
     "RoadCamera",

@@ -1,4 +1,4 @@
-"""Loss modules: ``2 - NMI``, ``2 - ENMI`` (0 when aligned) and ``-ECR`` (falls as the reference explains the image)."""
+"""Loss modules: ``2 - NMI``, ``2 - ENMI`` (0 when aligned), ``-ECR``, ``-M`` (lower as the reference explains more)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from enmi_torch._checks import check_bins, check_option, check_value_range
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS
 from enmi_torch.correlation_ratio import check_model_variance, ecr
 from enmi_torch.information import enmi, nmi
+from enmi_torch.mixture import mixture_information
 from enmi_torch.variance.base import VarianceModel
 
 REDUCTIONS = ("none", "mean", "sum")
@@ -200,6 +201,68 @@ class ECRLoss(nn.Module):
             bins=self.bins,
             value_range=self.value_range,
             model_variance=self.model_variance,
+            valid_mask=valid_mask,
+        )
+        return _reduce(-score, self.reduction)
+
+
+class MixtureLoss(nn.Module):
+    """``-M(captured, reference, variance)`` (nats per pixel): module form of :func:`~enmi_torch.mixture_information`.
+
+    The variance comes per call or from a :class:`~enmi_torch.variance.VarianceModel` given at construction, as in
+    :class:`ENMILoss`.
+
+    Args:
+        bins: number of bins.
+        value_range: ``(low, high)`` of the bins.
+        em_steps: EM steps (see :func:`~enmi_torch.mixture_information`).
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel`.
+        reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> loss = MixtureLoss(bins=4)
+        >>> round(loss(image, image, variance=1.0).item(), 4), round(loss(image, image.mT, variance=1.0).item(), 4)
+        (-1.3863, 0.0)
+    """
+
+    def __init__(
+        self,
+        bins: int = 32,
+        value_range: tuple[float, float] = (0.0, 256.0),
+        em_steps: int = 0,
+        variance_model: VarianceModel | None = None,
+        reduction: str = "mean",
+    ) -> None:
+        super().__init__()
+        self.bins = check_bins(bins)
+        self.value_range = check_value_range(value_range)
+        if isinstance(em_steps, bool) or not isinstance(em_steps, int) or em_steps < 0:
+            raise ValueError(f"em_steps must be an int >= 0, got {em_steps!r}")
+        self.em_steps = em_steps
+        self.reduction = check_option("reduction", reduction, REDUCTIONS)
+        if variance_model is not None and not isinstance(variance_model, VarianceModel):
+            raise TypeError(
+                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
+            )
+        self.variance_model = variance_model
+
+    def forward(
+        self,
+        captured: Tensor,
+        reference: Tensor,
+        variance: Tensor | float | None = None,
+        valid_mask: Tensor | None = None,
+    ) -> Tensor:
+        """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`mixture_information`."""
+        variance, valid_mask = _variance_and_mask(self, "MixtureLoss", captured, variance, valid_mask)
+        score = mixture_information(
+            captured,
+            reference,
+            variance,
+            bins=self.bins,
+            value_range=self.value_range,
+            em_steps=self.em_steps,
             valid_mask=valid_mask,
         )
         return _reduce(-score, self.reduction)

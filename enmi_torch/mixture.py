@@ -95,7 +95,7 @@ def mixture_information(
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
     check_floating("captured", captured)
     em_steps = check_non_negative_int("em_steps", em_steps)
-    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None)
+    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance")
     weights = truncated_likelihood_weights(inputs.captured, inputs.variance, inputs.bins, inputs.value_range)
     reference_bins = hard_bin_index(inputs.reference, inputs.bins, inputs.value_range)
     score = _mixture_score(weights, reference_bins, inputs.pair_weight, inputs.bins, em_steps)

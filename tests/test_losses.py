@@ -82,3 +82,22 @@ def test_loss_errors_name_the_argument(images):
         NMILoss(reduction="max")
     with pytest.raises(ValueError, match="variance must be a finite number > 0"):
         ConstantVariance(0.0)
+
+
+def test_mixture_loss_agrees_with_the_function_and_trains():
+    from enmi_torch import MixtureLoss, mixture_information
+    from enmi_torch.variance import ConstantVariance
+
+    generator = torch.Generator().manual_seed(3)
+    reference = torch.rand(2, 1, 6, 5, generator=generator, dtype=torch.float64) * 256
+    captured = (reference + torch.randn(reference.shape, generator=generator, dtype=torch.float64) * 9).requires_grad_()
+    loss = MixtureLoss(bins=6, em_steps=1, reduction="none")
+    expected = -mixture_information(captured, reference, 81.0, bins=6, em_steps=1)
+    torch.testing.assert_close(loss(captured, reference, 81.0), expected)
+    torch.testing.assert_close(
+        MixtureLoss(bins=6, em_steps=1, variance_model=ConstantVariance(81.0))(captured, reference), expected.mean()
+    )
+    loss(captured, reference, 81.0).sum().backward()
+    assert torch.isfinite(captured.grad).all() and captured.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="em_steps must be an int >= 0"):
+        MixtureLoss(em_steps=-1)
