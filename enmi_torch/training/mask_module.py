@@ -27,8 +27,8 @@ from torch import Tensor
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.information import enmi, nmi
+from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
-from train.mask_figure import mask_figure, masked_residual
 
 
 def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
@@ -135,8 +135,10 @@ class MaskFitModule(LightningModule):
         value_range: tuple[float, float] = (0.0, 256.0),
     ) -> None:
         super().__init__()
+        # Lists, not tuples: hparams.yaml stays plain YAML (no !!python/tuple tags).
+        shape, value_range = [int(size) for size in shape], [float(value) for value in value_range]
         self.save_hyperparameters()
-        self.shape = (int(shape[0]), int(shape[1]))
+        self.shape = (shape[0], shape[1])
         self.mask: LearnedVariance | None = None
         self.statistics = EmpiricalVariance(self.shape)
         self.register_buffer("statistics_ready", torch.tensor(False))
@@ -255,7 +257,7 @@ class MaskFitModule(LightningModule):
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         """NLL of a batch (plus the prior's share); logs ``train/nll`` and ``train/loss``."""
         loss = self._step(batch, "train")
-        self.log("train/loss", loss, prog_bar=True, batch_size=batch["local"].shape[0])
+        self.log("train/loss", loss, batch_size=batch["local"].shape[0])
         return loss
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
@@ -321,7 +323,7 @@ class MaskFitModule(LightningModule):
         self.epoch_seconds.append(seconds)
         self.log("speed/pairs_per_second", self._epoch_pairs / seconds, sync_dist=True)
         for name, value in self.mask_errors().items():
-            self.log(f"mask/{name}", value, sync_dist=True)
+            self.log(f"mask/{name}", value, sync_dist=True, prog_bar=name == "rel_rms_vs_empirical")
         if self._histogram_batch is not None and self.trainer.is_global_zero and self.logger is not None:
             residual, standardised = self._histogram_batch
             self.logger.experiment.add_histogram("residuals/raw", residual, self.global_step)
