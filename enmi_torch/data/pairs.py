@@ -26,6 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from enmi_torch._checks import check_image_shape, check_option
+from enmi_torch._files import load_npy
 from enmi_torch.data.truth import VarianceTruth
 
 PAIR_FORMAT = "enmi_torch.pairs"
@@ -154,7 +155,7 @@ def _read_image(path: Path, *, as_mask: bool = False) -> np.ndarray:
     """A single-channel ``(H, W)`` array from ``.npy`` (no pickles) or ``.png``; bool when ``as_mask``."""
     try:
         if path.suffix.lower() == ".npy":
-            image = np.load(path, allow_pickle=False)
+            image = load_npy(path)
         else:
             from PIL import Image
 

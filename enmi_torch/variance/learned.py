@@ -32,6 +32,7 @@ from enmi_torch._checks import (
     check_positive_number,
     check_tensor,
 )
+from enmi_torch._files import load_npy
 from enmi_torch._layout import broadcast_map
 from enmi_torch.variance.base import VarianceModel
 
@@ -399,7 +400,7 @@ class LearnedVariance(VarianceModel):
     @classmethod
     def _load_npy(cls, path: Path) -> LearnedVariance:
         try:
-            variance = np.load(path, allow_pickle=False)
+            variance = load_npy(path)
         except (ValueError, OSError, EOFError) as error:
             raise ValueError(f"{path} is refused: not a plain .npy array readable without pickles ({error})") from None
         if variance.ndim != 2 or variance.dtype.kind != "f":

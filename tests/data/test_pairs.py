@@ -88,6 +88,10 @@ def test_bad_folders_are_refused_at_construction(folder, damage, match):
             lambda root: np.save(root / "local" / "000000.npy", np.array([{}], dtype=object), allow_pickle=True),
             r"local/000000\.npy is not a readable image",
         ),
+        (
+            lambda root: (root / "local" / "000000.npy").write_text("1 2 3\n4 5 6\n"),
+            r"local/000000\.npy is not a readable image: not a \.npy file",
+        ),
         (lambda root: np.save(root / "valid" / "000000.npy", np.ones((12, 10))), r"valid/000000\.npy must hold a bool"),
         (
             lambda root: np.save(root / "local" / "000000.npy", np.full((12, 10), np.nan, dtype=np.float32)),
