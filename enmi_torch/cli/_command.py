@@ -80,7 +80,12 @@ class ArgumentParser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
         # Values such as --yaws -6:6:1 or --value -1e-3 start with "-" and a digit: read them as values, not options.
         self._negative_number_matcher = re.compile(r"^-\.?\d")
-        self.add_argument("--debug", action="store_true", help=DEBUG_HELP)
+
+    def parse_known_args(self, args=None, namespace=None):
+        """Parse, with ``--debug`` (handled by :func:`run_command`) listed last among the options."""
+        if not any("--debug" in action.option_strings for action in self._actions):
+            self.add_argument("--debug", action="store_true", help=DEBUG_HELP)
+        return super().parse_known_args(args, namespace)
 
     def error(self, message: str) -> NoReturn:
         """One line on stderr, exit code 2."""
