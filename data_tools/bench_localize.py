@@ -35,6 +35,7 @@ import time
 import numpy as np
 import torch
 from skimage import data
+from tqdm import tqdm
 
 from enmi_torch.binning import hard_bin_index, likelihood_weights
 from enmi_torch.information import nmi_from_joint_histogram
@@ -250,9 +251,11 @@ def main() -> None:
         "OMP_WAIT_POLICY=PASSIVE": PASSIVE_ENV,
     }
     collected = {name: [] for name in settings}
-    for _ in range(args.children):
-        for name, environment in settings.items():
-            collected[name].append(_child(environment, args.rounds, args.loop_rows, args.yaw_rounds))
+    with tqdm(total=args.children * len(settings), desc="child processes", unit="child") as bar:
+        for _ in range(args.children):
+            for name, environment in settings.items():
+                collected[name].append(_child(environment, args.rounds, args.loop_rows, args.yaw_rounds))
+                bar.update()
     _report({name: _merge(runs) for name, runs in collected.items()}, args.loop_rows)
 
 
