@@ -1,6 +1,6 @@
 """Speed of the FFT score surfaces against per-candidate loops, with and without glibc's malloc thresholds raised.
 
-The case of the localization issue: a 128 x 128 local image cut from scikit-image's gravel texture (CC0) with
+The case measured: a 128 x 128 local image cut from scikit-image's gravel texture (CC0) with
 noise, a 101 x 101 window of shifts (10,201 candidates), 32 bins, float32, all CPU threads torch uses. Measured, in
 one process each (medians of repeated runs, best run in brackets):
 

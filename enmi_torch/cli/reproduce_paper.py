@@ -133,7 +133,7 @@ def binomial_stderr(rate: float, trials: int) -> float:
 
 
 def deviation_rows(result: ErrorRates, paper: dict[str, list[float]]) -> list[list[str]]:
-    """One row per score: its largest deviation from the paper's curve and whether the issue's criterion holds."""
+    """One row per score: its largest deviation from the paper's curve and whether the criterion holds."""
     rows = []
     n0 = paper["noise_power"]
     for score, rates in result.rates.items():
