@@ -1,4 +1,4 @@
-"""Benchmark of ``python train/fit_mask.py``: fitting 2,000 pairs of 128 x 128 (target: at most 2 minutes on 2 cores).
+"""Benchmark of ``enmi-fit-mask``: fitting 2,000 pairs of 128 x 128 (target: at most 2 minutes on 2 cores).
 
     python data_tools/bench_fit_mask.py
 
@@ -13,19 +13,13 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import tempfile
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import torch
 
-import torch  # noqa: E402
-
-from enmi_torch.data import PairDataModule  # noqa: E402
-from train.fit_mask import main as fit_mask  # noqa: E402
+from enmi_torch.data import PairDataModule
+from enmi_torch.training.fit_mask import fit_mask
 
 TARGET_SECONDS = 120.0
 

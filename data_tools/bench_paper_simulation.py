@@ -25,6 +25,7 @@ import statistics
 import time
 
 import torch
+from tqdm import tqdm
 
 from enmi_torch import RoadCamera, enmi, entropies, gaussian_log_prior, joint_histogram, nmi_from_joint_histogram
 from enmi_torch.histogram import hard_entropies
@@ -88,7 +89,7 @@ def main() -> None:
             }
             if counts["shared"] != counts["separate"]:
                 raise RuntimeError(f"{score} at N0={noise_power}: shared and separate paths disagree {counts}")
-        for _ in range(args.repeats):
+        for _ in tqdm(range(args.repeats), desc=f"N0 = {noise_power:g}", unit="round"):
             for score in SCORES:
                 for way in ("shared", "separate"):
                     elapsed, _ = time_point(way, score, trials, variance, args.chunk_trials, log_prior)

@@ -2,21 +2,15 @@
 
     python data_tools/compare_mask_forms.py
 
-Runs ``train/fit_mask.py`` on 32 synthetic pairs of 128 x 128 (lidar-like and camera-like) with each form and prints
+Runs ``enmi-fit-mask`` on 32 synthetic pairs of 128 x 128 (lidar-like and camera-like) with each form and prints
 the relative RMS error of the learned mask against the true variance, next to the paper's empirical mask's.
 """
 
 from __future__ import annotations
 
-import sys
 import tempfile
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from train.fit_mask import main as fit_mask  # noqa: E402
+from enmi_torch.training.fit_mask import fit_mask
 
 PAIRS = 32
 FORMS = {

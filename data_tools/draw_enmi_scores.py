@@ -1,6 +1,7 @@
 """README figure for NMI and ENMI: score against shift on a real image with noise that grows with distance.
 
-    python data_tools/draw_enmi_scores.py [--out data_tools/figures/enmi_vs_nmi.png] [--draws 100]
+    python data_tools/draw_enmi_scores.py                                        # writes runs/enmi_vs_nmi.png
+    python data_tools/draw_enmi_scores.py --out data_tools/figures/enmi_vs_nmi.png  # regenerates the README figure
 
 The reference is a 48 x 48 crop of scikit-image's bundled CC0 ``gravel()``; the captured image is the crop
 shifted by s pixels plus Gaussian noise of variance N0 (1 + 99 d^3), d the row's distance from the bottom
@@ -20,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
 from skimage import data
+from tqdm import tqdm
 
 from enmi_torch import enmi, nmi
 
@@ -36,8 +38,8 @@ def variance_map(size: int, noise_power: float) -> torch.Tensor:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "figures" / "enmi_vs_nmi.png")
-    parser.add_argument("--draws", type=int, default=100)
+    parser.add_argument("--out", type=Path, default=Path("runs/enmi_vs_nmi.png"), help="PNG to write")
+    parser.add_argument("--draws", type=int, default=100, help="noise draws per N0 (default 100)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
@@ -52,7 +54,7 @@ def main() -> None:
     centre = list(SHIFTS).index(0)
 
     success = {"NMI (hard bins)": [], "ENMI (mass weights, true variance)": []}
-    for noise_power in NOISE_POWERS:
+    for noise_power in tqdm(NOISE_POWERS, desc="noise powers", unit="N0"):
         variance = variance_map(SIZE, noise_power)
         noise = unit_noise * variance.sqrt()
         # (shifts * draws) captured images: every shift sees the same noise draw.

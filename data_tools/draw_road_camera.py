@@ -1,7 +1,8 @@
 """Draw the paper's Fig. GridRoad for a camera config: tiled road, its camera image, the rectified view, the variance.
 
 Usage:
-    python data_tools/draw_road_camera.py --config configs/camera/paper.yaml --out data_tools/figures/road_camera.png
+    python data_tools/draw_road_camera.py --config configs/camera/paper.yaml     # writes runs/road_camera.png
+    python data_tools/draw_road_camera.py --out data_tools/figures/road_camera.png   # regenerates the README figure
 
 The road is the config's grid of tiles with random shades N(128, 32^2) (the paper's simulation) and dark joints,
 drawn on a grid twenty times finer; it is warped into the camera with ``unrectify``, back to the ground with
@@ -46,7 +47,7 @@ def view_outline(camera: RoadCamera) -> tuple[list[float], list[float]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=Path("configs/camera/paper.yaml"))
-    parser.add_argument("--out", type=Path, default=Path("data_tools/figures/road_camera.png"))
+    parser.add_argument("--out", type=Path, default=Path("runs/road_camera.png"), help="PNG to write")
     parser.add_argument("--noise-power", type=float, default=0.01, help="N0 of the variance map")
     parser.add_argument("--refine", type=int, default=20, help="texture cells per tile side")
     parser.add_argument("--seed", type=int, default=0)

@@ -1,9 +1,10 @@
-r"""Extract the plotted points of the paper's Fig. simPerformance into ``data_tools/paper_points.csv``.
+r"""Extract the plotted points of the paper's Fig. simPerformance (committed as ``data_tools/paper_points.csv``).
 
 The figure's data is the pgfplots file ``FiguresNMI/plot.tex``, appended at the end of the paper's source
 (``aspconArXiv.tex``): two ``\addplot coordinates{...}`` blocks, NMI first, ENMI second, over the same N0 values.
 
-    python data_tools/extract_paper_points.py path/to/aspconArXiv.tex
+    python data_tools/extract_paper_points.py path/to/aspconArXiv.tex    # writes runs/paper_points.csv
+    python data_tools/extract_paper_points.py path/to/aspconArXiv.tex --output data_tools/paper_points.csv
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import re
 from pathlib import Path
 
 PLOT_MARKER = "%% file: FiguresNMI/plot.tex"
-DEFAULT_OUTPUT = Path(__file__).resolve().parent / "paper_points.csv"
+DEFAULT_OUTPUT = Path("runs/paper_points.csv")
 
 
 def extract_points(tex: str) -> list[tuple[str, str, str]]:
@@ -36,6 +37,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="CSV to write")
     args = parser.parse_args()
     rows = extract_points(args.tex.read_text())
+    args.output.parent.mkdir(parents=True, exist_ok=True)
     with args.output.open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["noise_power", "nmi", "enmi"])

@@ -29,12 +29,13 @@ With ``--response nonmonotonic`` the local sensor sees the ground through a non-
 matched against a map made by another sensor: the case mutual information is for, and where correlation fails.
 
 Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model and writes
-``data_tools/figures/localization_success.png`` (``localization_success_nonmonotonic.png``).
+the figure ``runs/localization_success.png`` (``localization_success_nonmonotonic.png``), or ``--figure``.
 
     python data_tools/localization_benchmark.py                 # 26 s (quiet) to 150 s (busy) on a 2-core CPU
     python data_tools/localization_benchmark.py --response nonmonotonic
     python data_tools/localization_benchmark.py --trials 100    # tighter rates
-    python data_tools/localization_benchmark.py --example /tmp/enmi_example   # files for the command line tool
+    python data_tools/localization_benchmark.py --figure data_tools/figures/localization_success.png  # README's
+    python data_tools/localization_benchmark.py --example runs/example   # files for the command line tool
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ import numpy as np
 import torch
 from kornia.geometry.transform import rotate
 from skimage import data
+from tqdm import tqdm
 
 from enmi_torch.camera import RoadCamera
 from enmi_torch.data.truth import camera_truth, lidar_truth
@@ -65,7 +67,7 @@ METHODS = (
     "NMI",
     "NCC",
 )
-FIGURE = Path(__file__).parent / "figures" / "localization_success.png"
+FIGURE = Path("runs/localization_success.png")
 
 
 def prior_map(name: str) -> torch.Tensor:
@@ -212,6 +214,8 @@ def plot(rates: dict, trials: int, bins: int, response: str, path: Path) -> None
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.epilog = "examples:\n" + __doc__.rsplit("\n\n", 1)[1]
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--trials", type=int, default=24, help="trials per map, sensor model and N0")
     parser.add_argument("--pairs", type=int, default=200, help="pairs behind the learned mask")
     parser.add_argument("--bins", type=int, default=16, help="bins of ENMI and NMI (16 suit ~3000 valid cells)")
@@ -225,17 +229,22 @@ def main() -> None:
         return
     start = time.perf_counter()
     rates = {}
+    bar = tqdm(total=2 * sum(map(len, NOISE_POWERS.values())), desc="map, sensor, N0", unit="row")
     for map_name in ("gravel", "brick"):
         for model in ("camera", "lidar"):
-            print(f"\n{map_name}, {model} noise, {args.response} response: success rate over {args.trials} trials\n")
-            print("| N0 | " + " | ".join(METHODS) + " |")
-            print("|" + " --- |" * (len(METHODS) + 1))
+            tqdm.write(
+                f"\n{map_name}, {model} noise, {args.response} response: success rate over {args.trials} trials\n"
+            )
+            tqdm.write("| N0 | " + " | ".join(METHODS) + " |")
+            tqdm.write("|" + " --- |" * (len(METHODS) + 1))
             for index, power in enumerate(NOISE_POWERS[model]):
                 seed = args.seed * 1000 + index
                 successes = run_trials(map_name, model, power, args.trials, args.pairs, args.bins, seed, args.response)
                 rates[map_name, model, power] = {method: count / args.trials for method, count in successes.items()}
                 cells = " | ".join(f"{successes[method] / args.trials:.2f}" for method in METHODS)
-                print(f"| {power:g} | {cells} |")
+                tqdm.write(f"| {power:g} | {cells} |")
+                bar.update()
+    bar.close()
     figure = args.figure
     if figure is None:
         figure = FIGURE if args.response == "identity" else FIGURE.with_name(f"{FIGURE.stem}_{args.response}.png")

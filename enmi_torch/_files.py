@@ -86,3 +86,38 @@ def _describe(start: bytes) -> str:
     if start[:4] == b"\x89PNG":
         return "it is a PNG image; give it the .png suffix"
     return f"it starts with {start!r}, not with NumPy's header {_MAGIC!r}"
+
+
+def read_image(path: str | Path, source: str) -> np.ndarray:
+    """A single-channel ``(H, W)`` image from a ``.npy`` file (:func:`read_npy`) or a grey PNG (8 or 16 bits kept).
+
+    The one image reader of the library's commands and pair folders.
+
+    Raises:
+        ValueError: naming ``source`` and the file, when it cannot be read, has another suffix, is a colour PNG or
+            does not hold one ``(H, W)`` channel.
+    """
+    path = Path(path)
+    named = f"{source} {str(path)!r}"
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        image = read_npy(path, source)
+    elif suffix == ".png":
+        try:
+            from PIL import Image
+
+            with Image.open(path) as opened:
+                if opened.mode not in ("L", "I;16", "I;16B", "I", "1"):
+                    raise ValueError(f"expected a single-channel (grey) PNG, got mode {opened.mode}")
+                image = np.asarray(opened)
+        except ImportError as error:
+            raise ValueError(f"{named}: reading PNG needs Pillow (pip install -e '.[train]')") from error
+        except Exception as error:  # every decoder failure becomes one message naming the file
+            raise ValueError(f"{named} is not a readable image: {error}") from None
+    else:
+        raise ValueError(f"{named} must be a .npy or .png file")
+    if image.ndim == 3 and image.shape[0] == 1:
+        image = image[0]
+    if image.ndim != 2:
+        raise ValueError(f"{named} must hold a single-channel (H, W) image, got shape {image.shape}")
+    return image

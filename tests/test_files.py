@@ -1,6 +1,7 @@
 """``.npy`` files named by users: headers checked before reading, messages naming the file and where it came from."""
 
 import pickle
+import re
 
 import numpy as np
 import pytest
@@ -38,12 +39,21 @@ def test_a_giant_header_is_refused_by_the_mask_loader(tmp_path):
         LearnedVariance.load(_giant_header(tmp_path / "big.npy"))
 
 
-def test_a_giant_header_is_refused_by_the_command_line(tmp_path, local_file):
+def _fails_with(capsys, arguments, pattern):
+    """The localize command exits with code 2 and one ``enmi-localize: error: ...`` line matching ``pattern``."""
+    with pytest.raises(SystemExit) as exited:
+        main(arguments)
+    assert exited.value.code == 2
+    message = capsys.readouterr().err
+    assert message.count("\n") == 1 and re.match(rf"enmi-localize: error: {pattern}", message), message
+
+
+def test_a_giant_header_is_refused_by_the_command_line(tmp_path, local_file, capsys):
     big = str(_giant_header(tmp_path / "big.npy"))
-    with pytest.raises(SystemExit, match=rf"^error: --map '.*big\.npy' {TRUNCATED}"):
-        main(["--map", big, "--local", local_file, "--variance", "4"])
-    with pytest.raises(SystemExit, match=rf"^error: --variance '.*big\.npy' {TRUNCATED}"):
-        main(["--map", local_file, "--local", local_file, "--variance", big])
+    _fails_with(capsys, ["--map", big, "--local", local_file, "--variance", "4"], rf"--map '.*big\.npy' {TRUNCATED}")
+    _fails_with(
+        capsys, ["--map", local_file, "--local", local_file, "--variance", big], rf"--variance '.*big\.npy' {TRUNCATED}"
+    )
 
 
 def test_a_giant_header_is_refused_by_the_pair_reader(tmp_path):
@@ -57,27 +67,40 @@ def test_a_giant_header_is_refused_by_the_pair_reader(tmp_path):
         dataset[1]
 
 
-def test_the_command_line_names_the_flag_of_a_pickle_or_a_random_file(tmp_path, local_file):
+def test_the_command_line_names_the_flag_of_a_pickle_or_a_random_file(tmp_path, local_file, capsys):
     pickled = tmp_path / "pickled.npy"
     pickled.write_bytes(pickle.dumps({"a": 1}))
     noise = tmp_path / "noise.npy"
     noise.write_bytes(np.random.default_rng(1).integers(0, 256, 300, dtype=np.uint8).tobytes())
-    with pytest.raises(SystemExit, match=r"^error: --map '.*pickled\.npy' is not a \.npy file: it is a Python pickle"):
-        main(["--map", str(pickled), "--local", local_file, "--variance", "4"])
-    with pytest.raises(SystemExit, match=r"^error: --local-mask '.*noise\.npy' is not a \.npy file: it starts with b'"):
-        main(["--map", local_file, "--local", local_file, "--variance", "4", "--local-mask", str(noise)])
-    with pytest.raises(SystemExit, match=r"^error: --local '.*missing\.png' is not a readable PNG image"):
-        main(["--map", local_file, "--local", str(tmp_path / "missing.png"), "--variance", "4"])
+    arguments = ["--local", local_file, "--variance", "4"]
+    _fails_with(
+        capsys,
+        ["--map", str(pickled), *arguments],
+        r"--map '.*pickled\.npy' is not a \.npy file: it is a Python pickle",
+    )
+    _fails_with(
+        capsys,
+        ["--map", local_file, *arguments, "--local-mask", str(noise)],
+        r"--local-mask '.*noise\.npy' is not a \.npy file: it starts with b'",
+    )
+    _fails_with(
+        capsys,
+        ["--map", local_file, "--local", str(tmp_path / "missing.png"), "--variance", "4"],
+        r"--local: no such file '.*missing\.png'",
+    )
 
 
-def test_an_array_over_the_budget_is_refused_before_reading(tmp_path, local_file):
+def test_an_array_over_the_budget_is_refused_before_reading(tmp_path, local_file, capsys):
     path = tmp_path / "map.npy"
     np.save(path, np.zeros((64, 64)))
     with memory_budget(10_000):
         with pytest.raises(MemoryBudgetError, match=r"^--map '.*map\.npy' needs about 32\.0 KiB for its \(64, 64\)"):
             read_npy(path, "--map")
-        with pytest.raises(SystemExit, match=r"^error: --map '.*map\.npy' needs about 32\.0 KiB .* budget of 9\.8 KiB"):
-            main(["--map", str(path), "--local", local_file, "--variance", "4"])
+        _fails_with(
+            capsys,
+            ["--map", str(path), "--local", local_file, "--variance", "4"],
+            r"--map '.*map\.npy' needs about 32\.0 KiB .* budget of 9\.8 KiB",
+        )
     assert read_npy(path, "--map").shape == (64, 64)
 
 
@@ -113,3 +136,11 @@ def test_plain_arrays_round_trip(tmp_path):
     np.save(tmp_path / "fortran.npy", np.asfortranarray(array.astype(np.float32)))
     assert np.array_equal(read_npy(tmp_path / "plain.npy", "path"), array)
     assert np.array_equal(read_npy(tmp_path / "fortran.npy", "path"), array)
+
+
+def test_a_text_file_named_npy_is_reported_as_not_a_npy_file(tmp_path):
+    np.savetxt(tmp_path / "text.npy", np.ones((2, 2)))
+    with pytest.raises(ValueError, match=r"--map '.*text\.npy' is not a \.npy file: it starts with b'1\.0"):
+        read_npy(tmp_path / "text.npy", "--map")
+    with pytest.raises(ValueError, match=r"--map '.*missing\.npy' cannot be read"):
+        read_npy(tmp_path / "missing.npy", "--map")

@@ -7,7 +7,7 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch.localize import Localization, Localizer, _quadratic_peak, _rotated, localize, main
+from enmi_torch.localize import Localization, Localizer, _command, _quadratic_peak, _rotated, localize, main
 from enmi_torch.score_surface import direct_surface
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
@@ -219,18 +219,54 @@ def test_command_line_prints_the_pose_and_writes_the_surface(gravel_map, tmp_pat
     output = tmp_path / "surface.png"
     arguments = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.png"), "--variance", "4"]
     arguments += ["--local-mask", str(tmp_path / "mask.npy"), "--shifts", "10", "--center", "80", "80"]
-    arguments += ["--yaws=-8:0:2", "--output", str(output)]
-    report = main(arguments)
+    arguments += ["--yaws", "-8:0:2", "--output", str(output)]  # a negative value after a space is a value
+    report = _command(arguments)
     printed = json.loads(capsys.readouterr().out.splitlines()[0])
-    assert printed == report
+    assert printed == report and list(report) == ["dx", "dy", "yaw_deg", "row", "col", "score", "margin"]
     assert (round(report["dx"]), round(report["dy"])) == (-7, 4)
+    assert (report["row"], report["col"]) == (80 + report["dy"], 80 + report["dx"])
     assert abs(report["yaw_deg"] + 4.0) <= 1.0
     assert output.stat().st_size > 1000
+
+
+def _one_line_error(capsys, arguments) -> str:
+    with pytest.raises(SystemExit) as exit_info:
+        main(arguments)
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and error.count("\n") == 1 and error.startswith("enmi-localize: error: ")
+    return error
+
+
+def test_command_line_mistakes_end_in_one_line(gravel_map, tmp_path, capsys):
+    np.save(tmp_path / "map.npy", gravel_map[0, 0].numpy())
+    local = _cut(gravel_map, 80, 80)[0, 0].numpy()
+    np.save(tmp_path / "local.npy", local)
+    files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy")]
+    assert "needs step > 0 and stop >= start" in _one_line_error(capsys, [*files, "--variance", "4", "--yaws=0:-3:1"])
+    assert "variance must be given for metric='ecr'" in _one_line_error(capsys, files)
+    assert "(did you mean --variance?)" in _one_line_error(capsys, [*files, "--varience", "4"])
+    missing = ["--map", str(tmp_path / "nothing.npy"), "--local", str(tmp_path / "local.npy")]
+    assert "--map: no such file" in _one_line_error(capsys, missing)
+    (tmp_path / "text.npy").write_text("1 2 3\n")
+    text = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "text.npy"), "--variance", "4"]
+    assert "not a .npy file" in _one_line_error(capsys, text)
+    local[3, 3] = np.nan
+    np.save(tmp_path / "nan.npy", local)
+    nan = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "nan.npy"), "--variance", "4"]
+    assert "leave them out with --local-mask FILE" in _one_line_error(capsys, nan)
+    assert "--min-overlap must be a fraction" in _one_line_error(
+        capsys, [*files, "--variance", "4", "--min-overlap", "2"]
+    )
+    with pytest.raises(ValueError, match="--min-overlap must be a fraction"):
+        main([*files, "--variance", "4", "--min-overlap", "2", "--debug"])
+
+
+def test_command_line_help_says_what_it_does_with_defaults_an_example_and_the_output(capsys):
     with pytest.raises(SystemExit):
-        main([*arguments[:-3], "--yaws=0:-3:1"])
-    assert "needs step > 0 and stop >= start" in capsys.readouterr().err
-    with pytest.raises(SystemExit, match="error: variance must be given for metric='enmi'"):
-        main(["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.png")])
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert text.startswith("usage: enmi-localize") and "Find the pose" in text.split("options:")[0]
+    assert "(default: 32)" in text and "example" in text and "output: one JSON line" in text
 
 
 def _invalid_localize_cases(gravel_map):

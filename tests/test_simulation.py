@@ -272,30 +272,6 @@ def test_committed_paper_points_are_the_papers_plot():
     assert (point["nmi"], point["enmi"]) == ("0.2479", "0.0048")
 
 
-def test_reproduce_paper_command_writes_csv_figure_and_tensorboard(tmp_path, monkeypatch):
-    tool = _load_data_tool("reproduce_paper")
-    points = tmp_path / "points.csv"
-    points.write_text("noise_power,nmi,enmi\n0.001,0.0,0.0\n0.01,0.2479,0.0048\n0.1,0.4907,0.3486\n")
-    monkeypatch.setattr(
-        "sys.argv",
-        [
-            "reproduce_paper.py",
-            "--trials=40",
-            f"--paper_points={points}",
-            f"--output_dir={tmp_path / 'out'}",
-            f"--tensorboard={tmp_path / 'tb'}",
-            "--workers=1",
-        ],
-    )
-    tool.main()
-    with (tmp_path / "out" / "paper_simulation.csv").open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    assert [row["noise_power"] for row in rows] == ["0.001", "0.01", "0.1"]
-    assert set(SCORES) <= set(rows[0])
-    assert (tmp_path / "out" / "paper_simulation.png").stat().st_size > 10_000
-    assert any((tmp_path / "tb").rglob("events.out.tfevents.*"))
-
-
 @pytest.mark.slow
 def test_full_figure_against_the_papers_points(paper_tiles):
     """The issue's full-run criteria at the config's settings (10,000 trials, seed 0, every N0 of the plot).

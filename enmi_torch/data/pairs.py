@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from enmi_torch._checks import check_image_shape, check_option
-from enmi_torch._files import read_npy
+from enmi_torch._files import read_image
 from enmi_torch.data.truth import VarianceTruth
 
 PAIR_FORMAT = "enmi_torch.pairs"
@@ -152,26 +152,11 @@ def _check_partners(root: Path, local: dict[str, Path], other: dict[str, Path], 
 
 
 def _read_image(path: Path, *, as_mask: bool = False, source: str = "pair image") -> np.ndarray:
-    """A single-channel ``(H, W)`` array from ``.npy`` (no pickles) or ``.png``; bool when ``as_mask``.
+    """A single-channel ``(H, W)`` array from ``.npy`` (no pickles) or a grey ``.png``; bool when ``as_mask``.
 
-    ``source`` names the file's role in messages about ``.npy`` files.
+    ``source`` names the file's role in messages.
     """
-    if path.suffix.lower() == ".npy":
-        image = read_npy(path, source)
-    else:
-        try:
-            from PIL import Image
-
-            with Image.open(path) as opened:
-                if opened.mode not in ("L", "I;16", "I", "1"):
-                    raise ValueError(f"expected a single-channel (grey) PNG, got mode {opened.mode}")
-                image = np.asarray(opened)
-        except Exception as error:  # every reader failure becomes one message naming the file
-            raise ValueError(f"{path} is not a readable image: {error}") from None
-    if image.ndim == 3 and image.shape[0] == 1:
-        image = image[0]
-    if image.ndim != 2:
-        raise ValueError(f"{path} must hold a single-channel (H, W) image, got shape {image.shape}")
+    image = read_image(path, source)
     if as_mask:
         if image.dtype != bool and image.dtype.kind not in "iu":
             raise ValueError(f"{path} must hold a bool or integer mask, got dtype {image.dtype}")

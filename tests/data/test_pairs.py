@@ -83,10 +83,17 @@ def test_bad_folders_are_refused_at_construction(folder, damage, match):
     ("damage", "match"),
     [
         (lambda root: np.save(root / "prior" / "000000.npy", np.zeros((12, 11))), r"prior/000000\.npy has shape"),
-        (lambda root: np.save(root / "local" / "000000.npy", np.zeros((2, 12, 10))), r"local/000000\.npy must hold"),
+        (
+            lambda root: np.save(root / "local" / "000000.npy", np.zeros((2, 12, 10))),
+            r"local/000000\.npy' must hold a single-channel",
+        ),
         (
             lambda root: np.save(root / "local" / "000000.npy", np.array([{}], dtype=object), allow_pickle=True),
             r"local/000000\.npy' is refused: it holds Python objects",
+        ),
+        (
+            lambda root: (root / "local" / "000000.npy").write_text("1 2 3\n4 5 6\n"),
+            r"local/000000\.npy' is not a \.npy file: it starts with b'1 2 3",
         ),
         (lambda root: np.save(root / "valid" / "000000.npy", np.ones((12, 10))), r"valid/000000\.npy must hold a bool"),
         (
@@ -105,7 +112,7 @@ def test_colour_png_is_refused(tmp_path, truth):
     root = tmp_path / "png"
     write_pairs(root, SyntheticPairs(truth, 1), image_format="png")
     Image.fromarray(np.zeros((12, 10, 3), dtype=np.uint8)).save(root / "prior" / "000000.png")
-    with pytest.raises(ValueError, match=r"prior/000000\.png .*single-channel"):
+    with pytest.raises(ValueError, match=r"prior/000000\.png' .*single-channel"):
         PairDataset(root)[0]
 
 

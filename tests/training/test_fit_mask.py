@@ -1,3 +1,4 @@
+import io
 import json
 import os
 import subprocess
@@ -7,15 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from _pickle_payload import EXECUTED, Payload
 from lightning.pytorch import Callback, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from enmi_torch.cli.fit_mask import main
 from enmi_torch.data import PairDataModule
+from enmi_torch.training.fit_mask import fit_mask
+from enmi_torch.training.mask_module import MaskFitModule, localization_trials
 from enmi_torch.variance import LearnedVariance, empirical_variance
-from train.fit_mask import main
-from train.mask_module import MaskFitModule, localization_trials
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = str(ROOT / "configs" / "fit_mask_smoke.yaml")
@@ -30,13 +33,18 @@ def _command_line(monkeypatch):
 
 
 def run(tmp_path, *overrides):
-    return main(["--config", SMOKE, "--trainer.logger.init_args.save_dir", str(tmp_path), *overrides])
+    return fit_mask(["--config", SMOKE, "--trainer.logger.init_args.save_dir", str(tmp_path), *overrides])
 
 
 def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
-    summary = run(tmp_path)
-    printed = capsys.readouterr().out
-    assert "relative RMS error vs the paper's empirical mask" in printed and "tensorboard --logdir" in printed
+    summary = run(tmp_path, "--trainer.enable_progress_bar", "true")
+    printed, logged = capsys.readouterr()
+    assert "mask_error=" in printed and "v_num" not in printed and "train/loss" not in printed  # the progress bar
+    summary_lines = printed[printed.index("Variance mask learned") :].splitlines()
+    assert summary_lines[1].startswith("  relative RMS error vs the paper's empirical mask")
+    assert any(line.startswith("  not converged after 2 epochs") for line in summary_lines)
+    assert "tensorboard --logdir" in printed and "Tip" not in logged and "deprecated" not in logged
+    assert summary_lines[-1] == f'  ENMILoss(variance_model=LearnedVariance.load("{summary["files"]["pt"]}"))'
     files = {suffix: Path(path) for suffix, path in summary["files"].items()}
     assert all(path.is_file() for path in files.values())
     assert json.loads((files["pt"].parent / "summary.json").read_text())["train_pairs"] == 64
@@ -69,6 +77,14 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     assert "masks" in tags["images"] and {"residuals/raw", "residuals/standardised"} <= set(tags["histograms"])
     image = events.Images("masks")[-1]
     assert image.width > 3 * image.height > 0  # panels side by side
+    from PIL import Image
+
+    decoded = np.asarray(Image.open(io.BytesIO(image.encoded_image_string)).convert("RGB"))
+    assert decoded.shape == (image.height, image.width, 3)
+    assert len(np.unique(decoded.reshape(-1, 3), axis=0)) > 50  # colour maps and text drawn, not a blank canvas
+    log_dir = Path(summary["log_dir"])
+    assert isinstance(yaml.safe_load((log_dir / "hparams.yaml").read_text())["shape"], list)  # plain YAML
+    assert sorted(path.name for path in (log_dir / "checkpoints").iterdir()) == ["last.ckpt"]
     errors = summary["errors"]
     logged = events.Scalars("mask/rel_rms_vs_truth")[-1].value
     assert logged == pytest.approx(errors["rel_rms_vs_truth"], rel=1e-5)
@@ -206,6 +222,41 @@ def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
     # A one-pixel offset still counts as located (the yardstick's rule).
     results = localization_trials(noisy.roll(1, dims=-2), prior, valid, {"uniform": 50.0}, **options)
     assert results["ecr_uniform"][0] == 3
+
+
+def test_help_lists_this_commands_options_in_plain_text(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert exit_info.value.code == 0 and text.startswith("usage: enmi-fit-mask")
+    assert text.index("Learn a per-pixel noise-variance mask") < text.index("--data.flavour")
+    assert "(default: 2000)" in text and "examples:" in text and len(text.splitlines()) < 130
+    assert ":class:" not in text and "``" not in text and "--trainer.gradient_clip_val" not in text
+    with pytest.raises(SystemExit):
+        main(["--help_all"])
+    assert "--trainer.gradient_clip_val" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--data.flavor", "camera"], "unrecognized arguments: --data.flavor camera (did you mean --data.flavour?)"),
+        (["--data.flavour", "radar"], "flavour must be one of ['lidar', 'camera'], got 'radar'"),
+        (["--data.root", "/nonexistent"], "root must be a folder of pairs"),
+        (["--ckpt_path", "missing.ckpt"], "ckpt_path must be a checkpoint file"),
+    ],
+)
+def test_user_mistakes_end_in_one_line_and_exit_code_2(tmp_path, capsys, arguments, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--config", SMOKE, "--trainer.logger.init_args.save_dir", str(tmp_path), *arguments])
+    error_lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("enmi-fit-mask")]
+    assert exit_info.value.code == 2 and len(error_lines) == 1
+    assert error_lines[0].startswith("enmi-fit-mask: error: ") and message in error_lines[0]
+
+
+def test_debug_shows_the_exception(tmp_path):
+    with pytest.raises(ValueError, match="flavour must be one of"):
+        main(["--config", SMOKE, "--data.flavour", "radar", "--debug"])
 
 
 def fit_in_subprocess(tmp_path, name, *overrides):

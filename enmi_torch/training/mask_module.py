@@ -30,8 +30,8 @@ from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
-from train.mask_figure import mask_figure, masked_residual
 
 
 def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
@@ -99,6 +99,9 @@ def localization_trials(
         rows, cols = peak // span - max_shift, peak % span - max_shift
         hits = int(((rows.abs() <= 1) & (cols.abs() <= 1)).sum())
         others = score[:, far]
+        if others.shape[1] < 2:  # max_shift 1 leaves no shift farther than a pixel: no margin to measure
+            results[method] = (hits, math.nan)
+            continue
         z = (score[:, max_shift, max_shift] - others.mean(1)) / others.std(1).clamp_min(1e-12)
         results[method] = (hits, float(z.sum()))
     return results
@@ -139,8 +142,10 @@ class MaskFitModule(LightningModule):
         value_range: tuple[float, float] = (0.0, 256.0),
     ) -> None:
         super().__init__()
+        # Lists, not tuples: hparams.yaml stays plain YAML (no !!python/tuple tags).
+        shape, value_range = [int(size) for size in shape], [float(value) for value in value_range]
         self.save_hyperparameters()
-        self.shape = (int(shape[0]), int(shape[1]))
+        self.shape = (shape[0], shape[1])
         self.mask: LearnedVariance | None = None
         self.statistics = EmpiricalVariance(self.shape)
         self.register_buffer("statistics_ready", torch.tensor(False))
@@ -260,7 +265,7 @@ class MaskFitModule(LightningModule):
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         """NLL of a batch (plus the prior's share); logs ``train/nll`` and ``train/loss``."""
         loss = self._step(batch, "train")
-        self.log("train/loss", loss, prog_bar=True, batch_size=batch["local"].shape[0])
+        self.log("train/loss", loss, batch_size=batch["local"].shape[0])
         return loss
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
@@ -330,7 +335,7 @@ class MaskFitModule(LightningModule):
         self.epoch_seconds.append(seconds)
         self.log("speed/pairs_per_second", self._epoch_pairs / seconds, sync_dist=True)
         for name, value in self.mask_errors().items():
-            self.log(f"mask/{name}", value, sync_dist=True)
+            self.log(f"mask/{name}", value, sync_dist=True, prog_bar=name == "rel_rms_vs_empirical")
         if self._histogram_batch is not None and self.trainer.is_global_zero and self.logger is not None:
             residual, standardised = self._histogram_batch
             self.logger.experiment.add_histogram("residuals/raw", residual, self.global_step)
@@ -359,7 +364,8 @@ class MaskFitModule(LightningModule):
                 if name.startswith("enmi_uniform_x"):
                     continue
                 self.log(f"localization/{name}", rates[name], sync_dist=False)
-                self.log(f"localization_z/{name}", margins[name], sync_dist=False)
+                if math.isfinite(margins[name]):
+                    self.log(f"localization_z/{name}", margins[name], sync_dist=False)
         if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
             figure = self.figure()
             self.logger.experiment.add_figure("masks", figure, self.global_step)

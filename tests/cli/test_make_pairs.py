@@ -1,6 +1,7 @@
+import pytest
 import torch
 
-from data_tools.make_pairs import main
+from enmi_torch.cli.make_pairs import main
 from enmi_torch.data import PairDataset, SyntheticPairs, make_truth
 
 
@@ -12,3 +13,11 @@ def test_writes_a_pair_folder_equal_to_the_synthetic_pairs(tmp_path, capsys):
     for index in range(3):
         assert torch.equal(dataset[index]["local"], expected[index]["local"])
     torch.testing.assert_close(dataset.truth.variance, expected.truth.variance, equal_nan=True)
+
+
+def test_refuses_a_folder_with_files_in_one_line(tmp_path, capsys):
+    (tmp_path / "taken.txt").write_text("x")
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(tmp_path), "--pairs", "1"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.startswith("enmi-make-pairs: error: root must be a new or empty folder")

@@ -1,0 +1,92 @@
+"""How every command parses, helps and fails: one-line errors with exit code 2, "did you mean", defaults in help."""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import re
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NoReturn
+
+# The clone the package was installed from (``pip install -e .``): where the default configs live.
+REPOSITORY = Path(__file__).resolve().parents[2]
+
+# Exceptions that mean "the input or the options are wrong" (the library's checks, missing or unreadable files).
+USER_ERRORS = (ValueError, TypeError, OSError)
+
+DEBUG_HELP = "show the full traceback of an error instead of one line"
+
+
+def run_command(prog: str, command: Callable[[list[str]], object], argv: Sequence[str] | None = None) -> None:
+    """Run ``command(argv)``; a user mistake ends in one line on stderr and exit code 2.
+
+    ``--debug`` anywhere in ``argv`` (removed before ``command`` sees it) lets the exception through with its
+    traceback. ``argv`` defaults to ``sys.argv[1:]``.
+    """
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in arguments
+    arguments = [argument for argument in arguments if argument != "--debug"]
+    try:
+        command(arguments)
+    except USER_ERRORS as error:
+        if debug:
+            raise
+        fail(prog, str(error) or type(error).__name__)
+
+
+def fail(prog: str, message: str) -> NoReturn:
+    """Print ``prog: error: message`` on one line to stderr and exit with code 2."""
+    sys.stderr.write(f"{prog}: error: {' '.join(message.split())}\n")
+    raise SystemExit(2)
+
+
+def parser_error(parser: argparse.ArgumentParser, message: str) -> NoReturn:
+    """One line for a command-line mistake, with the closest known option for a misspelt one."""
+    known = [option for action in parser._actions for option in action.option_strings]
+    guesses = []
+    if "unrecognized arguments" in message:
+        for word in message.split(":", 1)[1].split():
+            if word.startswith("-"):
+                guesses += difflib.get_close_matches(word.split("=", 1)[0], known, n=1, cutoff=0.6)
+    hint = f" (did you mean {', '.join(guesses)}?)" if guesses else ""
+    fail(parser.prog, f"{message}{hint}; see {parser.prog} --help")
+
+
+def plain_text(text: str) -> str:
+    """Docstring markup as plain text: ``:class:`~a.B``` -> ``B``, ``:mod:`a.b``` -> ``a.b``, no double backquotes."""
+    text = re.sub(r":mod:`~?([^`]+)`", r"\1", text)
+    text = re.sub(r":\w+:`~?([^`]+)`", lambda match: match.group(1).rsplit(".", 1)[-1], text)
+    return text.replace("``", "")
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the description's line breaks and appends each option's default (unless ``None`` or ``False``)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        help_text = action.help or ""
+        unset = action.default is None or action.default is False or action.default == argparse.SUPPRESS
+        if "%(default)" in help_text or unset or not action.option_strings:
+            return help_text
+        return f"{help_text} (default: %(default)s)"
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` with one-line errors, "did you mean" and defaults in the help."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+        # Values such as --yaws -6:6:1 or --value -1e-3 start with "-" and a digit: read them as values, not options.
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
+
+    def parse_known_args(self, args=None, namespace=None):
+        """Parse, with ``--debug`` (handled by :func:`run_command`) listed last among the options."""
+        if not any("--debug" in action.option_strings for action in self._actions):
+            self.add_argument("--debug", action="store_true", help=DEBUG_HELP)
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str) -> NoReturn:
+        """One line on stderr, exit code 2."""
+        parser_error(self, message)

@@ -1,0 +1,327 @@
+"""The fit-mask command: LightningCLI over :class:`MaskFitModule` and :class:`~enmi_torch.data.PairDataModule`.
+
+:func:`fit_mask` runs it with a list of arguments and returns the summary (what ``enmi-fit-mask`` prints);
+:mod:`enmi_torch.cli.fit_mask` is the console entry point around it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import logging
+import pickle
+import time
+import warnings
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from lightning.fabric.utilities.exceptions import MisconfigurationException
+from lightning.pytorch.callbacks import TQDMProgressBar
+from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
+
+from enmi_torch.cli._command import REPOSITORY, HelpFormatter, parser_error, plain_text
+from enmi_torch.data import PairDataModule
+from enmi_torch.training.mask_module import MaskFitModule
+
+PROG = "enmi-fit-mask"
+DEFAULT_CONFIG = REPOSITORY / "configs" / "fit_mask.yaml"
+# A learned mask farther than this from the paper's empirical mask has not converged yet.
+CONVERGED = 0.05
+
+DESCRIPTION = f"""\
+Learn a per-pixel noise-variance mask from local/prior image pairs, for ENMILoss.
+
+With no arguments it runs configs/fit_mask.yaml: 2,000 synthetic lidar-like 128x128 pairs, 10 epochs (about half a
+minute on 2 CPU cores). It writes the mask (variance_mask.pt, .npy, .png) and summary.json under
+runs/fit_mask/version_N/mask/ of the current folder, TensorBoard dashboards and last.ckpt beside them, and prints
+how close the mask is to the paper's empirical mask and to the true variance. Use the mask with
+ENMILoss(variance_model=LearnedVariance.load(".../variance_mask.pt")).
+
+examples:
+  {PROG}                                         # also: python train/fit_mask.py
+  {PROG} --data.flavour camera                   # camera-like synthetic pairs
+  {PROG} --data.root PAIRS_FOLDER                # your own pairs (enmi-make-pairs writes the format)
+  {PROG} --ckpt_path runs/fit_mask/version_0/checkpoints/last.ckpt --trainer.max_epochs 20
+  {PROG} --config configs/fit_mask_smoke.yaml    # a few-second smoke run (its errors are not meaningful)
+
+Every key of the YAML config is an option (--data.KEY, --model.KEY, --trainer.KEY); the main ones follow, with
+the defaults of configs/fit_mask.yaml. --help_all lists every Lightning Trainer option; --debug shows the full
+traceback of an error instead of one line."""
+
+# The Trainer options worth listing in the short help, in plain words; --help_all lists them all.
+TRAINER_OPTIONS = {
+    "--trainer.max_epochs": "epochs to train",
+    "--trainer.accelerator": '"cpu", "gpu" (CUDA), "mps" or "auto"',
+    "--trainer.devices": "devices to train on (several: add --trainer.strategy ddp)",
+    "--trainer.strategy": '"auto", or "ddp" to train on several devices or processes',
+}
+PLAIN_HELP = {
+    **TRAINER_OPTIONS,
+    "--config": "a YAML config whose keys are these options (later options override it)",
+    "--seed_everything": "seed of the run (true: a random one)",
+}
+HIDDEN = ("--model", "--data", "--model.shape", "--print_config")
+GROUP_TITLES = {
+    "--trainer": "trainer (--help_all lists every option)",
+    "--model": "model: the mask and how it is fitted",
+    "--data": "data: a folder of pairs (--data.root) or synthetic pairs",
+}
+
+
+class FitMaskParser(LightningArgumentParser):
+    """LightningCLI's parser with one-line errors and a short ``--help`` of this command's options."""
+
+    def __init__(self, *args, full_help: bool = False, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.full_help = full_help
+
+    def error(self, message: str, ex: Exception | None = None):
+        """One line on stderr, exit code 2 (with "did you mean" for a misspelt option)."""
+        parser_error(self, message)
+
+    def format_help(self, *args) -> str:
+        """This command's options (run, data, model, a few Trainer ones); every option with ``--help_all``."""
+        if self.full_help:
+            return super().format_help(*args)
+        saved = self._action_groups, self.description, self.usage, self.epilog, self.formatter_class
+        defaults = self.get_defaults()  # with the default config's values
+        groups = []
+        for group in self._action_groups:
+            actions = [_short(action, defaults) for action in group._group_actions if _in_short_help(action)]
+            if actions and group.title != "Linked arguments":
+                short = copy.copy(group)
+                short._group_actions, short.description = actions, None
+                short.title = GROUP_TITLES.get(actions[0].option_strings[0].split(".")[0], group.title)
+                groups.append(short)
+        self._action_groups, self.description, self.epilog = groups, DESCRIPTION, None
+        self.usage = f"{PROG} [--config FILE] [--data.KEY VALUE] [--model.KEY VALUE] [--trainer.KEY VALUE] ..."
+        self.formatter_class = HelpFormatter
+        try:
+            return super().format_help(*args)
+        finally:
+            self._action_groups, self.description, self.usage, self.epilog, self.formatter_class = saved
+
+
+def _in_short_help(action: argparse.Action) -> bool:
+    option = action.option_strings[-1] if action.option_strings else ""
+    if not option.startswith("--") or option in HIDDEN or option.endswith(".help"):
+        return False
+    return not option.startswith("--trainer") or action.option_strings[0] in TRAINER_OPTIONS
+
+
+def _short(action: argparse.Action, defaults) -> argparse.Action:
+    """A copy of ``action`` with plain-text help and the default config's value as its default."""
+    short = copy.copy(action)
+    short.option_strings = [option for option in action.option_strings if not option.endswith("+")]
+    short.help = PLAIN_HELP.get(short.option_strings[-1]) or plain_text(action.help or "").rstrip(".")
+    short.default = defaults.get(action.dest, action.default)
+    if short.metavar is None and short.nargs is None and short.choices is None:
+        short.metavar = action.dest.rsplit(".", 1)[-1].upper()
+    return short
+
+
+OUTPUT_FILES = ("variance_mask.pt", "variance_mask.npy", "variance_mask.png", "summary.json")
+
+
+class FitMaskCLI(LightningCLI):
+    """LightningCLI with the image shape linked from the data and the run options of this command."""
+
+    def add_arguments_to_parser(self, parser) -> None:
+        """Link ``model.shape`` to ``data.shape``; add ``--ckpt_path``, ``--output_dir``, ``--overwrite``, threads."""
+        parser.link_arguments("data.shape", "model.shape", compute_fn=list, apply_on="instantiate")
+        parser.add_argument("--ckpt_path", type=str | None, default=None, help="resume from this checkpoint file")
+        parser.add_argument(
+            "--output_dir", type=str | None, default=None, help="folder for the mask files (null: <log dir>/mask)"
+        )
+        parser.add_argument(
+            "--overwrite", type=bool, default=False, help="replace the mask files of an earlier run in --output_dir"
+        )
+        parser.add_argument(
+            "--torch_threads", type=int | None, default=None, help="torch.set_num_threads per process (null: torch's)"
+        )
+        parser.add_argument("--help_all", action="help", help="list every option, the Trainer's included")
+
+    def before_instantiate_classes(self) -> None:
+        """Show the mask's error in the progress bar (unless the bar is turned off)."""
+        if self.config["trainer"].get("enable_progress_bar") is not False:
+            self.trainer_defaults["callbacks"] = [MaskProgressBar()]
+
+
+class MaskProgressBar(TQDMProgressBar):
+    """The progress bar shows the mask's relative RMS error against the paper's empirical mask, not the run number."""
+
+    def get_metrics(self, trainer, pl_module) -> dict:
+        """``mask_error`` in percent (from the second epoch on) and ``val/nll``."""
+        items = super().get_metrics(trainer, pl_module)
+        items.pop("v_num", None)
+        error = items.pop("mask/rel_rms_vs_empirical", None)
+        if error is not None:
+            items = {"mask_error": f"{100 * float(error):.1f}%", **items}
+        return items
+
+
+class _NoTips(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Tip:" not in record.getMessage()
+
+
+def quiet_lightning() -> None:
+    """Drop Lightning's advertising tips and warnings meant for Lightning's developers, not for this command's users."""
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(_NoTips())
+    warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)", category=FutureWarning)
+    # The command hands LightningCLI its own command line as args (so that tests and scripts can call it too).
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
+
+
+def check_checkpoint(path: str) -> None:
+    """Refuse a checkpoint that does not load as plain tensors and primitives (``weights_only=True``)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"ckpt_path must be a checkpoint file, got {path!r}")
+    try:
+        torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
+        raise ValueError(
+            f"{path} is refused: it is not a plain checkpoint that loads with weights_only=True ({error})"
+        ) from None
+
+
+def check_output_dir(output_dir: Path, overwrite: bool) -> None:
+    """Refuse an ``output_dir`` holding an earlier run's files unless ``overwrite``."""
+    earlier = [name for name in OUTPUT_FILES if (output_dir / name).exists()]
+    if earlier and not overwrite:
+        raise FileExistsError(
+            f"--output_dir {str(output_dir)!r} already holds {', '.join(earlier)} from an earlier run; choose another "
+            "--output_dir, or pass --overwrite true to replace them"
+        )
+
+
+def write_outputs(
+    model: MaskFitModule,
+    trainer,
+    output_dir: Path,
+    log_dir: str,
+    seconds: float,
+    source: str,
+    *,
+    overwrite: bool = False,
+) -> dict:
+    """Write the mask files and ``summary.json``; returns the summary (``source``: where the pairs came from).
+
+    Refuses to replace an earlier run's files unless ``overwrite``.
+    """
+    import matplotlib.pyplot as plt
+
+    check_output_dir(output_dir, overwrite)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    paths = {suffix: output_dir / f"variance_mask.{suffix}" for suffix in ("pt", "npy", "png")}
+    model.mask.save(paths["pt"])
+    model.mask.save(paths["npy"])
+    figure = model.figure()
+    figure.savefig(paths["png"], dpi=90)
+    plt.close(figure)
+    datamodule = trainer.datamodule
+    metrics = trainer.callback_metrics
+    summary = {
+        "files": {suffix: str(path) for suffix, path in paths.items()},
+        "log_dir": log_dir,
+        "last_checkpoint": getattr(trainer.checkpoint_callback, "last_model_path", "") or None,
+        "source": source,
+        "shape": list(model.shape),
+        "train_pairs": datamodule.num_train_pairs,
+        "val_pairs": len(datamodule.val_set),
+        "epochs": trainer.current_epoch,
+        "seconds": seconds,
+        "train_epoch_seconds": model.epoch_seconds,
+        "learned_pixels": int(model.mask.valid.sum()),
+        "errors": model.mask_errors(),
+        "localization_pairs": min(model.hparams.localization_pairs, len(datamodule.val_set)),
+        "localization": {
+            key.split("/", 1)[1]: float(value) for key, value in metrics.items() if key.startswith("localization/")
+        },
+        "localization_z": {
+            key.split("/", 1)[1]: float(value) for key, value in metrics.items() if key.startswith("localization_z/")
+        },
+    }
+    (output_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def print_summary(summary: dict) -> None:
+    """Print how good the mask is, where the outputs are, and how to use the mask."""
+    errors = summary["errors"]
+    height, width = summary["shape"]
+    lines = [
+        f"Variance mask learned from {summary['train_pairs']} pairs of {height}x{width} ({summary['source']}), "
+        f"{summary['epochs']} epochs, {summary['seconds']:.1f} s ({summary['learned_pixels']} pixels learned)",
+        f"  relative RMS error vs the paper's empirical mask: {100 * errors['rel_rms_vs_empirical']:.2f} %",
+    ]
+    if "rel_rms_vs_truth" in errors:
+        lines.append(
+            f"  relative RMS error vs the true variance:          {100 * errors['rel_rms_vs_truth']:.2f} % "
+            f"(empirical mask: {100 * errors['empirical_rel_rms_vs_truth']:.2f} %)"
+        )
+    if errors["rel_rms_vs_empirical"] > CONVERGED:
+        lines.append(
+            f"  not converged after {summary['epochs']} epochs: train longer (--trainer.max_epochs) before using it"
+        )
+    if summary["localization"]:
+        scores = ", ".join(f"{name} {value:.3f}" for name, value in sorted(summary["localization"].items()))
+        lines.append(f"  share of {summary['localization_pairs']} held-out pairs located: {scores}")
+    mask = summary["files"]["pt"]
+    lines += [
+        f"  mask files:  {mask} (.npy, .png and summary.json beside it)",
+        f"  checkpoint:  {summary['last_checkpoint']}",
+        f"  dashboards:  tensorboard --logdir {Path(summary['log_dir']).parent}",
+        "Use it in ENMI:",
+        f'  ENMILoss(variance_model=LearnedVariance.load("{mask}"))',
+    ]
+    print("\n".join(lines))
+
+
+def fit_mask(argv: Sequence[str]) -> dict | None:
+    """Run the command with these arguments; returns the summary on the main process (``None`` on the others)."""
+    if not DEFAULT_CONFIG.is_file():
+        raise FileNotFoundError(f"{DEFAULT_CONFIG} is missing: run from a clone installed with pip install -e .")
+    quiet_lightning()
+    arguments = list(argv)
+    try:
+        cli = FitMaskCLI(
+            MaskFitModule,
+            PairDataModule,
+            run=False,
+            args=arguments,
+            parser_class=FitMaskParser,
+            parser_kwargs={
+                "prog": PROG,
+                "default_config_files": [str(DEFAULT_CONFIG)],
+                "full_help": "--help_all" in arguments,
+            },
+            save_config_kwargs={"overwrite": True},
+            auto_configure_optimizers=False,
+        )
+        if cli.config["torch_threads"] is not None:
+            torch.set_num_threads(cli.config["torch_threads"])
+        ckpt_path = cli.config["ckpt_path"]
+        if ckpt_path is not None:
+            check_checkpoint(ckpt_path)
+        if cli.config["output_dir"] is not None:
+            check_output_dir(Path(cli.config["output_dir"]), cli.config["overwrite"])
+        start = time.perf_counter()
+        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path, weights_only=True)
+    except MisconfigurationException as error:  # Lightning's word for a bad option (devices, strategy, ...)
+        raise ValueError(str(error)) from error
+    seconds = time.perf_counter() - start
+    log_dir = cli.trainer.log_dir  # a collective under DDP: every process asks
+    if not cli.trainer.is_global_zero:
+        return None
+    output_dir = Path(cli.config["output_dir"] or Path(log_dir) / "mask")
+    data = cli.config["data"]
+    source = data["root"] or f"synthetic, {data['flavour']}-like"
+    summary = write_outputs(
+        cli.model, cli.trainer, output_dir, log_dir, seconds, source, overwrite=cli.config["overwrite"]
+    )
+    print_summary(summary)
+    return summary

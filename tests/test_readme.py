@@ -1,0 +1,93 @@
+"""README's examples run and print what README says they print.
+
+An example is a ``python`` block followed by the ``text`` block of its output, or a ``console`` block of ``$ ``
+commands, each followed by its output. ``...`` in an output stands for any text (doctest's ELLIPSIS). An example
+after a ``<!-- slow -->`` line runs with ``pytest -m slow``. All run in one folder that sees the repository's
+``configs``, ``data_tools`` and ``train``, in README's order (the mask example reads what the command wrote).
+"""
+
+import contextlib
+import doctest
+import io
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BLOCK = re.compile(r"^(<!-- slow -->\n)?```(\w+)\n(.*?)^```\n", re.MULTILINE | re.DOTALL)
+
+
+def readme_examples() -> list:
+    """``pytest.param((language, code, expected))`` per example, marked slow where README says so."""
+    text = (ROOT / "README.md").read_text()
+    blocks = list(BLOCK.finditer(text))
+    examples = []
+    for index, block in enumerate(blocks):
+        language, body, slow = block.group(2), block.group(3), block.group(1) is not None
+        line = text.count("\n", 0, block.start()) + 1
+        if language == "python":
+            after = blocks[index + 1] if index + 1 < len(blocks) else None
+            assert after is not None and after.group(2) == "text", f"README line {line}: no output after the example"
+            assert text[block.end() : after.start()].strip() == "", f"README line {line}: text before the output"
+            example = ("python", body, after.group(3))
+        elif language == "console":
+            example = ("console", body, None)
+        else:
+            continue
+        marks = [pytest.mark.slow] if slow else []
+        examples.append(pytest.param(example, id=f"line{line}-{language}", marks=marks))
+    return examples
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory) -> Path:
+    working = tmp_path_factory.mktemp("readme")
+    for name in ("configs", "data_tools", "train"):
+        (working / name).symlink_to(ROOT / name)
+    return working
+
+
+def check_output(expected: str, actual: str, what: str) -> None:
+    actual = "\n".join(line.rstrip() for line in actual.splitlines()) + "\n"
+    if not doctest.OutputChecker().check_output(expected, actual, doctest.ELLIPSIS):
+        pytest.fail(f"{what} printed\n{actual}\nbut README says\n{expected}")
+
+
+def console_commands(body: str) -> list[tuple[str, str]]:
+    """``(command, expected output)`` pairs of a console block."""
+    pairs = []
+    for line in body.splitlines(keepends=True):
+        if line.startswith("$ "):
+            pairs.append([line[2:].strip(), ""])
+        else:
+            pairs[-1][1] += line
+    return [(command, expected) for command, expected in pairs]
+
+
+def test_examples_exist():
+    languages = [param.values[0][0] for param in readme_examples()]
+    assert languages.count("python") >= 5 and languages.count("console") >= 3
+
+
+@pytest.mark.parametrize("example", readme_examples())
+def test_readme_example(example, folder, monkeypatch):
+    language, body, expected = example
+    monkeypatch.chdir(folder)
+    if language == "python":
+        printed = io.StringIO()
+        with contextlib.redirect_stdout(printed):
+            exec(compile(body, "README.md", "exec"), {"__name__": "__readme__"})
+        check_output(expected, printed.getvalue(), "the example")
+        return
+    environment = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
+    for command, output in console_commands(body):
+        python_command = re.sub(r"^python ", f"{sys.executable} ", command)
+        completed = subprocess.run(
+            python_command, shell=True, cwd=folder, env=environment, capture_output=True, text=True, timeout=600
+        )
+        assert completed.returncode == 0, f"{command} failed:\n{completed.stderr}"
+        check_output(output, completed.stdout, command)
