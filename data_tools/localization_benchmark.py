@@ -1,4 +1,4 @@
-"""Success rate of map localization against noise power N0: ENMI (analytic and learned variance), NMI and NCC.
+"""Success rate of map localization against noise power N0: ECR and ENMI (analytic and learned variance), NMI, NCC.
 
 Prior maps are scikit-image's bundled CC0 textures: ``gravel()`` with painted lane markings (solid and dashed lines,
 a stop bar) and ``brick()``, a repetitive, ambiguous pattern. Each trial cuts a local image at a known pose (an

@@ -339,6 +339,22 @@ def _print_edges(table, keys) -> None:
         print(f"| {method} | {failures} | {edge / max(failures, 1):.0%} |")
 
 
+COLOURS = {
+    "ECR true": "#d62728",
+    "ECR learned": "#ff9896",
+    "ECR uniform mean": "#e377c2",
+    "Mixture true": "#9467bd",
+    "ENMI truncated true": "#8c564b",
+    "ENMI reliability true": "#c49c94",
+    "ENMI true": "#1f77b4",
+    "ENMI learned": "#aec7e8",
+    "ENMI uniform mean": "#2ca02c",
+    "ENMI best uniform": "#98df8a",
+    "NMI": "#7f7f7f",
+    "NCC": "#ff7f0e",
+}
+
+
 def _plot(table, keys, path: Path) -> None:
     import matplotlib
 
@@ -373,7 +389,7 @@ def _plot(table, keys, path: Path) -> None:
                 for level in levels:
                     group = [key for key in keys if key[1:] == (profile, response, level)]
                     rates.append(np.mean([table[(*key, method)][1] / table[(*key, method)][2] for key in group]))
-                axis.plot(levels, rates, styles[method], label=method)
+                axis.plot(levels, rates, styles[method], label=method, color=COLOURS[method])
             axis.set_xscale("log")
             axis.set_xticks(levels, [f"{level:g}" for level in levels])
             axis.minorticks_off()

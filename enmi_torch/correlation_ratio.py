@@ -10,11 +10,14 @@ maximised log-likelihood ratio is
 
     ``LLR = (sum_j S_j^2 / W_j - S^2 / W) / 2`` (``S``, ``W`` the sums over all bins),
 
-the weighted between-bin sum of squares (generalised least squares). Under the alternative ``2 LLR`` is
-``chi^2`` with ``K_occ - 1`` degrees of freedom (``K_occ`` the occupied reference bins) whatever the pixel variances,
-so ``ECR = (LLR - (K_occ - 1) / 2) / n`` (``n`` the valid pixels) has mean 0 for unrelated images, in every
-placement: a noisy pixel adds its evidence in proportion to its precision instead of a full unit of histogram weight,
-which is what makes the per-pixel variance pay (see ``data_tools/yardstick.py``).
+the weighted between-bin sum of squares (generalised least squares). When the captured values are noise of the
+stated variances around one level, ``2 LLR`` is ``chi^2`` with ``K_occ - 1`` degrees of freedom (``K_occ`` the
+occupied reference bins) whatever the variances, so ``ECR = (LLR - (K_occ - 1) / 2) / n`` (``n`` the valid pixels)
+has mean 0; a captured image with structure of its own that is unrelated to the reference scores about
+``(K_occ - 1) / (2 n)`` times its spread over the noise variance, small against an aligned placement's score and
+without a term that follows the map's content. A noisy pixel adds its evidence in proportion to its precision
+instead of a full unit of histogram weight, which is what makes the per-pixel variance pay (see
+``data_tools/yardstick.py`` and ``data_tools/diagnose_enmi.py``).
 
 With one variance for all pixels, ``ECR = eta^2 Var[v] / (2 (sigma^2 + tau^2)) - (K_occ - 1) / (2 n)`` with
 ``eta^2`` the classic correlation ratio (Pearson, Roche et al. 1998) of the captured image given the reference bins.
@@ -115,9 +118,9 @@ def ecr(
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
 
     Returns:
-        ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: about 0 for unrelated images, larger
-        the better the reference bins predict the captured values; ``ECR * n`` is the log-likelihood ratio less its
-        mean under independence.
+        ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: larger the better the reference bins
+        predict the captured values, small for unrelated images (0 on average for pure noise); ``ECR * n`` is the
+        log-likelihood ratio less its mean for pure noise.
 
     Convention:
         Differentiable in ``captured`` and ``variance`` (the reference is hard-binned).
