@@ -249,6 +249,20 @@ def write_outputs(
     return summary
 
 
+def _localization_lines(rates: dict[str, float], pairs: int) -> list[str]:
+    """The share of held-out pairs each score located, one line for ECR, one for ENMI, NMI and NCC."""
+
+    def group(score: str) -> str:
+        names = sorted(name for name in rates if name.startswith(f"{score}_"))
+        return ", ".join(f"{name[len(score) + 1 :].replace('_', ' ')} {rates[name]:.3f}" for name in names)
+
+    others = "; ".join(f"{name.upper()} {rates[name]:.3f}" for name in ("nmi", "ncc") if name in rates)
+    return [
+        f"  share of {pairs} held-out pairs located, ECR: {group('ecr')}",
+        f"    ENMI: {group('enmi')}; {others}",
+    ]
+
+
 def print_summary(summary: dict) -> None:
     """Print how good the mask is, where the outputs are, and how to use the mask."""
     errors = summary["errors"]
@@ -268,8 +282,7 @@ def print_summary(summary: dict) -> None:
             f"  not converged after {summary['epochs']} epochs: train longer (--trainer.max_epochs) before using it"
         )
     if summary["localization"]:
-        scores = ", ".join(f"{name} {value:.3f}" for name, value in sorted(summary["localization"].items()))
-        lines.append(f"  share of {summary['localization_pairs']} held-out pairs located: {scores}")
+        lines += _localization_lines(summary["localization"], summary["localization_pairs"])
     mask = summary["files"]["pt"]
     lines += [
         f"  mask files:  {mask} (.npy, .png and summary.json beside it)",
