@@ -40,6 +40,7 @@ def _surfaces(local, window, variance) -> dict:
     return {
         "ENMI (mass)": lambda: enmi_surface(local, window, variance),
         "ECR": lambda: ecr_surface(local, window, variance),
+        "ECR linear": lambda: ecr_surface(local, window, variance, response="linear"),
         "NMI": lambda: nmi_surface(local, window),
         "NCC": lambda: ncc_surface(local, window),
     }

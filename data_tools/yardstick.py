@@ -71,6 +71,7 @@ METHODS = (
     "ECR true",
     "ECR learned",
     "ECR uniform mean",
+    "ECR linear true",
     "Mixture true",
     "ENMI truncated true",
     "ENMI reliability true",
@@ -129,7 +130,14 @@ def _crops(image, tops, lefts, size):
 
 
 def run_cell(
-    map_name: str, profile: str, response: str, levels: tuple[float, ...], trials: int, seed: int, pairs: int = PAIRS
+    map_name: str,
+    profile: str,
+    response: str,
+    levels: tuple[float, ...],
+    trials: int,
+    seed: int,
+    pairs: int = PAIRS,
+    methods: tuple[str, ...] = METHODS,
 ) -> list:
     """Rows ``(map, profile, response, level, method, successes, trials, edge_failures, outcomes)`` for one cell."""
     torch.set_num_threads(1)
@@ -169,30 +177,40 @@ def run_cell(
         true_variance = variance.float()
         options = {"bins": BINS, "local_mask": mask}
         window = windows.float()
-        surfaces = {
-            "ECR true": ecr_surface(local, window, true_variance, **options),
-            "ECR learned": ecr_surface(local, window, learned, **options),
-            "ECR uniform mean": ecr_surface(local, window, mean, **options),
-            "Mixture true": mixture_surface(local, window, true_variance, **options),
-            "ENMI truncated true": enmi_surface(local, window, true_variance, weights="truncated", **options),
-            "ENMI reliability true": enmi_surface(local, window, true_variance, reliability=True, **options),
-            "ENMI true": enmi_surface(local, window, true_variance, **options),
-            "ENMI learned": enmi_surface(local, window, learned, **options),
-            "NMI": nmi_surface(local, window, **options),
-            "NCC": ncc_surface(local, window, local_mask=mask),
+        searches = _searches(local, window, true_variance, learned, mean, mask, options)
+        outcomes = {
+            method: _outcomes(search().score, truth) for method, search in searches.items() if method in methods
         }
-        grid = {factor: enmi_surface(local, window, mean * factor, **options) for factor in GRID}
-        surfaces["ENMI uniform mean"] = grid[1.0]
-        outcomes = {method: _outcomes(surface.score, truth) for method, surface in surfaces.items()}
-        grid_outcomes = {factor: _outcomes(surface.score, truth) for factor, surface in grid.items()}
-        best = max(GRID, key=lambda factor: (int(grid_outcomes[factor][0].sum()), factor == 1.0))
-        outcomes["ENMI best uniform"] = grid_outcomes[best]
-        for method in METHODS:
+        best = 1.0
+        if {"ENMI uniform mean", "ENMI best uniform"} & set(methods):
+            grid = {
+                factor: _outcomes(enmi_surface(local, window, mean * factor, **options).score, truth) for factor in GRID
+            }
+            best = max(GRID, key=lambda factor: (int(grid[factor][0].sum()), factor == 1.0))
+            outcomes["ENMI uniform mean"], outcomes["ENMI best uniform"] = grid[1.0], grid[best]
+        for method in methods:
             success, edge = outcomes[method]
             label = f"{method} (x{best:g})" if method == "ENMI best uniform" else method
             bits = "".join("1" if value else "0" for value in success.tolist())
             rows.append((map_name, profile, response, level, label, int(success.sum()), trials, int(edge.sum()), bits))
     return rows
+
+
+def _searches(local, window, true_variance, learned, mean, mask, options) -> dict:
+    """Each method's surface, computed when called."""
+    return {
+        "ECR true": lambda: ecr_surface(local, window, true_variance, **options),
+        "ECR learned": lambda: ecr_surface(local, window, learned, **options),
+        "ECR uniform mean": lambda: ecr_surface(local, window, mean, **options),
+        "ECR linear true": lambda: ecr_surface(local, window, true_variance, response="linear", **options),
+        "Mixture true": lambda: mixture_surface(local, window, true_variance, **options),
+        "ENMI truncated true": lambda: enmi_surface(local, window, true_variance, weights="truncated", **options),
+        "ENMI reliability true": lambda: enmi_surface(local, window, true_variance, reliability=True, **options),
+        "ENMI true": lambda: enmi_surface(local, window, true_variance, **options),
+        "ENMI learned": lambda: enmi_surface(local, window, learned, **options),
+        "NMI": lambda: nmi_surface(local, window, **options),
+        "NCC": lambda: ncc_surface(local, window, local_mask=mask),
+    }
 
 
 def _outcomes(score: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -283,8 +301,10 @@ def _paired(table, key, first: str, second: str) -> tuple[float, float]:
 
 
 def _print_claims(table, keys) -> None:
+    present = set(methods_in(table))
     print("\n### Paired differences of ECR (true variance) against each control: cells where it is > 1 SE below\n")
-    below = {control: [] for control in ("ENMI best uniform", "ENMI uniform mean", "NMI", "NCC", "ECR uniform mean")}
+    controls = ("ENMI best uniform", "ENMI uniform mean", "NMI", "NCC", "ECR uniform mean")
+    below = {control: [] for control in controls if control in present}
     for key in keys:
         for control in below:
             mean, error = _paired(table, key, "ECR true", control)
@@ -295,20 +315,32 @@ def _print_claims(table, keys) -> None:
             f"- vs {control}: {len(keys) - len(failures)}/{len(keys)} cells within 1 SE or above"
             + ("; below in " + "; ".join(failures) if failures else "")
         )
-    print("\n### ECR true minus ENMI uniform mean, camera-like variance, two highest levels (need >= 2 SE)\n")
-    levels = sorted({key[3] for key in keys})
-    for key in keys:
-        if key[1] == "camera-like" and key[3] in levels[-2:]:
-            mean, error = _paired(table, key, "ECR true", "ENMI uniform mean")
-            verdict = "yes" if mean >= 2 * error and mean > 0 else "no"
-            print(
-                f"- {key[0]}, {key[2]}, sigma {key[3]:g}: {mean:+.2f} ± {error:.2f} "
-                f"({mean / max(error, 1e-12):.1f} SE): {verdict}"
-            )
+    if {"ECR linear true", "NCC"} <= present:
+        identity = [key for key in keys if key[2] == "identity"]
+        failures = []
+        for key in identity:
+            mean, error = _paired(table, key, "ECR linear true", "NCC")
+            if mean < -error - 1e-12:
+                failures.append(f"{key[0]}/{key[1]}/{key[3]:g}: {mean:+.2f} ± {error:.2f}")
+        print(
+            f"- ECR with the linear response vs NCC, identity response: {len(identity) - len(failures)}/"
+            f"{len(identity)} cells within 1 SE or above" + ("; below in " + "; ".join(failures) if failures else "")
+        )
+    if "ENMI uniform mean" in present:
+        print("\n### ECR true minus ENMI uniform mean, camera-like variance, two highest levels (need >= 2 SE)\n")
+        levels = sorted({key[3] for key in keys})
+        for key in keys:
+            if key[1] == "camera-like" and key[3] in levels[-2:]:
+                mean, error = _paired(table, key, "ECR true", "ENMI uniform mean")
+                verdict = "yes" if mean >= 2 * error and mean > 0 else "no"
+                print(
+                    f"- {key[0]}, {key[2]}, sigma {key[3]:g}: {mean:+.2f} ± {error:.2f} "
+                    f"({mean / max(error, 1e-12):.1f} SE): {verdict}"
+                )
     print("\n### Non-monotonic response: is ECR (true variance) the best of the other scores (within 1 SE)?\n")
     for key in keys:
         if key[2] == "nonmonotonic":
-            rates = {method: table[(*key, method)][1] for method in methods_in(table) if not method.startswith("ECR ")}
+            rates = {method: table[(*key, method)][1] for method in present if not method.startswith("ECR ")}
             rates["ECR true"] = table[(*key, "ECR true")][1]
             winner = max(rates, key=rates.get)
             mean, error = _paired(table, key, "ECR true", winner)
@@ -317,16 +349,17 @@ def _print_claims(table, keys) -> None:
                 f"- {key[0]}, {key[1]}, sigma {key[3]:g}: best {winner} ({rates[winner]}); "
                 f"ECR true {mean:+.2f} ± {error:.2f}: {verdict}"
             )
-    print("\n### ECR learned mask minus ECR true variance: cells > 1 SE below\n")
-    failures = []
-    for key in keys:
-        mean, error = _paired(table, key, "ECR learned", "ECR true")
-        if mean < -error - 1e-12:
-            failures.append(f"{key[0]}/{key[1]}/{key[2]}/{key[3]:g}: {mean:+.2f} ± {error:.2f}")
-    print(
-        f"- {len(keys) - len(failures)}/{len(keys)} cells within 1 SE or above"
-        + ("; below in " + "; ".join(failures) if failures else "")
-    )
+    if "ECR learned" in present:
+        print("\n### ECR learned mask minus ECR true variance: cells > 1 SE below\n")
+        failures = []
+        for key in keys:
+            mean, error = _paired(table, key, "ECR learned", "ECR true")
+            if mean < -error - 1e-12:
+                failures.append(f"{key[0]}/{key[1]}/{key[2]}/{key[3]:g}: {mean:+.2f} ± {error:.2f}")
+        print(
+            f"- {len(keys) - len(failures)}/{len(keys)} cells within 1 SE or above"
+            + ("; below in " + "; ".join(failures) if failures else "")
+        )
 
 
 def _print_edges(table, keys) -> None:
@@ -344,6 +377,7 @@ COLOURS = {
     "ECR learned": "#ff9896",
     "ECR uniform mean": "#e377c2",
     "Mixture true": "#9467bd",
+    "ECR linear true": "#17becf",
     "ENMI truncated true": "#8c564b",
     "ENMI reliability true": "#c49c94",
     "ENMI true": "#1f77b4",
@@ -377,6 +411,7 @@ def _plot(table, keys, path: Path) -> None:
         "ECR uniform mean": ".:",
         "ENMI learned": "<--",
         "Mixture true": "*-",
+        "ECR linear true": "h-",
         "ENMI truncated true": "1-",
         "ENMI reliability true": "2-",
     }
@@ -418,6 +453,7 @@ def main(argv=None) -> None:
     parser.add_argument("--levels", nargs="+", type=float, default=list(LEVELS), help="mean noise sigmas")
     parser.add_argument("--pairs", type=int, default=PAIRS, help=f"aligned pairs behind the learned mask ({PAIRS})")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (one torch thread each)")
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="a subset of the methods")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=Path("/tmp/enmi_yardstick"), help="CSV and PNG path stem")
     parser.add_argument("--report", action="store_true", help="only print the tables of an existing --output CSV")
@@ -453,6 +489,7 @@ def main(argv=None) -> None:
                 + PROFILES.index(profile) * 10
                 + RESPONSES.index(response),
                 args.pairs,
+                tuple(args.methods),
             )
             for map_name, profile, response in chosen
         ]

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating
+from enmi_torch._checks import check_floating, check_option
 from enmi_torch.binning import bin_width, hard_bin_index
 from enmi_torch.histogram import _prepare
 
@@ -51,6 +51,31 @@ class BinSums(NamedTuple):
     count: Tensor
     weight: Tensor
     weighted_value: Tensor
+
+
+RESPONSES = ("binned", "linear")
+
+
+def linear_llr(
+    weight: Tensor,
+    weighted_value: Tensor,
+    weighted_reference: Tensor,
+    weighted_square: Tensor,
+    weighted_product: Tensor,
+) -> Tensor:
+    """Log-likelihood ratio of an increasing affine response from weighted sums (any shape), 0 for a falling one.
+
+    With ``W = sum w``, ``S_v = sum w v``, ``S_r = sum w r``, ``S_rr = sum w r^2`` and ``S_vr = sum w v r`` over the
+    valid pixels, the generalised-least-squares fit of ``v = a + b r`` explains ``(S_vr - S_v S_r / W)^2 /
+    (S_rr - S_r^2 / W)`` of the weighted sum of squares; half of it is the log-likelihood ratio against ``v = a``.
+    A placement where ``b <= 0`` (inverted contrast) or the reference is constant scores 0.
+    """
+    tiny = torch.finfo(weight.dtype).tiny
+    safe = weight.clamp_min(tiny)
+    covariance = weighted_product - weighted_value * weighted_reference / safe
+    spread = weighted_square - weighted_reference.square() / safe
+    defined = (spread > 64 * torch.finfo(weight.dtype).eps * weighted_square.abs()) & (covariance > 0)
+    return torch.where(defined, 0.5 * covariance.square() / torch.where(defined, spread, 1.0), 0.0)
 
 
 def default_model_variance(bins: int, value_range: tuple[float, float]) -> float:
@@ -103,6 +128,7 @@ def ecr(
     value_range: tuple[float, float] = (0.0, 256.0),
     model_variance: float | None = None,
     valid_mask: Tensor | None = None,
+    response: str = "binned",
 ) -> Tensor:
     """Enhanced correlation ratio: the noise-aware Gaussian log-likelihood ratio per valid pixel, in nats, ``(B,)``.
 
@@ -116,6 +142,10 @@ def ecr(
         model_variance: ``tau^2 >= 0`` added to every pixel's variance (see the module docstring); ``None`` for
             ``bin_width^2 / 12``.
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
+        response: the sensor's response to the map: ``"binned"`` (one mean per reference bin: any function,
+            monotonic or not; the default) or ``"linear"`` (``a + b r`` with ``b > 0``, the reference values
+            themselves: the noise-aware form of normalised cross-correlation, with a penalty of one degree of
+            freedom; ``bins`` only check that the reference is resolved).
 
     Returns:
         ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: larger the better the reference bins
@@ -140,6 +170,10 @@ def ecr(
         captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
     )
     tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
+    check_option("response", response, RESPONSES)
+    if response == "linear":
+        score = _linear_ecr(inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight)
+        return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
     sums = bin_sums(
         inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight, inputs.bins, inputs.value_range
     )
@@ -178,3 +212,23 @@ def bin_sums(
         source = per_pixel.expand(reference.shape).reshape(-1)
         sums.append(per_pixel.new_zeros(samples.numel() * bins).index_add(0, cells, source).view(*samples, bins))
     return BinSums(*sums)
+
+
+def _linear_ecr(captured: Tensor, reference: Tensor, total_variance: Tensor, valid: Tensor | None) -> Tensor:
+    """ECR of the increasing affine response for ``(B, N)`` captured values over ``(C, B, N)`` references."""
+    weight = total_variance.reciprocal()
+    if valid is not None:
+        weight = weight * valid
+    count = (torch.ones_like(captured) if valid is None else valid).sum(-1)
+    # Centring both images keeps the sums free of cancellation; the score does not depend on the centres.
+    total = weight.sum(-1, keepdim=True)
+    value = captured - ((weight * captured).sum(-1, keepdim=True) / total).detach()
+    centred = reference - ((weight * reference).sum(-1, keepdim=True) / total).detach()
+    sums = (
+        weight.sum(-1).expand(centred.shape[:-1]),
+        (weight * value).sum(-1).expand(centred.shape[:-1]),
+        (weight * centred).sum(-1),
+        (weight * centred.square()).sum(-1),
+        (weight * value * centred).sum(-1),
+    )
+    return (linear_llr(*sums) - 0.5) / count.clamp_min(1)

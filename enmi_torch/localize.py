@@ -44,7 +44,7 @@ from enmi_torch._checks import (
     check_value_range,
 )
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS
-from enmi_torch.correlation_ratio import check_model_variance
+from enmi_torch.correlation_ratio import RESPONSES, check_model_variance
 from enmi_torch.mixture import mixture_surface
 from enmi_torch.score_surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance.base import VarianceModel
@@ -93,6 +93,7 @@ def localize(
     weights: str = "mass",
     log_prior: Tensor | None = None,
     model_variance: float | None = None,
+    response: str = "binned",
     reliability: bool = False,
     em_steps: int = 0,
     local_mask: Tensor | None = None,
@@ -126,6 +127,8 @@ def localize(
         log_prior: optional log prior of the amplitudes per bin (ENMI): ``(bins,)`` for every sample or
             ``(B, bins)``, one per sample (applied to all of that sample's yaws).
         model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
+        response: ECR's model of the sensor's response: ``"binned"`` (any function of the map, the default) or
+            ``"linear"`` (increasing affine: the noise-aware normalised cross-correlation).
         reliability: reliability-weighted counts (ENMI, see :func:`~enmi_torch.information.enmi`).
         em_steps: EM steps of the mixture score (``metric="mixture"``, see :func:`~enmi_torch.mixture.mixture_surface`:
             shifts that its cheap first stage does not rescore are ``-inf`` in ``surface``).
@@ -196,6 +199,9 @@ def localize(
         raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
     if metric == "ecr":
         check_model_variance(model_variance, bins, value_range)
+    check_option("response", response, RESPONSES)
+    if response != "binned" and metric != "ecr":
+        raise ValueError(f"response is only used by metric='ecr', got metric={metric!r}")
     if reliability is not False and metric != "enmi":
         raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
     if em_steps != 0 and metric != "mixture":
@@ -206,7 +212,8 @@ def localize(
         local_valid = _local_valid(local, local_mask, variance)
         variance_map = _variance_map(local, variance)
         map_valid = _map_valid(prior_map, map_mask)
-        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, model_variance, reliability, em_steps)
+        ecr_options = {"model_variance": model_variance, "response": response}
+        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps)
         search = _Search(
             local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
         )
@@ -433,9 +440,9 @@ def _map_valid(prior_map: Tensor, map_mask: Tensor | None) -> Tensor:
 class _ScoreFunction:
     """The chosen surface function with its settings."""
 
-    def __init__(self, metric, bins, value_range, weights, log_prior, model_variance, reliability, em_steps) -> None:
+    def __init__(self, metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps) -> None:
         self.metric, self.bins, self.value_range = metric, bins, value_range
-        self.weights, self.log_prior, self.model_variance = weights, log_prior, model_variance
+        self.weights, self.log_prior, self.ecr_options = weights, log_prior, ecr_options
         self.reliability, self.em_steps = reliability, em_steps
 
     def __call__(self, local, window, variance, local_mask, window_mask, *, sample: int = 0) -> Surface:
@@ -461,7 +468,7 @@ class _ScoreFunction:
                 variance,
                 bins=self.bins,
                 value_range=self.value_range,
-                model_variance=self.model_variance,
+                **self.ecr_options,
                 **masks,
             )
         return enmi_surface(

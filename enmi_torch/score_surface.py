@@ -43,7 +43,14 @@ from enmi_torch._checks import (
 )
 from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights, reliability_weights
-from enmi_torch.correlation_ratio import BinSums, check_model_variance, ecr, ecr_from_bin_sums
+from enmi_torch.correlation_ratio import (
+    RESPONSES,
+    BinSums,
+    check_model_variance,
+    ecr,
+    ecr_from_bin_sums,
+    linear_llr,
+)
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
 
@@ -149,6 +156,7 @@ def ecr_surface(
     model_variance: float | None = None,
     local_mask: Tensor | None = None,
     window_mask: Tensor | None = None,
+    response: str = "binned",
 ) -> Surface:
     """ECR (:func:`~enmi_torch.correlation_ratio.ecr`) of ``local`` at every placement inside ``window``, by FFT.
 
@@ -167,6 +175,8 @@ def ecr_surface(
         model_variance: ``tau^2`` (see :func:`~enmi_torch.correlation_ratio.ecr`); ``None`` for ``bin_width^2 / 12``.
         local_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
         window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window; ``False`` cells are left out.
+        response: ``"binned"`` or ``"linear"`` (see :func:`~enmi_torch.correlation_ratio.ecr`; the linear response
+            takes nine correlations of local and window planes, whatever ``bins``).
 
     Returns:
         :class:`Surface`; ``score[b, u, v]`` equals
@@ -187,8 +197,11 @@ def ecr_surface(
     value_range = check_value_range(value_range)
     model_variance = check_model_variance(model_variance, bins, value_range)
     inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    check_option("response", response, RESPONSES)
     check_surface_memory(inputs.local, inputs.window, bins)
     with torch.no_grad():
+        if response == "linear":
+            return _linear_ecr_surface(inputs, model_variance)
         return _ecr_surface(inputs, model_variance, bins, value_range)
 
 
@@ -273,6 +286,7 @@ def direct_surface(
     window_mask: Tensor | None = None,
     reliability: bool = False,
     em_steps: int = 0,
+    response: str = "binned",
 ) -> Surface:
     """The reference for the FFT surfaces: a loop over placements, one joint histogram (or Pearson sum) each.
 
@@ -290,6 +304,7 @@ def direct_surface(
         weights: ``"mass"`` or ``"density"`` (ENMI).
         log_prior: optional log prior per bin (ENMI).
         model_variance: ``tau^2`` (ECR).
+        response: ``"binned"`` or ``"linear"`` (ECR).
         reliability: reliability-weighted counts (ENMI), weights from each whole local image's valid pixels.
         em_steps: EM steps of the mixture score (``metric="mixture"``, every placement scored exactly by
             :func:`~enmi_torch.mixture.direct_mixture_surface`).
@@ -368,6 +383,7 @@ def direct_surface(
                             value_range=value_range,
                             model_variance=model_variance,
                             valid_mask=valid[None, None],
+                            response=response,
                         )[0]
                     )
                 elif count == 0:
@@ -742,4 +758,34 @@ def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range:
         per_bin = BinSums(count.movedim(0, -1), sums[0, :present].movedim(0, -1), sums[1, :present].movedim(0, -1))
         scores.append(ecr_from_bin_sums(per_bin))
         overlaps.append(count.sum(0))
+    return Surface(torch.stack(scores), torch.stack(overlaps))
+
+
+def _linear_ecr_surface(inputs: _Inputs, model_variance: float) -> Surface:
+    """ECR of the increasing affine response at every placement: weighted sums from correlations of planes."""
+    batch, height, width = inputs.local.shape
+    windows = inputs.window.shape[0]
+    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
+    valid = inputs.local_valid.to(inputs.local.dtype)
+    weight = valid / (inputs.variance + model_variance)
+    centre = (weight * inputs.local).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
+    window_valid = inputs.window_valid.to(inputs.local.dtype)
+    # Centring both images keeps the correlations small, so the FFT round-off stays relative.
+    window = (inputs.window - _masked_mean(inputs.window, window_valid)) * window_valid
+    scores, overlaps = [], []
+    reference = None
+    for sample in range(batch):
+        window_index = sample if windows > 1 else 0
+        if reference is None or windows > 1:
+            planes = torch.stack([window_valid[window_index], window[window_index], window[window_index].square()])
+            reference = correlator.spectra(planes, captured=False)
+        planes = torch.stack([weight[sample], weight[sample] * (inputs.local[sample] - centre[sample]), valid[sample]])
+        captured = correlator.spectra(planes, captured=True)
+        block = inputs.local.new_empty(3, 3, correlator.rows, correlator.cols)
+        for index, start, part in correlator.blocks(captured, reference):
+            block[index, start : start + part.shape[0]] = part
+        count = block[2, 0].round()
+        llr = linear_llr(block[0, 0], block[1, 0], block[0, 1], block[0, 2], block[1, 1])
+        scores.append(torch.where(count > 0, (llr - 0.5) / count.clamp_min(1), 0.0))
+        overlaps.append(count)
     return Surface(torch.stack(scores), torch.stack(overlaps))

@@ -176,3 +176,40 @@ def test_ecr_refuses_bad_arguments(kwargs, message):
     variance = arguments.pop("variance")
     with pytest.raises(ValueError, match=message):
         ecr(captured, reference, variance, **arguments)
+
+
+def _numpy_linear_ecr(captured, reference, variance, model_variance, valid):
+    """Independent reference: weighted least squares of v on (1, r) with numpy, half the explained sum of squares."""
+    keep = np.asarray(valid, bool).ravel()
+    values = np.asarray(captured, np.float64).ravel()[keep]
+    design = np.stack([np.ones(keep.sum()), np.asarray(reference, np.float64).ravel()[keep]], 1)
+    weight = 1.0 / (np.asarray(variance, np.float64).ravel()[keep] + model_variance)
+    root = np.sqrt(weight)
+    coefficients, *_ = np.linalg.lstsq(design * root[:, None], values * root, rcond=None)
+    fitted = design @ coefficients
+    mean = np.sum(weight * values) / np.sum(weight)
+    explained = np.sum(weight * (fitted - mean) ** 2)
+    llr = 0.5 * explained if coefficients[1] > 0 else 0.0
+    return (llr - 0.5) / keep.sum()
+
+
+def test_linear_response_equals_weighted_least_squares_and_ignores_inverted_contrast(dtype, tolerance):
+    _, reference, variance, valid = _case(dtype)
+    linear = (
+        0.6 * reference + 30 + torch.randn(reference.shape, generator=torch.Generator().manual_seed(9), dtype=dtype) * 9
+    )
+    result = ecr(linear, reference, variance, model_variance=4.0, valid_mask=valid, response="linear")
+    expected = [_numpy_linear_ecr(linear[b, 0], reference[b, 0], variance[b, 0], 4.0, valid[b, 0]) for b in range(2)]
+    torch.testing.assert_close(result, torch.tensor(expected, dtype=dtype), **tolerance)
+    # An inverted image fits v = a + b r only with b < 0: no evidence for the increasing response.
+    inverted = ecr(255 - linear, reference, variance, model_variance=4.0, valid_mask=valid, response="linear")
+    torch.testing.assert_close(inverted, torch.full_like(inverted, -0.5) / valid.flatten(1).sum(1).to(dtype))
+    # With one variance it is the squared Pearson correlation times the captured spread over the noise variance.
+    values, map_values = linear[0].flatten().double(), reference[0].flatten().double()
+    correlation = torch.corrcoef(torch.stack([values, map_values]))[0, 1]
+    assert correlation > 0
+    closed_form = 0.5 * correlation**2 * values.var(unbiased=False) / (50.0 + 4.0) - 0.5 / values.numel()
+    uniform = ecr(linear[:1], reference[:1], 50.0, model_variance=4.0, response="linear")
+    assert uniform.item() == pytest.approx(closed_form.item(), rel=1e-4)
+    with pytest.raises(ValueError, match="response must be one of"):
+        ecr(linear, reference, variance, response="cubic")

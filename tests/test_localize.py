@@ -411,3 +411,14 @@ def test_a_log_prior_per_sample_applies_to_that_sample_at_every_yaw(gravel_map, 
     assert not torch.allclose(batched.surface[0], other.surface[0])
     module = Localizer(shifts=4, yaws=yaws, bins=16, metric="enmi", log_prior=priors[0].double())
     torch.testing.assert_close(module(local[:1], gravel_map, 36.0, center=(80, 80)).surface, batched.surface[:1])
+
+
+def test_ecr_linear_response_in_the_search_equals_the_direct_loop(gravel_map):
+    local = _noisy(_cut(gravel_map, 82, 79, size=16), 5.0) * 0.8 + 12
+    result = localize(local, gravel_map, 25.0, shifts=(2, 3), center=(80, 80), response="linear", min_overlap=0.1)
+    window = gravel_map[..., 80 - 8 - 2 : 80 - 8 + 16 + 2, 80 - 8 - 3 : 80 - 8 + 16 + 3]
+    expected = direct_surface(local, window, 25.0, metric="ecr", response="linear")
+    torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
+    assert result.pose[0, :2].round().tolist() == [-1.0, 2.0]
+    with pytest.raises(ValueError, match="response is only used by metric='ecr'"):
+        localize(local, gravel_map, 25.0, metric="enmi", response="linear")

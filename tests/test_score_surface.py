@@ -341,3 +341,14 @@ def test_float32_surface_scores_a_nearly_constant_overlap_like_nmi():
     # A truly constant overlap still scores 1 (the odd pixel outside the local footprint).
     flat = torch.full((1, 1, 210, 210), 100.0)
     assert nmi_surface(flat[..., :200, :200], flat).score[0, 5, 5].item() == 1.0
+
+
+@pytest.mark.parametrize("masks", ["none", "both"])
+def test_ecr_linear_fft_surface_equals_direct_loop(masks, dtype):
+    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    chosen = {"local_mask": local_mask, "window_mask": window_mask} if masks == "both" else {}
+    fast = score_surface.ecr_surface(local.to(dtype), window.to(dtype), variance.to(dtype), response="linear", **chosen)
+    slow = direct_surface(local, window, variance, metric="ecr", response="linear", **chosen)
+    tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-3}
+    torch.testing.assert_close(fast.score.double(), slow.score, **tolerance)
+    torch.testing.assert_close(fast.overlap.double(), slow.overlap, rtol=0, atol=0)
