@@ -6,7 +6,7 @@ from torch import Tensor, nn
 
 from enmi_torch._checks import check_bins, check_option, check_value_range
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS
-from enmi_torch.correlation_ratio import check_model_variance, ecr
+from enmi_torch.correlation_ratio import RESPONSES, check_model_variance, ecr
 from enmi_torch.information import enmi, nmi
 from enmi_torch.mixture import mixture_information
 from enmi_torch.variance.base import VarianceModel
@@ -158,6 +158,7 @@ class ECRLoss(nn.Module):
         model_variance: ``tau^2 >= 0``; ``None`` for ``bin_width^2 / 12``.
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel`.
         reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+        response: ``"binned"`` (any response) or ``"linear"`` (see :func:`~enmi_torch.ecr`).
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
@@ -173,11 +174,13 @@ class ECRLoss(nn.Module):
         model_variance: float | None = None,
         variance_model: VarianceModel | None = None,
         reduction: str = "mean",
+        response: str = "binned",
     ) -> None:
         super().__init__()
         self.bins = check_bins(bins)
         self.value_range = check_value_range(value_range)
         self.model_variance = check_model_variance(model_variance, self.bins, self.value_range)
+        self.response = check_option("response", response, RESPONSES)
         self.reduction = check_option("reduction", reduction, REDUCTIONS)
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
             raise TypeError(
@@ -202,6 +205,7 @@ class ECRLoss(nn.Module):
             value_range=self.value_range,
             model_variance=self.model_variance,
             valid_mask=valid_mask,
+            response=self.response,
         )
         return _reduce(-score, self.reduction)
 

@@ -157,6 +157,11 @@ def test_ecr_loss_agrees_with_function_and_its_variance_model():
     assert (variance.grad[~valid] == 0).all()
     with pytest.raises(ValueError, match="variance must be None when ECRLoss has a variance_model"):
         with_model(captured, reference, 1.0)
+    linear = ECRLoss(bins=5, reduction="none", response="linear")
+    torch.testing.assert_close(
+        linear(captured, reference, variance.detach(), valid),
+        -ecr(captured, reference, variance.detach(), bins=5, valid_mask=valid, response="linear"),
+    )
 
 
 @pytest.mark.parametrize(
