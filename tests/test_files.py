@@ -1,5 +1,6 @@
 """``.npy`` files named by users: headers checked before reading, messages naming the file and where it came from."""
 
+import json
 import pickle
 import re
 
@@ -144,3 +145,38 @@ def test_a_text_file_named_npy_is_reported_as_not_a_npy_file(tmp_path):
         read_npy(tmp_path / "text.npy", "--map")
     with pytest.raises(ValueError, match=r"--map '.*missing\.npy' cannot be read"):
         read_npy(tmp_path / "missing.npy", "--map")
+
+
+def test_sixteen_bit_png_keeps_its_values_for_the_pairs_and_the_command(tmp_path, capsys):
+    from PIL import Image
+
+    from enmi_torch._files import read_image
+
+    values = np.random.default_rng(3).integers(0, 65536, (16, 16)).astype(np.uint16)  # beyond 8 bits
+    Image.fromarray(values).save(tmp_path / "deep.png")
+    np.testing.assert_array_equal(read_image(tmp_path / "deep.png", "--map"), values)
+    Image.fromarray(np.zeros((4, 4, 3), dtype=np.uint8)).save(tmp_path / "colour.png")
+    with pytest.raises(ValueError, match=r"--map '.*colour\.png' is not a readable image: .*single-channel"):
+        read_image(tmp_path / "colour.png", "--map")
+    local = values[4:12, 5:13].astype(np.float32)
+    np.save(tmp_path / "local.npy", local)
+    main(
+        [
+            "--map",
+            str(tmp_path / "deep.png"),
+            "--local",
+            str(tmp_path / "local.npy"),
+            "--value-range",
+            "0",
+            "65536",
+            "--shifts",
+            "2",
+            "--center",
+            "8",
+            "9",
+            "--metric",
+            "ncc",
+        ]
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert (round(report["dx"]), round(report["dy"])) == (0, 0)
