@@ -14,9 +14,11 @@ from enmi_torch.camera import RoadCamera
 from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
+from enmi_torch.localize import Localization, Localizer
 from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss
 from enmi_torch.mixture import mixture_information, mixture_surface
 from enmi_torch.rectify import GroundGrid, rectify, unrectify
+from enmi_torch.score_surface import Surface, direct_surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance import (
     ConstantVariance,
     EmpiricalVariance,
@@ -38,18 +40,24 @@ __all__ = [
     "EmpiricalVariance",
     "GroundGrid",
     "LearnedVariance",
+    "Localization",
+    "Localizer",
     "MemoryBudgetError",
     "MixtureLoss",
     "NMILoss",
     "PerspectiveVariance",
     "RoadCamera",
+    "Surface",
     "VarianceModel",
     "bin_centers",
     "bin_edges",
+    "direct_surface",
     "ecr",
     "ecr_from_bin_sums",
+    "ecr_surface",
     "empirical_variance",
     "enmi",
+    "enmi_surface",
     "entropies",
     "gaussian_log_prior",
     "gaussian_nll",
@@ -59,8 +67,10 @@ __all__ = [
     "memory_budget",
     "mixture_information",
     "mixture_surface",
+    "ncc_surface",
     "nmi",
     "nmi_from_joint_histogram",
+    "nmi_surface",
     "parzen_weights",
     "perspective_variance",
     "rectify",

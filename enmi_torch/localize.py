@@ -78,6 +78,58 @@ class Localization(NamedTuple):
     margin: Tensor
     yaws: Tensor
 
+    @property
+    def dx(self) -> Tensor:
+        """``(B,)`` shift along the map's columns (x), in cells, from the prior pose."""
+        return self.pose[:, 0]
+
+    @property
+    def dy(self) -> Tensor:
+        """``(B,)`` shift along the map's rows (y, down), in cells, from the prior pose."""
+        return self.pose[:, 1]
+
+    @property
+    def yaw(self) -> Tensor:
+        """``(B,)`` rotation of the local image against the map, degrees, counter-clockwise as displayed."""
+        return self.pose[:, 2]
+
+    def local_to_map(self, center: tuple[int, int] | Tensor, local_shape: tuple[int, int]) -> Tensor:
+        """``(B, 3, 3)`` transform from local pixel coordinates ``(x, y)`` to map coordinates ``(x, y)``.
+
+        Points are ``(x, y) = (column, row)`` with y down, as in kornia. A local pixel ``p`` shows the map at
+        ``T @ [x, y, 1]``: the search turns the local image by ``-yaw`` about its centre ``((w - 1) / 2, (h - 1) / 2)``
+        (kornia's :func:`~kornia.geometry.transform.rotate`) and puts its pixel ``(h // 2, w // 2)`` on map cell
+        ``(row + dy, col + dx)``.
+
+        Args:
+            center: the ``center`` given to :func:`localize`: ``(row, col)`` or ``(B, 2)`` integers.
+            local_shape: ``(h, w)`` of the local images.
+
+        Example:
+            >>> result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
+            >>> transform = result.local_to_map((10, 20), (5, 5))[0]  # a 90 degree turn about the centre pixel
+            >>> (transform @ torch.tensor([2.0, 2.0, 1.0])).tolist()  # the centre pixel: column 20 + 2, row 10 - 1
+            [22.0, 9.0, 1.0]
+            >>> (transform @ torch.tensor([4.0, 2.0, 1.0])).round().tolist()  # two pixels right: two cells down
+            [22.0, 11.0, 1.0]
+        """
+        height, width = local_shape
+        pose = self.pose.double()
+        centers = torch.as_tensor(center, dtype=torch.float64, device=pose.device).reshape(-1, 2).expand(len(pose), 2)
+        angle = torch.deg2rad(-pose[:, 2])  # the search turns the local image by -yaw
+        cos, sin = angle.cos(), angle.sin()
+        middle_x, middle_y = (width - 1) / 2, (height - 1) / 2
+        # OpenCV/kornia rotation about the centre (source to destination), then the placement of the centre pixel.
+        shift_x = centers[:, 1] + pose[:, 0] - width // 2
+        shift_y = centers[:, 0] + pose[:, 1] - height // 2
+        transform = torch.zeros(len(pose), 3, 3, dtype=torch.float64, device=pose.device)
+        transform[:, 0, 0], transform[:, 0, 1] = cos, sin
+        transform[:, 1, 0], transform[:, 1, 1] = -sin, cos
+        transform[:, 0, 2] = (1 - cos) * middle_x - sin * middle_y + shift_x
+        transform[:, 1, 2] = sin * middle_x + (1 - cos) * middle_y + shift_y
+        transform[:, 2, 2] = 1
+        return transform.to(self.pose.dtype)
+
 
 def localize(
     local: Tensor,

@@ -422,3 +422,29 @@ def test_ecr_linear_response_in_the_search_equals_the_direct_loop(gravel_map):
     assert result.pose[0, :2].round().tolist() == [-1.0, 2.0]
     with pytest.raises(ValueError, match="response is only used by metric='ecr'"):
         localize(local, gravel_map, 25.0, metric="enmi", response="linear")
+
+
+def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(gravel_map):
+    # A rotated cut on a non-square local image: a swapped axis or a mirrored yaw puts pixels on other map cells.
+    local = _cut(gravel_map, 86, 75, size=40, yaw=8.0)[..., 4:36, :]  # (1, 1, 32, 40)
+    center = (80, 80)
+    result = localize(local, gravel_map, 4.0, shifts=(8, 9), center=center, yaws=range(-12, 13, 2), bins=32)
+    assert result.dx.shape == result.yaw.shape == (1,)
+    assert abs(result.yaw.item() - 8.0) <= 1.0
+    rows, cols = torch.meshgrid(torch.arange(8.0, 24.0), torch.arange(8.0, 32.0), indexing="ij")  # interior
+    points = torch.stack([cols.flatten(), rows.flatten(), torch.ones(rows.numel())]).double()
+
+    def mismatch(transform):
+        mapped = (transform[0] @ points)[:2]
+        size = gravel_map.shape[-1]
+        grid = (mapped.T / (size - 1) * 2 - 1).reshape(1, -1, 1, 2)
+        sampled = torch.nn.functional.grid_sample(gravel_map, grid, align_corners=True)[0, 0, :, 0]
+        return (sampled - local[0, 0, 8:24, 8:32].flatten()).abs().mean().item()
+
+    right = mismatch(result.local_to_map(center, (32, 40)))
+    assert right < 3.0  # grey levels: the sampled map reproduces the local image (the texture varies by ~40)
+    mirrored = Localization(result.pose * torch.tensor([1.0, 1.0, -1.0], dtype=result.pose.dtype), *result[1:])
+    swapped = Localization(result.pose[:, [1, 0, 2]], *result[1:])
+    assert right < 0.5 * mismatch(mirrored.local_to_map(center, (32, 40)))
+    assert right < 0.5 * mismatch(swapped.local_to_map(center, (32, 40)))
+    assert right < 0.5 * mismatch(result.local_to_map(center, (40, 32)))
