@@ -273,7 +273,7 @@ def report(rows: list, output: Path) -> None:
 
 def _print_summary(table, keys) -> None:
     """Success rate averaged over the maps, per response, profile and noise level (the README table)."""
-    print("\n### Mean success rate over the maps (each map: 100 paired trials)\n")
+    print(f"\n### Mean success rate over the maps (each map: {_trials(table, keys[0])} paired trials)\n")
     print("| response | variance | mean sigma | " + " | ".join(methods_in(table)) + " |")
     print("|---|---|---|" + "---|" * len(methods_in(table)))
     groups = sorted({key[1:] for key in keys}, key=lambda g: (RESPONSES.index(g[1]), PROFILES.index(g[0]), g[2]))
