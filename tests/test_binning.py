@@ -141,3 +141,14 @@ def test_reliability_weights_follow_the_signal_share_of_the_variance():
     equal = reliability_weights(values, torch.full_like(values, 50.0))
     assert torch.allclose(equal, equal[:, :1].expand_as(equal))
     assert result[0, variance[0].argmax()] <= result[0][valid[0]].min() + 1e-12 or not valid[0, variance[0].argmax()]
+
+
+def test_truncated_weights_put_values_far_outside_the_range_in_the_nearest_edge_bin():
+    from enmi_torch.binning import truncated_likelihood_weights
+
+    values = torch.tensor([-1e6, -5e3, 1e6, 5e3], dtype=torch.float64)
+    weights = truncated_likelihood_weights(values, torch.full_like(values, 400.0), 8, (0.0, 256.0))
+    expected = torch.zeros(4, 8, dtype=torch.float64)
+    expected[:2, 0] = 1
+    expected[2:, -1] = 1
+    torch.testing.assert_close(weights, expected, rtol=0, atol=1e-12)

@@ -261,3 +261,22 @@ def test_masked_nan_pixels_in_either_image_are_left_out_for_every_kernel(kernel,
         for leaf in (captured_leaf, reference_leaf):
             if leaf.grad is not None:
                 assert torch.isfinite(leaf.grad).all() and (leaf.grad[~mask.expand_as(leaf)] == 0).all()
+
+
+def test_pixel_weights_scale_each_valid_pixel_and_masked_pixels_stay_out(dtype, tolerance):
+    generator = torch.Generator().manual_seed(11)
+    captured = torch.rand(1, 1, 4, 6, generator=generator, dtype=dtype) * 256
+    reference = torch.rand(1, 1, 4, 6, generator=generator, dtype=dtype) * 256
+    weight = torch.rand(1, 1, 4, 6, generator=generator, dtype=dtype) + 0.5
+    mask = torch.zeros(1, 1, 4, 6, dtype=torch.bool)
+    mask[..., 1:3, 1:5] = True
+    masked = joint_histogram(captured, reference, bins=5, valid_mask=mask, pixel_weight=weight)
+    expected = torch.zeros(5, 5, dtype=torch.float64)
+    for row in range(1, 3):
+        for col in range(1, 5):
+            i = min(int(captured[0, 0, row, col] // (256 / 5)), 4)
+            j = min(int(reference[0, 0, row, col] // (256 / 5)), 4)
+            expected[i, j] += weight[0, 0, row, col].item()
+    torch.testing.assert_close(masked[0].double(), expected, **tolerance)
+    with pytest.raises(ValueError, match="pixel_weight must be >= 0 where valid"):
+        joint_histogram(captured, reference, bins=5, pixel_weight=-weight)

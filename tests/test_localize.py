@@ -448,3 +448,14 @@ def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(grav
     assert right < 0.5 * mismatch(mirrored.local_to_map(center, (32, 40)))
     assert right < 0.5 * mismatch(swapped.local_to_map(center, (32, 40)))
     assert right < 0.5 * mismatch(result.local_to_map(center, (40, 32)))
+
+
+def test_yaw_parabola_and_yaw_ranges_are_exact():
+    from enmi_torch.localize import _parabola_offset, _parse_yaws
+
+    # A parabola with its vertex 0.3 steps right of the middle sample.
+    values = torch.tensor([-((x - 0.3) ** 2) for x in (-1.0, 0.0, 1.0)], dtype=torch.float64)
+    assert _parabola_offset(values).item() == pytest.approx(0.3)
+    assert _parabola_offset(values * 7 + 4).item() == pytest.approx(0.3)
+    assert _parse_yaws("-6:6:2") == [-6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0]
+    assert _parse_yaws("0:1:0.25") == [0.0, 0.25, 0.5, 0.75, 1.0]
