@@ -47,7 +47,7 @@ from enmi_torch.binning import LIKELIHOOD_WEIGHTS
 from enmi_torch.correlation_ratio import RESPONSES, check_model_variance
 from enmi_torch.mixture import mixture_surface
 from enmi_torch.score_surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
-from enmi_torch.variance.base import VarianceModel
+from enmi_torch.variance.base import VarianceModel, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
 _FULL_SUPPORT = 1 - 1e-3
@@ -324,11 +324,7 @@ class Localizer(nn.Module):
         resample: str = "nearest",
     ) -> None:
         super().__init__()
-        if variance_model is not None and not isinstance(variance_model, VarianceModel):
-            raise TypeError(
-                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
-            )
-        self.variance_model = variance_model
+        self.variance_model = check_variance_model(variance_model)
         self.metric = check_option("metric", metric, METRICS)
         self.shifts = _check_shifts(shifts)
         self.register_buffer("yaws", torch.tensor(_check_yaws(yaws), dtype=torch.float64), persistent=False)

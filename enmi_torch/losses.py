@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_bins, check_option, check_value_range
+from enmi_torch._checks import check_bins, check_non_negative_int, check_option, check_value_range
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS
 from enmi_torch.correlation_ratio import RESPONSES, check_model_variance, ecr
 from enmi_torch.information import enmi, nmi
 from enmi_torch.mixture import mixture_information
-from enmi_torch.variance.base import VarianceModel
+from enmi_torch.variance.base import VarianceModel, check_variance_model
 
 REDUCTIONS = ("none", "mean", "sum")
 
@@ -115,11 +115,7 @@ class ENMILoss(nn.Module):
         if not isinstance(reliability, bool):
             raise TypeError(f"reliability must be True or False, got {reliability!r}")
         self.reliability = reliability
-        if variance_model is not None and not isinstance(variance_model, VarianceModel):
-            raise TypeError(
-                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
-            )
-        self.variance_model = variance_model
+        self.variance_model = check_variance_model(variance_model)
         self.register_buffer("log_prior", log_prior, persistent=False)
 
     def forward(
@@ -182,11 +178,7 @@ class ECRLoss(nn.Module):
         self.model_variance = check_model_variance(model_variance, self.bins, self.value_range)
         self.response = check_option("response", response, RESPONSES)
         self.reduction = check_option("reduction", reduction, REDUCTIONS)
-        if variance_model is not None and not isinstance(variance_model, VarianceModel):
-            raise TypeError(
-                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
-            )
-        self.variance_model = variance_model
+        self.variance_model = check_variance_model(variance_model)
 
     def forward(
         self,
@@ -241,15 +233,9 @@ class MixtureLoss(nn.Module):
         super().__init__()
         self.bins = check_bins(bins)
         self.value_range = check_value_range(value_range)
-        if isinstance(em_steps, bool) or not isinstance(em_steps, int) or em_steps < 0:
-            raise ValueError(f"em_steps must be an int >= 0, got {em_steps!r}")
-        self.em_steps = em_steps
+        self.em_steps = check_non_negative_int("em_steps", em_steps)
         self.reduction = check_option("reduction", reduction, REDUCTIONS)
-        if variance_model is not None and not isinstance(variance_model, VarianceModel):
-            raise TypeError(
-                f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
-            )
-        self.variance_model = variance_model
+        self.variance_model = check_variance_model(variance_model)
 
     def forward(
         self,

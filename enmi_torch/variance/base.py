@@ -28,6 +28,15 @@ class VarianceModel(nn.Module, abc.ABC):
         return None
 
 
+def check_variance_model(variance_model: object) -> VarianceModel | None:
+    """``variance_model`` itself when it is ``None`` or a :class:`VarianceModel`; ``TypeError`` otherwise."""
+    if variance_model is not None and not isinstance(variance_model, VarianceModel):
+        raise TypeError(
+            f"variance_model must be an enmi_torch.variance.VarianceModel, got {type(variance_model).__name__}"
+        )
+    return variance_model
+
+
 class ConstantVariance(VarianceModel):
     """The same noise variance at every pixel: ENMI's baseline, which ignores where the noise comes from.
 
