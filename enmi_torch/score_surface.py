@@ -681,30 +681,38 @@ def _information_surface(
     return Surface(torch.stack(scores), torch.stack(overlaps))
 
 
-def _ncc_surface(inputs: _Inputs) -> Surface:
-    """Masked Pearson correlation from six correlations of masks, centred images and their squares."""
-    batch, height, width = inputs.local.shape
+def _moment_blocks(inputs: _Inputs, local_planes: Tensor) -> Iterator[Tensor]:
+    """Per sample, the ``(3, 3, rows, cols)`` correlations of three local planes with three window planes.
+
+    The local planes ``(B, 3, h, w)`` meet the window's valid mask, centred values and their squares at every
+    placement: the sums behind NCC and ECR's linear response.
+    """
+    correlator = _Correlator(tuple(inputs.local.shape[1:]), tuple(inputs.window.shape[1:]))
     windows = inputs.window.shape[0]
-    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
-    dtype = inputs.local.dtype
-    eps = torch.finfo(dtype).eps
-    local_valid = inputs.local_valid.to(dtype)
-    window_valid = inputs.window_valid.to(dtype)
-    # Centring on each image's own valid mean keeps the sums small, so the FFT round-off stays relative.
-    local = (inputs.local - _masked_mean(inputs.local, local_valid)) * local_valid
+    window_valid = inputs.window_valid.to(inputs.local.dtype)
+    # Centring on the window's valid mean keeps the sums small, so the FFT round-off stays relative.
     window = (inputs.window - _masked_mean(inputs.window, window_valid)) * window_valid
-    scores, overlaps = [], []
     reference = None
-    for sample in range(batch):
+    for sample in range(inputs.local.shape[0]):
         window_index = sample if windows > 1 else 0
         if reference is None or windows > 1:
             planes = torch.stack([window_valid[window_index], window[window_index], window[window_index].square()])
             reference = correlator.spectra(planes, captured=False)
-        planes = torch.stack([local_valid[sample], local[sample], local[sample].square()])
-        captured = correlator.spectra(planes, captured=True)
-        block = local.new_empty(3, 3, correlator.rows, correlator.cols)
+        captured = correlator.spectra(local_planes[sample], captured=True)
+        block = inputs.local.new_empty(3, 3, correlator.rows, correlator.cols)
         for index, start, part in correlator.blocks(captured, reference):
             block[index, start : start + part.shape[0]] = part
+        yield block
+
+
+def _ncc_surface(inputs: _Inputs) -> Surface:
+    """Masked Pearson correlation from six correlations of masks, centred images and their squares."""
+    eps = torch.finfo(inputs.local.dtype).eps
+    local_valid = inputs.local_valid.to(inputs.local.dtype)
+    # Centring on the image's own valid mean keeps the sums small, so the FFT round-off stays relative.
+    local = (inputs.local - _masked_mean(inputs.local, local_valid)) * local_valid
+    scores, overlaps = [], []
+    for block in _moment_blocks(inputs, torch.stack([local_valid, local, local.square()], dim=1)):
         count = block[0, 0].round()
         local_sum, window_sum = block[1, 0], block[0, 1]
         local_square, window_square, cross = block[2, 0], block[0, 2], block[1, 1]
@@ -763,27 +771,12 @@ def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range:
 
 def _linear_ecr_surface(inputs: _Inputs, model_variance: float) -> Surface:
     """ECR of the increasing affine response at every placement: weighted sums from correlations of planes."""
-    batch, height, width = inputs.local.shape
-    windows = inputs.window.shape[0]
-    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
     valid = inputs.local_valid.to(inputs.local.dtype)
     weight = valid / (inputs.variance + model_variance)
     centre = (weight * inputs.local).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
-    window_valid = inputs.window_valid.to(inputs.local.dtype)
-    # Centring both images keeps the correlations small, so the FFT round-off stays relative.
-    window = (inputs.window - _masked_mean(inputs.window, window_valid)) * window_valid
+    planes = torch.stack([weight, weight * (inputs.local - centre), valid], dim=1)
     scores, overlaps = [], []
-    reference = None
-    for sample in range(batch):
-        window_index = sample if windows > 1 else 0
-        if reference is None or windows > 1:
-            planes = torch.stack([window_valid[window_index], window[window_index], window[window_index].square()])
-            reference = correlator.spectra(planes, captured=False)
-        planes = torch.stack([weight[sample], weight[sample] * (inputs.local[sample] - centre[sample]), valid[sample]])
-        captured = correlator.spectra(planes, captured=True)
-        block = inputs.local.new_empty(3, 3, correlator.rows, correlator.cols)
-        for index, start, part in correlator.blocks(captured, reference):
-            block[index, start : start + part.shape[0]] = part
+    for block in _moment_blocks(inputs, planes):
         count = block[2, 0].round()
         llr = linear_llr(block[0, 0], block[1, 0], block[0, 1], block[0, 2], block[1, 1])
         scores.append(torch.where(count > 0, (llr - 0.5) / count.clamp_min(1), 0.0))
