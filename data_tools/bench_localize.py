@@ -9,7 +9,8 @@ one process each (medians of repeated runs, best run in brackets):
   joint histogram per candidate (timed on a few rows of candidates and scaled to all; equal scores checked);
 * the FFT core alone: the products and inverse transforms of the ENMI surface's bin pairs, nothing else; no FFT
   method that correlates bin planes can beat it, so ``loop / core`` bounds the ratio any such surface can reach;
-* the library's reference :func:`~enmi_torch.score_surface.direct_surface` (one ``joint_histogram`` per candidate);
+* the library's reference :func:`~enmi_torch.localization.surface.direct_surface` (one ``joint_histogram`` per
+  candidate);
 * the other fast path considered: ``conv2d`` with the 32 captured weight planes as kernels over the 32 reference
   indicator planes (timed on a few output rows and scaled).
 
@@ -39,8 +40,8 @@ from tqdm import tqdm
 
 from enmi_torch.binning import hard_bin_index, likelihood_weights
 from enmi_torch.information import nmi_from_joint_histogram
-from enmi_torch.localize import localize
-from enmi_torch.score_surface import direct_surface, enmi_surface, fft_size, ncc_surface, nmi_surface
+from enmi_torch.localization.search import localize
+from enmi_torch.localization.surface import direct_surface, enmi_surface, fft_size, ncc_surface, nmi_surface
 
 LOCAL, RADIUS, BINS, VALUE_RANGE = 128, 50, 32, (0.0, 256.0)
 MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(1 << 30), "MALLOC_TRIM_THRESHOLD_": str(1 << 30)}

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from skimage import data
 
-from enmi_torch.mixture import direct_mixture_surface, mixture_surface
-from enmi_torch.score_surface import ecr_surface, enmi_surface
+from enmi_torch.localization.mixture_surface import direct_mixture_surface, mixture_surface
+from enmi_torch.localization.surface import ecr_surface, enmi_surface
 
 LOCAL, WINDOW, BINS = 64, 88, 32
 

@@ -19,7 +19,7 @@ import torch
 from kornia.geometry.transform import warp_perspective
 
 from enmi_torch import GroundGrid, PerspectiveVariance, RoadCamera, rectify, unrectify
-from enmi_torch.rectify import ground_to_image_homography
+from enmi_torch.geometry.rectify import ground_to_image_homography
 
 
 def median_ms(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from skimage import data
 
-from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
 
 CASES = {"128x128 local, 101x101 shifts": (128, 50), "64x64 local, 25x25 shifts": (64, 12)}
 

@@ -31,7 +31,7 @@ import torch  # noqa: E402
 
 from data_tools.yardstick import LOCAL, MAPS, RADIUS, map_image, variance_profile  # noqa: E402
 from enmi_torch.binning import hard_bin_index  # noqa: E402
-from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface  # noqa: E402
+from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface  # noqa: E402
 
 BINS = 32
 

@@ -24,7 +24,7 @@ import torch
 from matplotlib.colors import LogNorm
 
 from enmi_torch import GroundGrid, PerspectiveVariance, RoadCamera, rectify, unrectify
-from enmi_torch.camera import projected_area
+from enmi_torch.geometry.camera import projected_area
 
 
 def tiled_road(tiles: GroundGrid, refine: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:

@@ -6,15 +6,15 @@ integer shift within the search window and a yaw on the searched grid) around a 
 with kornia, and adds Gaussian noise of per-cell variance given by one of two sensor models:
 
 * ``camera``: the rectified bird's-eye view of the paper's road camera (``RoadCamera.paper()``), from
-  :func:`enmi_torch.data.truth.camera_truth`: a :class:`~enmi_torch.rectify.GroundGrid` of 2.5 cm cells from 200 cm
-  (row 0) to 40 cm ahead (the camera's visible distance range), columns lateral, with the analytic variance
+  :func:`enmi_torch.data.truth.camera_truth`: a :class:`~enmi_torch.geometry.rectify.GroundGrid` of 2.5 cm cells from
+  200 cm (row 0) to 40 cm ahead (the camera's visible distance range), columns lateral, with the analytic variance
   sigma^2 = N0 / A~ of :func:`enmi_torch.variance.perspective_variance` (A~ the focal-plane area of each cell's
   visible part, paper eq. TildeA: far cells are noisy); cells whose centre the camera does not see
-  (:func:`enmi_torch.rectify.visible_cells`) are invalid.
+  (:func:`enmi_torch.geometry.rectify.visible_cells`) are invalid.
 * ``lidar``: :func:`enmi_torch.data.truth.lidar_truth`, sigma^2 = N0 (1 + 3 (r / R)^2) growing with the range r from
   the vehicle at the image centre; cells beyond R (half the image) are out of range and invalid.
 
-The local image is then searched by :func:`enmi_torch.localize.localize` (shifts within +-8 cells, yaws -4..4 by
+The local image is then searched by :func:`enmi_torch.localize` (shifts within +-8 cells, yaws -4..4 by
 2 degrees) with ECR (the noise-aware correlation ratio, the library's default) and with the paper's ENMI, each with:
 
 * the analytic variance: the true variance map of the sensor model;
@@ -50,9 +50,9 @@ from kornia.geometry.transform import rotate
 from skimage import data
 from tqdm import tqdm
 
-from enmi_torch.camera import RoadCamera
 from enmi_torch.data.truth import camera_truth, lidar_truth
-from enmi_torch.localize import localize
+from enmi_torch.geometry.camera import RoadCamera
+from enmi_torch.localization.search import localize
 from enmi_torch.variance import empirical_variance
 
 LOCAL = 64

@@ -30,8 +30,9 @@ MODULES = {
     "histogram": ["tests/test_histogram.py", "tests/test_histogram_candidates.py"],
     "information": ["tests/test_information.py"],
     "correlation_ratio": ["tests/test_correlation_ratio.py", "tests/test_score_surface.py"],
-    "score_surface": ["tests/test_score_surface.py"],
-    "localize": ["tests/test_localize.py"],
+    "localization/surface": ["tests/test_score_surface.py"],
+    "localization/search": ["tests/test_localize.py"],
+    "localization/peak": ["tests/test_localize.py"],
     "variance/empirical": ["tests/variance/test_empirical.py"],
     "variance/perspective": ["tests/variance/test_perspective.py"],
 }

@@ -52,10 +52,10 @@ import numpy as np
 import torch
 from skimage import color, data
 
-from enmi_torch.camera import RoadCamera
 from enmi_torch.data.truth import camera_truth
-from enmi_torch.mixture import mixture_surface
-from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.geometry.camera import RoadCamera
+from enmi_torch.localization.mixture_surface import mixture_surface
+from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance import empirical_variance
 
 LOCAL = 64

@@ -10,15 +10,17 @@ from enmi_torch.binning import (
     parzen_weights,
     truncated_likelihood_weights,
 )
-from enmi_torch.camera import RoadCamera
 from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
+from enmi_torch.geometry.camera import RoadCamera
+from enmi_torch.geometry.rectify import GroundGrid, rectify, unrectify
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
-from enmi_torch.localize import Localization, Localizer
+from enmi_torch.localization.mixture_surface import mixture_surface
+from enmi_torch.localization.peak import Localization
+from enmi_torch.localization.search import Localizer, localize
+from enmi_torch.localization.surface import Surface, direct_surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss
-from enmi_torch.mixture import mixture_information, mixture_surface
-from enmi_torch.rectify import GroundGrid, rectify, unrectify
-from enmi_torch.score_surface import Surface, direct_surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.mixture import mixture_information
 from enmi_torch.variance import (
     ConstantVariance,
     EmpiricalVariance,
@@ -64,6 +66,7 @@ __all__ = [
     "get_memory_budget",
     "joint_histogram",
     "likelihood_weights",
+    "localize",
     "memory_budget",
     "mixture_information",
     "mixture_surface",

@@ -164,7 +164,7 @@ def surface_bytes(
     weight_bins: int,
     itemsize: int,
 ) -> int:
-    """Bytes of an FFT score surface of ``batch`` local images in a window (:mod:`~enmi_torch.score_surface`).
+    """Bytes of an FFT score surface of ``batch`` local images in a window (:mod:`~enmi_torch.localization.surface`).
 
     The window's ``window_planes`` planes are held real and as spectra (about four reals per window cell each), one
     local image's ``local_planes`` spectra at a time (two), a block of counts per window plane at every placement, and
@@ -196,7 +196,7 @@ def search_bytes(
     itemsize: int,
     coarse_factor: int,
 ) -> int:
-    """Bytes of a :func:`~enmi_torch.localize.localize` search: windows, surfaces and the ``(B, Y, Sy, Sx)`` result.
+    """Bytes of a :func:`~enmi_torch.localize` search: windows, surfaces and the ``(B, Y, Sy, Sx)`` result.
 
     ``bins=None`` for NCC (three planes a side, no bin weights). With ``coarse_factor > 1`` the surfaces are taken
     on images pooled by the factor (the full-resolution refinements are small).
@@ -274,7 +274,7 @@ def check_surface_memory(local: Any, window: Any, bins: int | None) -> None:
 def check_search_memory(
     local: Any, shifts: Any, radius: tuple[int, int], yaws: int, bins: int | None, coarse_factor: int
 ) -> None:
-    """Refuse a :func:`~enmi_torch.localize.localize` search over the budget, before any window is cut."""
+    """Refuse a :func:`~enmi_torch.localize` search over the budget, before any window is cut."""
     batch, _, height, width = local.shape
     itemsize = max(4, local.element_size())  # float64 stays, lower precisions compute in float32
     needed = search_bytes(batch, (height, width), radius, yaws, bins, itemsize, coarse_factor)

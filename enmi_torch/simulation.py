@@ -26,7 +26,7 @@ from torch import Tensor
 
 from enmi_torch._checks import check_bins, check_option, check_positive_number, check_value_range
 from enmi_torch.binning import gaussian_log_prior
-from enmi_torch.camera import RoadCamera, projected_area
+from enmi_torch.geometry.camera import RoadCamera, projected_area
 from enmi_torch.information import enmi, nmi
 
 PAPER_ROW_COUNTS = (5, 5, 7, 7, 9, 9, 11, 13)
@@ -46,7 +46,7 @@ class RoadTiles:
         distance_near: near edge ``d`` (horizontal distance ahead of the camera).
         distance_far: far edge.
         row: row index of each tile, 0 for the nearest.
-        area: focal-plane area ``A~`` of each tile (:func:`~enmi_torch.camera.projected_area`).
+        area: focal-plane area ``A~`` of each tile (:func:`~enmi_torch.geometry.camera.projected_area`).
     """
 
     lateral_low: Tensor
@@ -72,20 +72,20 @@ def road_tiles(
     66 tiles from 40 cm to 200 cm, the range its camera's vertical view covers.
 
     Args:
-        camera: the road camera (:meth:`~enmi_torch.camera.RoadCamera.paper` for the paper's).
+        camera: the road camera (:meth:`~enmi_torch.geometry.camera.RoadCamera.paper` for the paper's).
         row_counts: tiles per row, nearest row first, each >= 1.
         tile_size: side of a tile, in the camera's length unit (> 0).
         nearest_distance: road distance of the nearest row's near edge (> 0).
         dtype: floating dtype of the returned tensors.
 
     Example:
-        >>> from enmi_torch.camera import RoadCamera
+        >>> from enmi_torch.geometry.camera import RoadCamera
         >>> tiles = road_tiles(RoadCamera.paper())
         >>> tiles.area.numel(), f"{tiles.area.max():.2e}", f"{tiles.area.min():.2e}"
         (66, '7.72e-05', '4.74e-06')
     """
     if not isinstance(camera, RoadCamera):
-        raise TypeError(f"camera must be an enmi_torch.camera.RoadCamera, got {type(camera).__name__}")
+        raise TypeError(f"camera must be an enmi_torch.geometry.camera.RoadCamera, got {type(camera).__name__}")
     counts = list(row_counts)
     if not counts or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in counts):
         raise ValueError(f"row_counts must be a non-empty sequence of ints >= 1, got {row_counts!r}")
@@ -260,7 +260,7 @@ def error_rates(
         The :class:`ErrorRates`.
 
     Example:
-        >>> from enmi_torch.camera import RoadCamera
+        >>> from enmi_torch.geometry.camera import RoadCamera
         >>> areas = road_tiles(RoadCamera.paper()).area
         >>> result = error_rates(areas, [0.0005, 0.05], trials=200, scores=["nmi", "enmi_mass"])
         >>> result.rates["nmi"].tolist(), result.rates["enmi_mass"].tolist()

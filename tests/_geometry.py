@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from enmi_torch.camera import RoadCamera
+from enmi_torch.geometry.camera import RoadCamera
 
 
 def pinhole_pixels(camera: RoadCamera, lateral: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -21,8 +21,8 @@ from enmi_torch import (
 )
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.information import nmi_from_joint_histogram
-from enmi_torch.localize import Localizer, localize
-from enmi_torch.score_surface import enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.search import Localizer, localize
+from enmi_torch.localization.surface import enmi_surface, ncc_surface, nmi_surface
 
 GENERATOR = torch.Generator().manual_seed(15)
 CAPTURED = torch.rand(1, 1, 16, 16, generator=GENERATOR) * 256

@@ -9,7 +9,7 @@ import torch
 from _geometry import clip_to_box, pinhole_pixels, shoelace
 from scipy import integrate
 
-from enmi_torch.camera import (
+from enmi_torch.geometry.camera import (
     RoadCamera,
     camera_depth,
     depth_from_focal_plane_y,

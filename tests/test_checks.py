@@ -6,8 +6,8 @@ import torch
 from enmi_torch import ENMILoss, NMILoss, enmi, joint_histogram, nmi
 from enmi_torch.data import match_intensity
 from enmi_torch.histogram import hard_entropies
-from enmi_torch.localize import localize
-from enmi_torch.score_surface import direct_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.search import localize
+from enmi_torch.localization.surface import direct_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance, empirical_variance, gaussian_nll
 
 EMPTY = torch.zeros(0, 1, 4, 4)
@@ -44,7 +44,7 @@ def test_an_empty_batch_is_refused_the_same_way_everywhere(name, call):
 
 def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
     import enmi_torch
-    from enmi_torch.score_surface import enmi_surface, nmi_surface
+    from enmi_torch.localization.surface import enmi_surface, nmi_surface
 
     unit = torch.rand(2, 1, 12, 10, generator=torch.Generator().manual_seed(0))
     message = r"captured varies .* but all its valid pixels fall in one of the 32 bins of value_range=\(0.0, 256.0\)"
@@ -63,7 +63,7 @@ def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
     for call in (
         lambda: nmi_surface(unit[..., :6, :5], unit),
         lambda: enmi_surface(unit[..., :6, :5], unit, 0.01),
-        lambda: enmi_torch.localize.localize(unit[..., :6, :5], unit, 0.01, shifts=1, metric="enmi"),
+        lambda: enmi_torch.localize(unit[..., :6, :5], unit, 0.01, shifts=1, metric="enmi"),
     ):
         with pytest.raises(ValueError, match=local_message):
             call()

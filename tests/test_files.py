@@ -10,7 +10,7 @@ import pytest
 from enmi_torch import LearnedVariance, MemoryBudgetError, memory_budget
 from enmi_torch._files import read_npy
 from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
-from enmi_torch.localize import main
+from enmi_torch.localization.cli import main
 
 TRUNCATED = (
     r"is truncated or its header is wrong: the header states a \(100000, 100000\) float64 array of 74\.5 GiB, "

@@ -7,8 +7,10 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch.localize import Localization, Localizer, _command, _quadratic_peak, _rotated, localize, main
-from enmi_torch.score_surface import direct_surface
+from enmi_torch.localization.cli import _command, main
+from enmi_torch.localization.peak import Localization, _quadratic_peak
+from enmi_torch.localization.search import Localizer, _rotated, localize
+from enmi_torch.localization.surface import direct_surface
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
 
@@ -451,7 +453,8 @@ def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(grav
 
 
 def test_yaw_parabola_and_yaw_ranges_are_exact():
-    from enmi_torch.localize import _parabola_offset, _parse_yaws
+    from enmi_torch.localization.cli import _parse_yaws
+    from enmi_torch.localization.peak import _parabola_offset
 
     # A parabola with its vertex 0.3 steps right of the middle sample.
     values = torch.tensor([-((x - 0.3) ** 2) for x in (-1.0, 0.0, 1.0)], dtype=torch.float64)

@@ -8,8 +8,9 @@ import torch
 
 from enmi_torch import mixture_information, mixture_surface
 from enmi_torch.binning import _log_bin_masses, likelihood_weights, truncated_likelihood_weights
-from enmi_torch.mixture import _mixture_log_likelihoods, _rescore_peaks, direct_mixture_surface
-from enmi_torch.score_surface import ecr_surface
+from enmi_torch.localization.mixture_surface import _rescore_peaks, direct_mixture_surface
+from enmi_torch.localization.surface import ecr_surface
+from enmi_torch.mixture import _mixture_log_likelihoods
 
 
 def _numpy_weights(values, variance, bins, value_range):

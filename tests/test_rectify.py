@@ -10,8 +10,8 @@ from _geometry import pinhole_pixels
 from kornia.geometry.linalg import transform_points
 from kornia.geometry.transform import get_perspective_transform
 
-from enmi_torch.camera import RoadCamera, ground_to_pixel, pixel_to_ground, projected_area
-from enmi_torch.rectify import (
+from enmi_torch.geometry.camera import RoadCamera, ground_to_pixel, pixel_to_ground, projected_area
+from enmi_torch.geometry.rectify import (
     GroundGrid,
     ground_to_image_homography,
     homography_area_scale,

@@ -5,8 +5,9 @@ import pytest
 import torch
 from skimage import data
 
-from enmi_torch import enmi, gaussian_log_prior, nmi, score_surface
-from enmi_torch.score_surface import (
+from enmi_torch import enmi, gaussian_log_prior, nmi
+from enmi_torch.localization import surface as score_surface
+from enmi_torch.localization.surface import (
     Surface,
     direct_surface,
     enmi_surface,

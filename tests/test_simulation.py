@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from enmi_torch import enmi, gaussian_log_prior, nmi
-from enmi_torch.camera import RoadCamera
+from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.simulation import (
     PAPER_ROW_COUNTS,
     SCORES,

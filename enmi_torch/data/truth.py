@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from enmi_torch._checks import check_image_shape, check_option, check_positive_number, check_value_range
-from enmi_torch.camera import RoadCamera
-from enmi_torch.rectify import GroundGrid, visible_cells
+from enmi_torch.geometry.camera import RoadCamera
+from enmi_torch.geometry.rectify import GroundGrid, visible_cells
 from enmi_torch.variance.perspective import perspective_variance
 
 FLAVOURS = ("lidar", "camera")
@@ -109,7 +109,7 @@ def camera_truth(
     The ``(H, W)`` grid has square cells of side ``(d_far - d_near) / H``: rows cover ``distance_range`` (far edge
     at row 0), columns are centred laterally. A cell's variance is ``noise_power / A~`` with ``A~`` the exact
     focal-plane area of its visible part (paper eq. TildeA); cells whose centre the camera does not see
-    (:func:`~enmi_torch.rectify.visible_cells`) are invalid.
+    (:func:`~enmi_torch.geometry.rectify.visible_cells`) are invalid.
 
     Example:
         >>> truth = camera_truth((8, 8), 1e-5)

@@ -29,7 +29,7 @@ from torch import Tensor
 from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
-from enmi_torch.score_surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
 

@@ -8,10 +8,10 @@ Convention:
     4.7e-6 cm^2 (farthest), so ``N0 = 0.01`` gives ``sigma^2`` from about 130 to 2100. Areas are computed in float64
     and the map cast to the caller's dtype.
 
-    A cell is valid when the camera sees its centre (:func:`~enmi_torch.rectify.visible_cells`, the cells
-    :func:`~enmi_torch.rectify.rectify` fills). A valid cell partly outside the view gets the exact area of its
-    visible part (:func:`~enmi_torch.camera.visible_projected_area`): the mean over what the camera sees. An invalid
-    cell holds the finite ``N0 / A~`` of the whole cell, so that gradients stay finite where a mask drops it.
+    A cell is valid when the camera sees its centre (:func:`~enmi_torch.geometry.rectify.visible_cells`, the cells
+    :func:`~enmi_torch.geometry.rectify.rectify` fills). A valid cell partly outside the view gets the exact area of its
+    visible part (:func:`~enmi_torch.geometry.camera.visible_projected_area`): the mean over what the camera sees. An
+    invalid cell holds the finite ``N0 / A~`` of the whole cell, so that gradients stay finite where a mask drops it.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ import torch
 from torch import Tensor, nn
 
 from enmi_torch._checks import check_floating, check_positive_number
-from enmi_torch.camera import RoadCamera, projected_area, visible_projected_area
-from enmi_torch.rectify import GroundGrid, projected_cell_areas, visible_cells
+from enmi_torch.geometry.camera import RoadCamera, projected_area, visible_projected_area
+from enmi_torch.geometry.rectify import GroundGrid, projected_cell_areas, visible_cells
 from enmi_torch.variance.base import VarianceModel
 
 
@@ -44,7 +44,7 @@ def perspective_cell_areas(camera: RoadCamera, grid: GroundGrid) -> tuple[Tensor
     Valid cells (centre seen) get the area of their visible part, invalid ones the area of the whole cell.
 
     Example:
-        >>> from enmi_torch.rectify import GroundGrid
+        >>> from enmi_torch.geometry.rectify import GroundGrid
         >>> areas, valid = perspective_cell_areas(RoadCamera.paper(), GroundGrid((-150.0, 150.0), (40.0, 200.0), 20.0))
         >>> f"{areas[valid].min().item():.2e} {areas[valid].max().item():.2e}"  # the smallest: a partly seen cell
         '3.48e-06 7.72e-05'
@@ -75,10 +75,10 @@ def perspective_variance(
 
     Returns:
         ``(1, 1, H_g, W_g)`` variance, > 0 and finite everywhere; meaningful where
-        :func:`~enmi_torch.rectify.visible_cells` is true (see the module's convention for partly seen cells).
+        :func:`~enmi_torch.geometry.rectify.visible_cells` is true (see the module's convention for partly seen cells).
 
     Example:
-        >>> from enmi_torch.rectify import GroundGrid
+        >>> from enmi_torch.geometry.rectify import GroundGrid
         >>> variance = perspective_variance(RoadCamera.paper(), GroundGrid((-10.0, 10.0), (40.0, 200.0), 20.0))
         >>> [round(v) for v in variance.flatten().tolist()]  # far to near
         [2111, 1610, 1195, 858, 591, 387, 235, 130]
@@ -97,7 +97,7 @@ def homography_variance(
 
     For any rectification (another camera model, a lidar grid) given as the homography from the raster's pixels to
     the sensor's pixels, ``A~`` of a raster cell is the exact area of its projected quadrilateral
-    (:func:`~enmi_torch.rectify.projected_cell_areas`) times ``pixel_area``, the sensor area of one pixel. With
+    (:func:`~enmi_torch.geometry.rectify.projected_cell_areas`) times ``pixel_area``, the sensor area of one pixel. With
     ``pixel_area = 1``, ``N0`` is the noise variance of one sensor pixel and a cell covering ``A`` pixels has
     ``N0 / A``.
 
@@ -105,7 +105,8 @@ def homography_variance(
         homography: ``(3, 3)`` or ``(B, 3, 3)``, raster pixels to sensor pixels.
         shape: ``(H, W)`` of the raster.
         noise_power: ``N0 > 0``, a number or a 0-d tensor.
-        pixel_area: sensor area of one pixel (e.g. ``p_y * p_x`` of :attr:`~enmi_torch.camera.RoadCamera.pixel_size`).
+        pixel_area: sensor area of one pixel (e.g. ``p_y * p_x`` of
+            :attr:`~enmi_torch.geometry.camera.RoadCamera.pixel_size`).
 
     Returns:
         ``(1 or B, 1, H, W)`` in the dtype of ``homography``.
@@ -136,11 +137,11 @@ class PerspectiveVariance(VarianceModel):
     Convention:
         ``forward(captured)`` takes ``(B, 1, H_g, W_g)`` on ``grid`` and returns :func:`perspective_variance`,
         ``(1, 1, H_g, W_g)`` in the dtype of ``captured``; :meth:`valid_mask` is
-        :func:`~enmi_torch.rectify.visible_cells`. ``log(N0)`` is a float64 parameter (or buffer), the cell areas
-        float64 non-persistent buffers; the map is cast to the dtype of ``captured`` at the end.
+        :func:`~enmi_torch.geometry.rectify.visible_cells`. ``log(N0)`` is a float64 parameter (or buffer), the cell
+        areas float64 non-persistent buffers; the map is cast to the dtype of ``captured`` at the end.
 
     Example:
-        >>> from enmi_torch.rectify import GroundGrid
+        >>> from enmi_torch.geometry.rectify import GroundGrid
         >>> model = PerspectiveVariance(RoadCamera.paper(), GroundGrid((-150.0, 150.0), (40.0, 200.0), 20.0), 0.01)
         >>> captured = torch.zeros(2, 1, 8, 15)
         >>> model(captured).shape, int(model.valid_mask(captured).sum())

@@ -11,7 +11,7 @@ SECTION = (ROOT / "pyproject.toml").read_text().split("[project.scripts]\n")[1].
 SCRIPTS = {name.strip(): value.strip().strip('"') for name, value in (line.split("=") for line in SECTION.splitlines())}
 WRAPPERS = {
     "enmi-fit-mask": ["train/fit_mask.py"],
-    "enmi-localize": ["-m", "enmi_torch.localize"],
+    "enmi-localize": ["-m", "enmi_torch.localization"],
     "enmi-reproduce-paper": ["data_tools/reproduce_paper.py"],
     "enmi-make-pairs": ["data_tools/make_pairs.py"],
 }

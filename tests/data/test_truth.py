@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch.camera import RoadCamera, project_ground
 from enmi_torch.data import VarianceTruth, camera_truth, lidar_truth, make_truth
+from enmi_torch.geometry.camera import RoadCamera, project_ground
 
 
 def test_lidar_truth_equals_loops():

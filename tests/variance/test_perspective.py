@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from enmi_torch import ENMILoss, enmi
-from enmi_torch.camera import RoadCamera, camera_depth, projected_area, visible_projected_area
-from enmi_torch.rectify import GroundGrid, ground_to_image_homography, visible_cells
+from enmi_torch.geometry.camera import RoadCamera, camera_depth, projected_area, visible_projected_area
+from enmi_torch.geometry.rectify import GroundGrid, ground_to_image_homography, visible_cells
 from enmi_torch.variance import (
     PerspectiveVariance,
     VarianceModel,

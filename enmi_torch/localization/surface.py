@@ -325,7 +325,7 @@ def direct_surface(
             f"variance must be given for metric='ecr', 'enmi' or 'mixture' and only then, got metric={metric!r}"
         )
     if metric == "mixture":
-        from enmi_torch.mixture import direct_mixture_surface  # mixture builds on this module
+        from enmi_torch.localization.mixture_surface import direct_mixture_surface  # mixture builds on this module
 
         return direct_mixture_surface(
             local,

@@ -5,7 +5,7 @@ Convention:
     image has "ahead" at the top, like the paper's mask figure), column 0 the leftmost. Grid pixel coordinates are
     ``(j, i)`` = (column, row) with cell centres at integers, so cell ``(i, j)`` is centred on the road point
     ``x = x_min + (j + 1/2) s``, ``d = d_far - (i + 1/2) s`` for cell size ``s``. Camera pixels follow
-    :mod:`enmi_torch.camera`: ``(u, v)``, ``u`` right, ``v`` down, centres at integers.
+    :mod:`enmi_torch.geometry.camera`: ``(u, v)``, ``u`` right, ``v`` down, centres at integers.
 
     :func:`ground_to_image_homography` maps grid pixels ``(j, i, 1)`` to camera pixels ``(u, v, 1)``. kornia's
     ``warp_perspective(src, M, dsize)`` takes ``M`` mapping *source* pixels to *destination* pixels and samples the
@@ -32,7 +32,7 @@ from torch import Tensor
 
 from enmi_torch._checks import check_floating, check_option, check_positive_number, check_value_range
 from enmi_torch._config import check_config_keys, load_yaml_section
-from enmi_torch.camera import (
+from enmi_torch.geometry.camera import (
     RoadCamera,
     depth_from_focal_plane_y,
     focal_to_pixel_matrix,
@@ -134,9 +134,9 @@ class GroundGrid:
 
 def _check_grid(camera: Any, grid: Any) -> None:
     if not isinstance(camera, RoadCamera):
-        raise TypeError(f"camera must be an enmi_torch.camera.RoadCamera, got {type(camera).__name__}")
+        raise TypeError(f"camera must be an enmi_torch.geometry.camera.RoadCamera, got {type(camera).__name__}")
     if not isinstance(grid, GroundGrid):
-        raise TypeError(f"grid must be an enmi_torch.rectify.GroundGrid, got {type(grid).__name__}")
+        raise TypeError(f"grid must be an enmi_torch.geometry.rectify.GroundGrid, got {type(grid).__name__}")
     behind = -camera.height * math.tan(camera.tilt)
     if grid.distance_range[0] <= behind:
         raise ValueError(
@@ -151,8 +151,8 @@ def ground_to_image_homography(
     """The plane-induced homography ``(3, 3)`` from grid pixels ``(j, i, 1)`` to camera pixels ``(u, v, 1)``.
 
     ``H = K G A``: grid to road (:meth:`GroundGrid.grid_to_ground_matrix`), road to focal plane
-    (:func:`~enmi_torch.camera.ground_to_focal_matrix`), focal plane to pixels
-    (:func:`~enmi_torch.camera.focal_to_pixel_matrix`); scaled so that ``H[2, 2] = 1``.
+    (:func:`~enmi_torch.geometry.camera.ground_to_focal_matrix`), focal plane to pixels
+    (:func:`~enmi_torch.geometry.camera.focal_to_pixel_matrix`); scaled so that ``H[2, 2] = 1``.
 
     Convention:
         Built in float64 and cast to ``dtype``. This is the source-to-destination matrix that
@@ -165,7 +165,7 @@ def ground_to_image_homography(
         >>> nearest_middle_tile = torch.tensor([[[7.0, 7.0]]], dtype=torch.float64)  # (j, i): x = 0, d = 50
         >>> transform_points(homography[None], nearest_middle_tile).round(decimals=3)
         tensor([[[319.5000, 400.6830]]], dtype=torch.float64)
-        >>> from enmi_torch.camera import ground_to_pixel
+        >>> from enmi_torch.geometry.camera import ground_to_pixel
         >>> [round(c.item(), 3) for c in ground_to_pixel(camera, 0.0, 50.0)]  # the pinhole projection agrees
         [319.5, 400.683]
     """

@@ -1,0 +1,5 @@
+"""``python -m enmi_torch.localization``: the ``enmi-localize`` command."""
+
+from enmi_torch.localization.cli import main
+
+main()

@@ -1,0 +1,239 @@
+"""``enmi-localize`` (``python -m enmi_torch.localization``): localize a local image file in a map file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from enmi_torch.localization.peak import Localization
+from enmi_torch.localization.search import RESAMPLING, localize
+from enmi_torch.localization.surface import METRICS
+
+
+def _read_array(path: str, name: str):
+    """The image of ``--name``: a ``.npy`` array or a grey PNG (16 bits kept), read like the pair folders."""
+    from enmi_torch._files import read_image
+
+    if not Path(path).is_file() and Path(path).suffix.lower() in (".npy", ".png"):
+        raise FileNotFoundError(f"--{name}: no such file {path!r}")
+    return read_image(path, f"--{name}")
+
+
+def _parse_yaws(text: str) -> list[float]:
+    """``"start:stop:step"`` (both ends included) or a comma-separated list of degrees."""
+    try:
+        values = [float(value) for value in text.replace(":", ",").split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"yaws must be start:stop:step or a,b,c in degrees, got {text!r}") from None
+    if ":" in text:
+        if len(values) != 3:
+            raise argparse.ArgumentTypeError(f"yaws start:stop:step needs three numbers, got {text!r}")
+        start, stop, step = values
+        if step <= 0 or stop < start:
+            raise argparse.ArgumentTypeError(f"yaws start:stop:step needs step > 0 and stop >= start, got {text!r}")
+        count = math.floor((stop - start) / step + 1e-9) + 1
+        return [start + k * step for k in range(count)]
+    return values
+
+
+_PROG = "enmi-localize"
+_EPILOG = f"""example (files from python data_tools/localization_benchmark.py --example runs/example):
+  {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
+      --local-mask runs/example/local_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
+
+output: one JSON line, for example
+  {{"dx": -8.99, "dy": 4.98, "yaw_deg": 2.8, "row": 304.98, "col": 211.01, "score": 1.1127, "margin": 0.5266}}
+  dx, dy    shift of the local image's centre from --center, in map cells along columns and rows (sub-cell)
+  yaw_deg   rotation of the local image against the map, degrees counter-clockwise as displayed
+  row, col  the map cell under the local image's centre pixel (--center + (dy, dx))
+  score     the best score: ECR and mixture in nats per pixel (0: no evidence), ENMI and NMI in [1, 2], NCC in [-1, 1]
+  margin    best score minus the best score farther than --exclusion-radius cells from it: near 0, another
+            place of the map fits about as well (a repetitive map); null when the window has no such place
+--output also draws the score surface at the best yaw and the best score per yaw."""
+
+
+def _parser() -> argparse.ArgumentParser:
+    from enmi_torch.cli._command import ArgumentParser
+
+    parser = ArgumentParser(
+        prog=_PROG,
+        description="Find the pose (shift and yaw) of a local image in a prior map with ECR, ENMI, mixture, NMI or\n"
+        "NCC score surfaces, and print it as JSON (also runs as python -m enmi_torch.localization).",
+        epilog=_EPILOG,
+    )
+    parser.add_argument("--map", required=True, help="prior map, .npy (2-D) or .png (read as grey levels)")
+    parser.add_argument("--local", required=True, help="local image on the map's cell grid, .npy or .png")
+    parser.add_argument(
+        "--variance", help="local noise variance: a number or a .npy map (needed by --metric ecr, enmi, mixture)"
+    )
+    parser.add_argument("--local-mask", help="valid local pixels, .npy or .png (nonzero = valid)")
+    parser.add_argument("--map-mask", help="valid map cells, .npy or .png (nonzero = valid)")
+    parser.add_argument(
+        "--metric", default="ecr", choices=METRICS, help="score of a candidate pose (ecr: the noise-aware default)"
+    )
+    parser.add_argument("--shifts", type=int, nargs="+", default=[16], help="search radius r, or ry rx, in cells")
+    parser.add_argument(
+        "--center",
+        type=int,
+        nargs=2,
+        metavar=("ROW", "COL"),
+        help="prior map cell of the local centre (default: the map's centre)",
+    )
+    parser.add_argument(
+        "--yaws", type=_parse_yaws, default="0", help="degrees: start:stop:step (ends included) or a,b,c"
+    )
+    parser.add_argument("--bins", type=int, default=32, help="histogram bins (ECR: of the map; ENMI, mixture, NMI)")
+    parser.add_argument(
+        "--value-range", type=float, nargs=2, default=[0.0, 256.0], metavar=("LOW", "HIGH"), help="range of the bins"
+    )
+    parser.add_argument(
+        "--min-overlap", type=float, default=0.5, help="share of valid local pixels a candidate must cover"
+    )
+    parser.add_argument("--exclusion-radius", type=int, default=3, help="cells around the peak left out of the margin")
+    parser.add_argument(
+        "--coarse-factor", type=int, default=1, help="> 1: search coarse-to-fine on f x f averaged cells"
+    )
+    parser.add_argument("--resample", choices=RESAMPLING, default="nearest", help="how the local image is rotated")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision of the scores")
+    parser.add_argument("--output", help="PNG of the score surface at the best yaw, peak marked")
+    return parser
+
+
+# Library argument names as this command's options, for error messages.
+_OPTION_NAMES = {
+    "valid_mask": "--local-mask",
+    "local_mask": "--local-mask",
+    "map_mask": "--map-mask",
+    "prior_map": "--map",
+    "min_overlap": "--min-overlap",
+    "exclusion_radius": "--exclusion-radius",
+    "coarse_factor": "--coarse-factor",
+    "value_range": "--value-range",
+}
+
+
+def _check_finite_file(name: str, values: Tensor, valid: Tensor | None) -> None:
+    bad = ~torch.isfinite(values) if valid is None else ~torch.isfinite(values) & valid
+    if bool(bad.any()):
+        raise ValueError(
+            f"--{name} holds {int(bad.sum())} NaN/inf value(s) at valid pixels; leave them out with --{name}-mask "
+            "FILE (nonzero = valid)"
+        )
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Console entry point (``enmi-localize``, ``python -m enmi_torch.localization``): one-line errors, exit code 2."""
+    from enmi_torch.cli._command import run_command
+
+    run_command(_PROG, _command, argv)
+
+
+def _command(argv: Sequence[str]) -> dict:
+    """The command with these arguments; returns the printed result as a dict."""
+    args = _parser().parse_args(argv)
+    dtype = getattr(torch, args.dtype)
+    prior_map = torch.as_tensor(_read_array(args.map, "map"), dtype=dtype)
+    local = torch.as_tensor(_read_array(args.local, "local"), dtype=dtype)
+    for name, image in (("map", prior_map), ("local", local)):
+        if image.ndim != 2:
+            raise ValueError(f"--{name} must hold a 2-D image, got shape {tuple(image.shape)}")
+    variance = None
+    if args.variance is not None:
+        try:
+            variance = float(args.variance)
+        except ValueError:
+            variance = torch.as_tensor(_read_array(args.variance, "variance"), dtype=dtype)
+    masks = {}
+    for name, path in (("local_mask", args.local_mask), ("map_mask", args.map_mask)):
+        if path is not None:
+            masks[name] = torch.as_tensor(_read_array(path, name.replace("_", "-")) != 0)
+    for name, image, mask_name in (("local", local, "local_mask"), ("map", prior_map, "map_mask")):
+        mask = masks.get(mask_name)
+        _check_finite_file(name, image, mask if mask is not None and mask.shape == image.shape else None)
+    if len(args.shifts) not in (1, 2):
+        raise ValueError(f"--shifts takes r or ry rx, got {args.shifts}")
+    try:
+        result = localize(
+            local[None, None],
+            prior_map[None, None],
+            variance,
+            shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
+            center=None if args.center is None else tuple(args.center),
+            yaws=args.yaws,
+            metric=args.metric,
+            bins=args.bins,
+            value_range=tuple(args.value_range),
+            min_overlap=args.min_overlap,
+            exclusion_radius=args.exclusion_radius,
+            coarse_factor=args.coarse_factor,
+            resample=args.resample,
+            **masks,
+        )
+    except (ValueError, TypeError) as error:
+        message = str(error)
+        for name, option in _OPTION_NAMES.items():
+            message = re.sub(rf"\b{name}\b", option, message)
+        raise ValueError(message) from error
+    dx, dy, yaw = result.pose[0].tolist()
+    row, col = (prior_map.shape[0] // 2, prior_map.shape[1] // 2) if args.center is None else args.center
+    # The scores are not log-likelihoods, so the fitted covariance is not printed as an uncertainty.
+    report = {
+        "dx": round(dx, 2),
+        "dy": round(dy, 2),
+        "yaw_deg": round(yaw, 2),
+        "row": round(row + dy, 2),
+        "col": round(col + dx, 2),
+        "score": round(float(result.score[0]), 4),
+        "margin": round(float(result.margin[0]), 4) if bool(torch.isfinite(result.margin[0])) else None,
+    }
+    print(json.dumps(report))
+    if args.output is not None:
+        _draw_surface(result, args.output, args.metric)
+        print(f"wrote {args.output}", file=sys.stderr)
+    return report
+
+
+def _draw_surface(result: Localization, path: str, metric: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    surface = result.surface[0]
+    yaw_index = int(surface.flatten(1).amax(1).argmax())
+    plane = surface[yaw_index].double()
+    radius_y, radius_x = (plane.shape[0] - 1) // 2, (plane.shape[1] - 1) // 2
+    shown = plane.masked_fill(~torch.isfinite(plane), float("nan")).numpy()
+    several = surface.shape[0] > 1
+    figure, axes = plt.subplots(1, 2 if several else 1, figsize=(9.5 if several else 5.2, 4.2), squeeze=False)
+    image = axes[0, 0].imshow(
+        shown, extent=(-radius_x - 0.5, radius_x + 0.5, radius_y + 0.5, -radius_y - 0.5), cmap="viridis"
+    )
+    dx, dy, yaw = result.pose[0].tolist()
+    axes[0, 0].plot(dx, dy, marker="+", color="red", markersize=14, markeredgewidth=2)
+    axes[0, 0].set(
+        xlabel="dx (cells)", ylabel="dy (cells)", title=f"{metric.upper()} at yaw {float(result.yaws[yaw_index]):g}°"
+    )
+    figure.colorbar(image, ax=axes[0, 0], shrink=0.85)
+    if several:
+        profile = surface.flatten(1).amax(1).double()
+        axes[0, 1].plot(
+            result.yaws.double().numpy(), profile.masked_fill(~torch.isfinite(profile), float("nan")).numpy(), "o-"
+        )
+        axes[0, 1].axvline(yaw, color="red")
+        axes[0, 1].set(xlabel="yaw (degrees)", ylabel="best score over shifts", title=f"peak at yaw {yaw:.2f}°")
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+    plt.close(figure)
+
+
+if __name__ == "__main__":
+    main()

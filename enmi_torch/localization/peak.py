@@ -1,0 +1,209 @@
+"""Reading a pose from score surfaces: the best candidate, its sub-cell refinement, covariance and margin.
+
+The result type :class:`Localization` lives here; :mod:`enmi_torch.localization.search` fills it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+
+class Localization(NamedTuple):
+    """The result of :func:`localize`.
+
+    Attributes:
+        pose: ``(B, 3)``: ``dx``, ``dy`` (map cells, refined below one cell) and ``yaw`` (degrees, refined below one
+            yaw step when the yaws are evenly spaced), relative to the prior pose.
+        score: ``(B,)`` score of the best searched candidate.
+        surface: ``(B, Y, 2 ry + 1, 2 rx + 1)`` score per yaw and shift (``[b, k, ry + dy, rx + dx]``); ``-inf``
+            where the candidate was excluded by ``min_overlap`` or not evaluated by the coarse-to-fine search.
+        covariance: ``(B, 2, 2)`` covariance of ``(dx, dy)`` in cells², ``inverse(-H)`` of the Hessian ``H`` of the
+            quadratic fitted to the 3 x 3 surface around the peak: the spread of ``exp(score)`` near the peak.
+            Scale the scores first if they are not log-likelihoods. ``inf`` on the diagonal when the peak is on the
+            window's edge, next to an excluded candidate, or not a maximum of the fit.
+        margin: ``(B,)`` best score minus the best score farther than ``exclusion_radius`` cells (both axes) from
+            the peak (over all yaws); ``inf`` when no such candidate exists. Small margins mean ambiguous maps.
+        yaws: ``(Y,)`` the yaws searched, in degrees.
+    """
+
+    pose: Tensor
+    score: Tensor
+    surface: Tensor
+    covariance: Tensor
+    margin: Tensor
+    yaws: Tensor
+
+    @property
+    def dx(self) -> Tensor:
+        """``(B,)`` shift along the map's columns (x), in cells, from the prior pose."""
+        return self.pose[:, 0]
+
+    @property
+    def dy(self) -> Tensor:
+        """``(B,)`` shift along the map's rows (y, down), in cells, from the prior pose."""
+        return self.pose[:, 1]
+
+    @property
+    def yaw(self) -> Tensor:
+        """``(B,)`` rotation of the local image against the map, degrees, counter-clockwise as displayed."""
+        return self.pose[:, 2]
+
+    def local_to_map(self, center: tuple[int, int] | Tensor, local_shape: tuple[int, int]) -> Tensor:
+        """``(B, 3, 3)`` transform from local pixel coordinates ``(x, y)`` to map coordinates ``(x, y)``.
+
+        Points are ``(x, y) = (column, row)`` with y down, as in kornia. A local pixel ``p`` shows the map at
+        ``T @ [x, y, 1]``: the search turns the local image by ``-yaw`` about its centre ``((w - 1) / 2, (h - 1) / 2)``
+        (kornia's :func:`~kornia.geometry.transform.rotate`) and puts its pixel ``(h // 2, w // 2)`` on map cell
+        ``(row + dy, col + dx)``.
+
+        Args:
+            center: the ``center`` given to :func:`localize`: ``(row, col)`` or ``(B, 2)`` integers.
+            local_shape: ``(h, w)`` of the local images.
+
+        Example:
+            >>> result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
+            >>> transform = result.local_to_map((10, 20), (5, 5))[0]  # a 90 degree turn about the centre pixel
+            >>> (transform @ torch.tensor([2.0, 2.0, 1.0])).tolist()  # the centre pixel: column 20 + 2, row 10 - 1
+            [22.0, 9.0, 1.0]
+            >>> (transform @ torch.tensor([4.0, 2.0, 1.0])).round().tolist()  # two pixels right: two cells down
+            [22.0, 11.0, 1.0]
+        """
+        height, width = local_shape
+        pose = self.pose.double()
+        centers = torch.as_tensor(center, dtype=torch.float64, device=pose.device).reshape(-1, 2).expand(len(pose), 2)
+        angle = torch.deg2rad(-pose[:, 2])  # the search turns the local image by -yaw
+        cos, sin = angle.cos(), angle.sin()
+        middle_x, middle_y = (width - 1) / 2, (height - 1) / 2
+        # OpenCV/kornia rotation about the centre (source to destination), then the placement of the centre pixel.
+        shift_x = centers[:, 1] + pose[:, 0] - width // 2
+        shift_y = centers[:, 0] + pose[:, 1] - height // 2
+        transform = torch.zeros(len(pose), 3, 3, dtype=torch.float64, device=pose.device)
+        transform[:, 0, 0], transform[:, 0, 1] = cos, sin
+        transform[:, 1, 0], transform[:, 1, 1] = -sin, cos
+        transform[:, 0, 2] = (1 - cos) * middle_x - sin * middle_y + shift_x
+        transform[:, 1, 2] = sin * middle_x + (1 - cos) * middle_y + shift_y
+        transform[:, 2, 2] = 1
+        return transform.to(self.pose.dtype)
+
+
+def _separated_peaks(surface: Tensor, count: int, radius: int) -> list[tuple[int, int, int]]:
+    """Up to ``count`` ``(yaw, row, col)`` maxima of a ``(Y, Sy, Sx)`` surface, each ``radius`` cells from the rest."""
+    best_over_yaws, best_yaw = surface.max(0)
+    remaining = best_over_yaws.clone()
+    peaks = []
+    for _ in range(count):
+        flat = int(remaining.flatten().argmax())
+        row, col = divmod(flat, remaining.shape[1])
+        if not math.isfinite(float(remaining[row, col])):
+            break
+        peaks.append((int(best_yaw[row, col]), row, col))
+        remaining[max(row - radius, 0) : row + radius + 1, max(col - radius, 0) : col + radius + 1] = -math.inf
+    return peaks
+
+
+# Least squares fit of f(x, y) = a + b x + c y + d x^2 + e x y + g y^2 on the 3 x 3 grid x, y in {-1, 0, 1}.
+_GRID_Y, _GRID_X = torch.meshgrid(torch.arange(-1.0, 2.0), torch.arange(-1.0, 2.0), indexing="ij")
+_DESIGN = torch.stack(
+    [
+        torch.ones(9),
+        _GRID_X.flatten(),
+        _GRID_Y.flatten(),
+        _GRID_X.flatten() ** 2,
+        (_GRID_X * _GRID_Y).flatten(),
+        _GRID_Y.flatten() ** 2,
+    ],
+    dim=1,
+).double()
+_FIT = torch.linalg.pinv(_DESIGN)
+
+
+def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int) -> Localization:
+    """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces."""
+    device, surface = surface.device, surface.cpu()
+    batch, yaw_count, rows, cols = surface.shape
+    flat = surface.flatten(1)
+    best, index = flat.max(1)
+    lost = ~torch.isfinite(best)
+    if bool(lost.any()):
+        raise ValueError(
+            f"no candidate passes min_overlap in sample(s) {lost.nonzero()[:, 0].tolist()}: lower min_overlap, move "
+            "center, or check the masks"
+        )
+    poses, covariances, margins = [], [], []
+    step = yaws[1:] - yaws[:-1]
+    even_yaws = yaw_count >= 3 and bool(torch.allclose(step, step[0].expand_as(step)))
+    for sample in range(batch):
+        yaw_index, rest = divmod(int(index[sample]), rows * cols)
+        row, col = divmod(rest, cols)
+        plane = surface[sample, yaw_index]
+        offset, covariance = _quadratic_peak(plane, row, col)
+        yaw = yaws[yaw_index]
+        if even_yaws and 0 < yaw_index < yaw_count - 1:
+            profile = surface[sample].flatten(1).amax(1)
+            yaw = yaw + step[0] * _parabola_offset(profile[yaw_index - 1 : yaw_index + 2])
+        poses.append(torch.stack([offset[0] + col - radius[1], offset[1] + row - radius[0], yaw.to(offset.dtype)]))
+        covariances.append(covariance)
+        others = surface[sample].amax(0).clone()
+        others[
+            max(row - exclusion_radius, 0) : row + exclusion_radius + 1,
+            max(col - exclusion_radius, 0) : col + exclusion_radius + 1,
+        ] = -math.inf
+        runner_up = others.max()
+        margins.append(best[sample] - runner_up if torch.isfinite(runner_up) else best.new_tensor(math.inf))
+    return Localization(
+        torch.stack(poses).to(device, surface.dtype),
+        best.to(device),
+        surface.to(device),
+        torch.stack(covariances).to(device, surface.dtype),
+        torch.stack(margins).to(device),
+        yaws.to(device),
+    )
+
+
+def _quadratic_peak(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor]:
+    """Sub-cell ``(dx, dy)`` offset and covariance ``inverse(-H)`` from the 3 x 3 neighbourhood of a grid peak.
+
+    When the fitted vertex lies more than half a cell away, the fit is re-centred on the neighbouring cell it points
+    to and refitted once (kornia's ``geometry/subpix`` habit); if that vertex is not within half a cell of its own
+    centre either, or a fit is not a maximum, the fit failed: offset 0 and an infinite covariance.
+    """
+    unknown = (torch.zeros(2, dtype=torch.float64), torch.diag(torch.full((2,), math.inf, dtype=torch.float64)))
+    fit = _quadratic_fit(plane, row, col)
+    if fit is None:
+        return unknown
+    offset, covariance = fit
+    if bool((offset.abs() <= 0.5).all()):
+        return offset, covariance
+    step = offset.sign() * (offset.abs() > 0.5)
+    fit = _quadratic_fit(plane, row + int(step[1]), col + int(step[0]))
+    if fit is None or not bool((fit[0].abs() <= 0.5).all()):
+        return unknown
+    return fit[0] + step, fit[1]
+
+
+def _quadratic_fit(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor] | None:
+    """Vertex offset ``(dx, dy)`` and ``inverse(-H)`` of the quadratic fitted to the 3 x 3 cells around a cell."""
+    if not (0 < row < plane.shape[0] - 1 and 0 < col < plane.shape[1] - 1):
+        return None
+    values = plane[row - 1 : row + 2, col - 1 : col + 2].double().flatten()
+    if not bool(torch.isfinite(values).all()):
+        return None
+    _, slope_x, slope_y, curve_xx, curve_xy, curve_yy = (_FIT @ values).unbind()
+    hessian = torch.stack([torch.stack([2 * curve_xx, curve_xy]), torch.stack([curve_xy, 2 * curve_yy])])
+    if not (hessian[0, 0] < 0 and torch.linalg.det(hessian) > 0):
+        return None
+    offset = -torch.linalg.solve(hessian, torch.stack([slope_x, slope_y]))
+    return offset, torch.linalg.inv(-hessian)
+
+
+def _parabola_offset(values: Tensor) -> Tensor:
+    """Vertex offset in ``[-0.5, 0.5]`` steps of the parabola through three equally spaced values."""
+    left, middle, right = values.double().unbind()
+    curvature = left - 2 * middle + right
+    if not (torch.isfinite(values).all() and curvature < 0):
+        return torch.zeros((), dtype=torch.float64)
+    return (0.5 * (left - right) / curvature).clamp(-0.5, 0.5)
