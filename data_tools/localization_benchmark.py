@@ -143,12 +143,12 @@ def run_trials(map_name, model, noise_power, trials, pairs, bins, seed, response
     learned, observed = learned_mask(prior, unit_variance, valid, noise_power, pairs, generator, response)
     settings = {"shifts": RADIUS, "center": priors, "yaws": YAWS, "bins": bins}
     searches = {
-        METHODS[0]: localize(local, prior.float(), variance.float(), metric="ecr", local_mask=valid, **settings),
-        METHODS[1]: localize(local, prior.float(), learned.float(), metric="ecr", local_mask=observed, **settings),
-        METHODS[2]: localize(local, prior.float(), variance.float(), metric="enmi", local_mask=valid, **settings),
-        METHODS[3]: localize(local, prior.float(), learned.float(), metric="enmi", local_mask=observed, **settings),
-        METHODS[4]: localize(local, prior.float(), metric="nmi", local_mask=valid, **settings),
-        METHODS[5]: localize(local, prior.float(), metric="ncc", local_mask=valid, **settings),
+        METHODS[0]: localize(local, prior.float(), variance.float(), metric="ecr", captured_mask=valid, **settings),
+        METHODS[1]: localize(local, prior.float(), learned.float(), metric="ecr", captured_mask=observed, **settings),
+        METHODS[2]: localize(local, prior.float(), variance.float(), metric="enmi", captured_mask=valid, **settings),
+        METHODS[3]: localize(local, prior.float(), learned.float(), metric="enmi", captured_mask=observed, **settings),
+        METHODS[4]: localize(local, prior.float(), metric="nmi", captured_mask=valid, **settings),
+        METHODS[5]: localize(local, prior.float(), metric="ncc", captured_mask=valid, **settings),
     }
     truth = torch.cat([shifts[:, 1:], shifts[:, :1], yaws[:, None]], dim=1)
     successes = {}

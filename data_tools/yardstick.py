@@ -175,7 +175,7 @@ def run_cell(
         mask = (valid & observed.reshape(LOCAL, LOCAL))[None, None]
         mean = float(variance[0, 0][valid].mean())
         true_variance = variance.float()
-        options = {"bins": BINS, "local_mask": mask}
+        options = {"bins": BINS, "captured_mask": mask}
         window = windows.float()
         searches = _searches(local, window, true_variance, learned, mean, mask, options)
         outcomes = {
@@ -209,7 +209,7 @@ def _searches(local, window, true_variance, learned, mean, mask, options) -> dic
         "ENMI true": lambda: enmi_surface(local, window, true_variance, **options),
         "ENMI learned": lambda: enmi_surface(local, window, learned, **options),
         "NMI": lambda: nmi_surface(local, window, **options),
-        "NCC": lambda: ncc_surface(local, window, local_mask=mask),
+        "NCC": lambda: ncc_surface(local, window, captured_mask=mask),
     }
 
 

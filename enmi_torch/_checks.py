@@ -225,28 +225,29 @@ def check_log_prior(log_prior: Any, bins: int, batch: int) -> Tensor:
     return log_prior.reshape(-1, 1, bins)
 
 
-def check_local_in_map(local: Any, map_image: Any, map_name: str, map_dims: str) -> tuple[int, int, int]:
-    """Raise unless ``local`` is ``(B, 1, h, w)`` and ``map_image`` ``(1 or B, 1, H, W)`` with ``H >= h``, ``W >= w``.
+def check_captured_in_reference(captured: Any, reference: Any, reference_dims: str) -> tuple[int, int, int]:
+    """Raise unless ``captured`` is ``(B, 1, h, w)`` and ``reference`` ``(1 or B, 1, H, W)``, ``H >= h``, ``W >= w``.
 
-    Both must be floating point and on one device; ``map_dims`` names the map's sizes in messages (``"Hw, Ww"``).
+    Both must be floating point and on one device; ``reference_dims`` names the reference's sizes in messages
+    (``"Hw, Ww"``).
     Returns ``(B, h, w)``.
     """
-    check_floating("local", local)
-    if local.ndim != 4 or local.shape[1] != 1:
-        raise ValueError(f"local must have shape (B, 1, h, w), got {tuple(local.shape)}")
-    check_not_empty("local", local)
-    check_floating(map_name, map_image)
-    batch, _, height, width = local.shape
-    if map_image.ndim != 4 or map_image.shape[1] != 1 or map_image.shape[0] not in (1, batch):
+    check_floating("captured", captured)
+    if captured.ndim != 4 or captured.shape[1] != 1:
+        raise ValueError(f"captured must have shape (B, 1, h, w), got {tuple(captured.shape)}")
+    check_not_empty("captured", captured)
+    check_floating("reference", reference)
+    batch, _, height, width = captured.shape
+    if reference.ndim != 4 or reference.shape[1] != 1 or reference.shape[0] not in (1, batch):
         raise ValueError(
-            f"{map_name} must have shape (1, 1, {map_dims}) or ({batch}, 1, {map_dims}) for local of batch {batch}, "
-            f"got {tuple(map_image.shape)}"
+            f"reference must have shape (1, 1, {reference_dims}) or ({batch}, 1, {reference_dims}) for captured of "
+            f"batch {batch}, got {tuple(reference.shape)}"
         )
-    if map_image.shape[2] < height or map_image.shape[3] < width:
+    if reference.shape[2] < height or reference.shape[3] < width:
         raise ValueError(
-            f"local must not be larger than {map_name}: {map_name} must be at least as large as local in both "
-            f"dimensions, got local {(height, width)} and {map_name} {tuple(map_image.shape[2:])}"
+            f"captured must not be larger than reference: reference must be at least as large as captured in both "
+            f"dimensions, got captured {(height, width)} and reference {tuple(reference.shape[2:])}"
         )
-    if map_image.device != local.device:
-        raise ValueError(f"{map_name} must be on the device of local ({local.device}), got {map_image.device}")
+    if reference.device != captured.device:
+        raise ValueError(f"reference must be on the device of captured ({captured.device}), got {reference.device}")
     return batch, height, width

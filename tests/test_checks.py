@@ -25,11 +25,11 @@ WINDOW = torch.zeros(1, 1, 8, 8)
         ("captured", lambda: NMILoss()(EMPTY, EMPTY)),
         ("captured", lambda: ENMILoss()(EMPTY, EMPTY, 1.0)),
         ("captured", lambda: nmi(torch.zeros(2, 1, 0, 4), torch.zeros(2, 1, 0, 4))),
-        ("local", lambda: enmi_surface(EMPTY, WINDOW, 1.0)),
-        ("local", lambda: nmi_surface(EMPTY, WINDOW)),
-        ("local", lambda: ncc_surface(EMPTY, WINDOW)),
-        ("local", lambda: direct_surface(EMPTY, WINDOW, metric="nmi")),
-        ("local", lambda: localize(EMPTY, WINDOW, 1.0, shifts=1)),
+        ("captured", lambda: enmi_surface(EMPTY, WINDOW, 1.0)),
+        ("captured", lambda: nmi_surface(EMPTY, WINDOW)),
+        ("captured", lambda: ncc_surface(EMPTY, WINDOW)),
+        ("captured", lambda: direct_surface(EMPTY, WINDOW, metric="nmi")),
+        ("captured", lambda: localize(EMPTY, WINDOW, 1.0, shifts=1)),
         ("residual", lambda: gaussian_nll(EMPTY, torch.zeros(4, 4))),
         ("local", lambda: LearnedVariance((4, 4)).nll(EMPTY, EMPTY)),
         ("local", lambda: empirical_variance(EMPTY, EMPTY)),
@@ -59,7 +59,7 @@ def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
     for call in calls:
         with pytest.raises(ValueError, match=message):
             call()
-    local_message = r"local varies .* all its valid pixels fall in one of the 32 bins"
+    local_message = r"captured varies .* all its valid pixels fall in one of the 32 bins"
     for call in (
         lambda: nmi_surface(unit[..., :6, :5], unit),
         lambda: enmi_surface(unit[..., :6, :5], unit, 0.01),

@@ -98,9 +98,11 @@ def test_surface_at_yaw_zero_equals_the_direct_loop_over_the_window(gravel_map):
 
 def test_min_overlap_excludes_candidates_with_too_little_valid_overlap(gravel_map):
     local = _cut(gravel_map, 80, 80)
-    map_mask = torch.ones(160, 160, dtype=torch.bool)
-    map_mask[:, :70] = False
-    result = localize(local, gravel_map, 9.0, shifts=8, center=(80, 80), map_mask=map_mask, min_overlap=0.75)
+    reference_mask = torch.ones(160, 160, dtype=torch.bool)
+    reference_mask[:, :70] = False
+    result = localize(
+        local, gravel_map, 9.0, shifts=8, center=(80, 80), reference_mask=reference_mask, min_overlap=0.75
+    )
     # Local columns 64 + dx .. 95 + dx; valid map columns >= 70: overlap fraction (96 + dx - 70) / 32 >= 0.75.
     allowed_dx = [dx for dx in range(-8, 9) if (96 + dx - 70) / 32 >= 0.75]
     finite = torch.isfinite(result.surface[0, 0])
@@ -108,7 +110,9 @@ def test_min_overlap_excludes_candidates_with_too_little_valid_overlap(gravel_ma
     assert finite.all(0).tolist() == finite.any(0).tolist()
     assert result.pose[0, :2].round().tolist() == [0.0, 0.0]
     with pytest.raises(ValueError, match=r"no candidate passes min_overlap in sample\(s\) \[0\]"):
-        localize(local, gravel_map, 9.0, shifts=(2, 8), center=(80, 60), map_mask=map_mask, min_overlap=0.75)
+        localize(
+            local, gravel_map, 9.0, shifts=(2, 8), center=(80, 60), reference_mask=reference_mask, min_overlap=0.75
+        )
 
 
 def test_candidates_off_the_map_are_scored_on_their_overlap(gravel_map):
@@ -191,7 +195,7 @@ def test_variance_model_and_its_valid_mask_are_used(gravel_map):
     local = _cut(gravel_map, 83, 78)
     disc = DiscVariance()
     modelled = localize(local, gravel_map, disc, shifts=5, center=(80, 80))
-    explicit = localize(local, gravel_map, 9.0, shifts=5, center=(80, 80), local_mask=disc.valid_mask(local))
+    explicit = localize(local, gravel_map, 9.0, shifts=5, center=(80, 80), captured_mask=disc.valid_mask(local))
     torch.testing.assert_close(modelled.surface, explicit.surface)
     constant = localize(local, gravel_map, ConstantVariance(9.0), shifts=5, center=(80, 80))
     assert not torch.equal(constant.surface, modelled.surface)
@@ -274,9 +278,9 @@ def test_command_line_help_says_what_it_does_with_defaults_an_example_and_the_ou
 def _invalid_localize_cases(gravel_map):
     local = _cut(gravel_map, 80, 80)
     return [
-        ({"local": torch.zeros(1, 1, 170, 20)}, ValueError, "local must not be larger than prior_map"),
-        ({"local": local.long()}, TypeError, "local must be a floating-point tensor"),
-        ({"prior_map": torch.cat([gravel_map] * 2)}, ValueError, r"prior_map must have shape \(1, 1, Hm, Wm\)"),
+        ({"captured": torch.zeros(1, 1, 170, 20)}, ValueError, "captured must not be larger than reference"),
+        ({"captured": local.long()}, TypeError, "captured must be a floating-point tensor"),
+        ({"reference": torch.cat([gravel_map] * 2)}, ValueError, r"reference must have shape \(1, 1, Hm, Wm\)"),
         ({"variance": torch.ones(1, 1, 31, 32)}, ValueError, r"variance must have shape \(32, 32\)"),
         ({"variance": -torch.ones(32, 32)}, ValueError, "variance must be finite and > 0"),
         ({"metric": "enmi", "variance": None}, ValueError, "variance must be given for metric='enmi'"),
@@ -287,10 +291,10 @@ def _invalid_localize_cases(gravel_map):
         ({"metric": "ecr", "model_variance": -1.0}, ValueError, "model_variance must be a number >= 0"),
         ({"metric": "enmi", "model_variance": 1.0}, ValueError, "model_variance is only used by metric='ecr'"),
         ({"metric": "mi"}, ValueError, "metric must be one of"),
-        ({"local_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "local_mask selects no pixel"),
-        ({"local_mask": torch.ones(32, 32)}, TypeError, "local_mask must be a bool tensor"),
-        ({"map_mask": torch.zeros(160, 160, dtype=torch.bool)}, ValueError, "map_mask selects no cell"),
-        ({"map_mask": torch.ones(16, 16, dtype=torch.bool)}, ValueError, "map_mask must have shape"),
+        ({"captured_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "captured_mask selects no pixel"),
+        ({"captured_mask": torch.ones(32, 32)}, TypeError, "captured_mask must be a bool tensor"),
+        ({"reference_mask": torch.zeros(160, 160, dtype=torch.bool)}, ValueError, "reference_mask selects no cell"),
+        ({"reference_mask": torch.ones(16, 16, dtype=torch.bool)}, ValueError, "reference_mask must have shape"),
         ({"shifts": -1}, ValueError, "shifts must be an int >= 0"),
         ({"shifts": (2, 2.5)}, ValueError, "shifts must be an int >= 0"),
         ({"yaws": []}, ValueError, "yaws must be a non-empty sequence"),
@@ -300,7 +304,7 @@ def _invalid_localize_cases(gravel_map):
         ({"min_overlap": 0.0}, ValueError, r"min_overlap must be a fraction in \(0, 1\]"),
         ({"exclusion_radius": -2}, ValueError, "exclusion_radius must be an int >= 0"),
         ({"coarse_factor": 0}, ValueError, "coarse_factor must be an int >= 1"),
-        ({"coarse_factor": 64}, ValueError, "coarse_factor must not exceed the local image size"),
+        ({"coarse_factor": 64}, ValueError, "coarse_factor must not exceed the captured image size"),
         ({"bins": 1}, ValueError, "bins must be an int >= 2"),
         ({"weights": "gauss"}, ValueError, "weights must be one of"),
         ({"resample": "bicubic"}, ValueError, "resample must be one of"),
@@ -311,7 +315,7 @@ def _invalid_localize_cases(gravel_map):
 def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     cases, local = _invalid_localize_cases(gravel_map)
     change, error, message = cases[index]
-    arguments = {"local": local, "prior_map": gravel_map, "variance": 9.0, "shifts": 4}
+    arguments = {"captured": local, "reference": gravel_map, "variance": 9.0, "shifts": 4}
     arguments.update(change)
     with pytest.raises(error, match=message):
         localize(**arguments)

@@ -302,10 +302,10 @@ def _surface_case(seed, batch=1, windows=1, masks=False):
     variance = torch.rand(batch, 1, 7, 6, generator=generator, dtype=torch.float64) * 300 + 50
     options = {}
     if masks:
-        options["local_mask"] = torch.rand(batch, 1, 7, 6, generator=generator) > 0.15
-        window_mask = torch.ones(windows, 1, 13, 11, dtype=torch.bool)
-        window_mask[..., :3, :4] = False
-        options["window_mask"] = window_mask
+        options["captured_mask"] = torch.rand(batch, 1, 7, 6, generator=generator) > 0.15
+        reference_mask = torch.ones(windows, 1, 13, 11, dtype=torch.bool)
+        reference_mask[..., :3, :4] = False
+        options["reference_mask"] = reference_mask
     return local, window, variance, options
 
 
@@ -422,12 +422,16 @@ def test_rescoring_stops_at_max_candidates():
         ({"candidates": 0}, ValueError, "candidates must be an int >= 1"),
         ({"max_candidates": 4, "candidates": 8}, ValueError, r"max_candidates must be >= candidates \(8\), got 4"),
         ({"em_steps": -2}, ValueError, "em_steps must be an int >= 0"),
-        ({"window": torch.zeros(1, 1, 5, 5, dtype=torch.float64)}, ValueError, "local must not be larger than window"),
+        (
+            {"reference": torch.zeros(1, 1, 5, 5, dtype=torch.float64)},
+            ValueError,
+            "captured must not be larger than reference",
+        ),
     ],
 )
 def test_mixture_surface_refuses_bad_arguments(kwargs, error, message):
     local, window, variance, _ = _surface_case(0)
-    arguments = {"variance": variance, "window": window, **kwargs}
-    variance, window = arguments.pop("variance"), arguments.pop("window")
+    arguments = {"variance": variance, "reference": window, **kwargs}
+    variance, window = arguments.pop("variance"), arguments.pop("reference")
     with pytest.raises(error, match=message):
         mixture_surface(local, window, variance, **arguments)

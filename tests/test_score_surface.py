@@ -28,12 +28,12 @@ def _case(dtype, *, batch=2, local_shape=(9, 7), window_shape=(16, 15), seed=0):
         height, width, generator=generator, dtype=dtype
     )
     variance = torch.rand(batch, 1, height, width, generator=generator, dtype=dtype) * 60 + 2
-    local_mask = torch.rand(batch, 1, height, width, generator=generator) > 0.25
-    window_mask = torch.rand(1, 1, *window_shape, generator=generator) > 0.15
+    captured_mask = torch.rand(batch, 1, height, width, generator=generator) > 0.25
+    reference_mask = torch.rand(1, 1, *window_shape, generator=generator) > 0.15
     # An unmapped band: the placements on the left overlap it partly, the first ones almost entirely.
-    window_mask[..., : width - 1] = False
-    window_mask[..., :2, width - 1] = False
-    return local, window, variance, local_mask, window_mask
+    reference_mask[..., : width - 1] = False
+    reference_mask[..., :2, width - 1] = False
+    return local, window, variance, captured_mask, reference_mask
 
 
 @pytest.mark.parametrize(
@@ -48,11 +48,11 @@ def _case(dtype, *, batch=2, local_shape=(9, 7), window_shape=(16, 15), seed=0):
     ],
 )
 def test_fft_surface_equals_direct_loop_with_masks_and_partial_overlap(metric, options):
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
     options = dict(options)
     if options.get("log_prior") == "prior":
         options["log_prior"] = gaussian_log_prior(128.0, 40.0, 12, (0.0, 256.0), dtype=torch.float64)
-    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
     binned = {} if metric == "ncc" else {"bins": 12, "value_range": (0.0, 256.0)}
     if metric == "enmi":
         fast = enmi_surface(local, window, variance, **binned, **options, **masks)
@@ -76,11 +76,11 @@ def test_fft_surface_equals_direct_loop_with_masks_and_partial_overlap(metric, o
 @pytest.mark.parametrize("masked", ["none", "local", "window", "both"])
 def test_fft_surface_equals_direct_loop_for_each_mask_combination(metric, masked):
     # Masks that leave nothing out take other paths (constant marginals, box-summed counts) than partial ones.
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
-    window_mask[..., :, :3] = True  # leave a full-overlap placement or two even with the window mask
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
+    reference_mask[..., :, :3] = True  # leave a full-overlap placement or two even with the window mask
     masks = {
-        "local_mask": local_mask if masked in ("local", "both") else None,
-        "window_mask": window_mask if masked in ("window", "both") else None,
+        "captured_mask": captured_mask if masked in ("local", "both") else None,
+        "reference_mask": reference_mask if masked in ("window", "both") else None,
     }
     binned = {} if metric == "ncc" else {"bins": 12}
     if metric == "enmi":
@@ -99,8 +99,8 @@ def test_fft_surface_equals_direct_loop_for_each_mask_combination(metric, masked
 @pytest.mark.parametrize("masked", [False, True])
 def test_blocks_of_reference_planes_give_the_one_block_surface(monkeypatch, masked):
     # Tiny blocks: several per captured plane, the last one shorter, the mask plane alone in a block or with bins.
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
-    masks = {"local_mask": local_mask, "window_mask": window_mask} if masked else {}
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask} if masked else {}
     whole = enmi_surface(local, window, variance, bins=12, **masks)
     half_spectrum = fft_size(16) * (fft_size(15) // 2 + 1)
     for planes_per_block in (1, 2, 5):
@@ -113,22 +113,24 @@ def test_blocks_of_reference_planes_give_the_one_block_surface(monkeypatch, mask
 
 
 def test_surface_entries_equal_the_public_scores_at_each_placement():
-    local, window, variance, local_mask, window_mask = _case(torch.float64, batch=1)
-    fast_enmi = enmi_surface(local, window, variance, bins=16, local_mask=local_mask, window_mask=window_mask)
-    fast_nmi = nmi_surface(local, window, bins=16, local_mask=local_mask, window_mask=window_mask)
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64, batch=1)
+    fast_enmi = enmi_surface(
+        local, window, variance, bins=16, captured_mask=captured_mask, reference_mask=reference_mask
+    )
+    fast_nmi = nmi_surface(local, window, bins=16, captured_mask=captured_mask, reference_mask=reference_mask)
     for row, col in [(0, 8), (4, 6), (7, 8), (3, 4)]:
         section = window[..., row : row + 9, col : col + 7]
-        valid = local_mask & window_mask[..., row : row + 9, col : col + 7]
+        valid = captured_mask & reference_mask[..., row : row + 9, col : col + 7]
         expected = enmi(local, section, variance, bins=16, valid_mask=valid)
         torch.testing.assert_close(fast_enmi.score[:, row, col], expected, rtol=0, atol=1e-9)
         torch.testing.assert_close(fast_nmi.score[:, row, col], nmi(local, section, bins=16, valid_mask=valid))
 
 
 def test_ncc_entries_equal_numpy_corrcoef():
-    local, window, _, local_mask, window_mask = _case(torch.float64, batch=1)
-    surface = ncc_surface(local, window, local_mask=local_mask, window_mask=window_mask)
+    local, window, _, captured_mask, reference_mask = _case(torch.float64, batch=1)
+    surface = ncc_surface(local, window, captured_mask=captured_mask, reference_mask=reference_mask)
     for row, col in [(0, 8), (5, 7), (7, 6)]:
-        valid = (local_mask & window_mask[..., row : row + 9, col : col + 7]).numpy().ravel()
+        valid = (captured_mask & reference_mask[..., row : row + 9, col : col + 7]).numpy().ravel()
         captured = local.numpy().ravel()[valid]
         section = window[..., row : row + 9, col : col + 7].numpy().ravel()[valid]
         assert surface.score[0, row, col].item() == pytest.approx(np.corrcoef(captured, section)[0, 1], abs=1e-9)
@@ -136,10 +138,12 @@ def test_ncc_entries_equal_numpy_corrcoef():
 
 @pytest.mark.parametrize("metric", ["enmi", "nmi", "ncc"])
 def test_float32_surface_is_close_to_the_float64_reference(metric):
-    local, window, variance, local_mask, window_mask = _case(torch.float64, local_shape=(24, 20), window_shape=(34, 33))
-    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    local, window, variance, captured_mask, reference_mask = _case(
+        torch.float64, local_shape=(24, 20), window_shape=(34, 33)
+    )
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
     reference = direct_surface(local, window, variance if metric == "enmi" else None, metric=metric, bins=16, **masks)
-    single = {"local": local.float(), "window": window.float(), **masks}
+    single = {"captured": local.float(), "reference": window.float(), **masks}
     if metric == "enmi":
         fast = enmi_surface(variance=variance.float(), bins=16, **single)
     elif metric == "nmi":
@@ -152,27 +156,27 @@ def test_float32_surface_is_close_to_the_float64_reference(metric):
 
 
 def test_batched_surface_equals_per_sample_calls_and_per_sample_windows():
-    local, window, variance, local_mask, _ = _case(torch.float64, batch=3)
+    local, window, variance, captured_mask, _ = _case(torch.float64, batch=3)
     windows = torch.cat([window, window.flip(-1), window.flip(-2)])
-    batched = enmi_surface(local, windows, variance, bins=8, local_mask=local_mask)
+    batched = enmi_surface(local, windows, variance, bins=8, captured_mask=captured_mask)
     for sample in range(3):
         single = enmi_surface(
             local[sample : sample + 1],
             windows[sample : sample + 1],
             variance[sample : sample + 1],
             bins=8,
-            local_mask=local_mask[sample : sample + 1],
+            captured_mask=captured_mask[sample : sample + 1],
         )
         torch.testing.assert_close(batched.score[sample], single.score[0], rtol=0, atol=1e-12)
-    shared = enmi_surface(local, window, variance, bins=8, local_mask=local_mask)
+    shared = enmi_surface(local, window, variance, bins=8, captured_mask=captured_mask)
     torch.testing.assert_close(shared.score[0], batched.score[0], rtol=0, atol=1e-12)
 
 
 def test_enmi_surface_tends_to_the_nmi_surface_as_the_variance_vanishes():
-    local, window, _, local_mask, window_mask = _case(torch.float64)
+    local, window, _, captured_mask, reference_mask = _case(torch.float64)
     # Half-integer values sit 0.5 grey levels from every bin edge: far out of reach of a vanishing variance.
     local = local.floor() + 0.5
-    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
     sharp = enmi_surface(local, window, 1e-8, bins=16, **masks)
     hard = nmi_surface(local, window, bins=16, **masks)
     torch.testing.assert_close(sharp.score, hard.score, rtol=0, atol=1e-9)
@@ -180,12 +184,12 @@ def test_enmi_surface_tends_to_the_nmi_surface_as_the_variance_vanishes():
 
 def test_placement_without_overlap_scores_as_independent_images():
     local, window, variance, _, _ = _case(torch.float64, batch=1)
-    window_mask = torch.ones(1, 1, 16, 15, dtype=torch.bool)
-    window_mask[..., :, :7] = False
+    reference_mask = torch.ones(1, 1, 16, 15, dtype=torch.bool)
+    reference_mask[..., :, :7] = False
     for surface, empty_score in [
-        (enmi_surface(local, window, variance, bins=8, window_mask=window_mask), 1.0),
-        (nmi_surface(local, window, bins=8, window_mask=window_mask), 1.0),
-        (ncc_surface(local, window, window_mask=window_mask), 0.0),
+        (enmi_surface(local, window, variance, bins=8, reference_mask=reference_mask), 1.0),
+        (nmi_surface(local, window, bins=8, reference_mask=reference_mask), 1.0),
+        (ncc_surface(local, window, reference_mask=reference_mask), 0.0),
     ]:
         assert surface.overlap[0, :, 0].eq(0).all()
         assert surface.score[0, :, 0].eq(empty_score).all()
@@ -199,10 +203,10 @@ def test_peak_is_at_the_cut_position():
 
 
 def test_surfaces_of_nan_pixels_outside_the_masks_are_finite():
-    local, window, variance, local_mask, window_mask = _case(torch.float64, batch=1)
-    local = local.masked_fill(~local_mask, math.nan)
-    window = window.masked_fill(~window_mask, math.nan)
-    masks = {"local_mask": local_mask, "window_mask": window_mask}
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64, batch=1)
+    local = local.masked_fill(~captured_mask, math.nan)
+    window = window.masked_fill(~reference_mask, math.nan)
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
     for surface in [
         enmi_surface(local, window, variance, **masks),
         nmi_surface(local, window, **masks),
@@ -225,48 +229,48 @@ def test_fft_size_is_the_smallest_five_smooth_length():
 
 
 def test_surface_runs_on_the_device(device):
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
-    expected = enmi_surface(local, window, variance, local_mask=local_mask, window_mask=window_mask)
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
+    expected = enmi_surface(local, window, variance, captured_mask=captured_mask, reference_mask=reference_mask)
     moved = enmi_surface(
         local.to(device),
         window.to(device),
         variance.to(device),
-        local_mask=local_mask.to(device),
-        window_mask=window_mask.to(device),
+        captured_mask=captured_mask.to(device),
+        reference_mask=reference_mask.to(device),
     )
     torch.testing.assert_close(moved.score.cpu(), expected.score)
 
 
 def _invalid_cases():
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
-    empty_local = torch.zeros_like(local_mask)
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
+    empty_local = torch.zeros_like(captured_mask)
     empty_local[0] = True
     return [
-        ({"local": local.long()}, TypeError, "local must be a floating-point tensor"),
-        ({"local": local[:, 0]}, ValueError, r"local must have shape \(B, 1, h, w\)"),
-        ({"window": window[..., :8, :]}, ValueError, "window must be at least as large as local"),
-        ({"window": torch.cat([window] * 3)}, ValueError, r"window must have shape \(1, 1, Hw, Ww\) or \(2, 1"),
+        ({"captured": local.long()}, TypeError, "captured must be a floating-point tensor"),
+        ({"captured": local[:, 0]}, ValueError, r"captured must have shape \(B, 1, h, w\)"),
+        ({"reference": window[..., :8, :]}, ValueError, "reference must be at least as large as captured"),
+        ({"reference": torch.cat([window] * 3)}, ValueError, r"reference must have shape \(1, 1, Hw, Ww\) or \(2, 1"),
         ({"variance": variance[..., :5]}, ValueError, "variance must have the spatial shape"),
         ({"variance": -variance}, ValueError, "variance must be finite and > 0"),
         ({"variance": None}, ValueError, "variance must be a number or a tensor"),
-        ({"local_mask": local_mask.float()}, TypeError, "local_mask must be a bool tensor"),
-        ({"local_mask": empty_local}, ValueError, r"local_mask selects no pixel in sample\(s\) \[1\]"),
-        ({"window_mask": torch.zeros_like(window_mask)}, ValueError, "window_mask selects no pixel"),
-        ({"window_mask": window_mask[..., :3]}, ValueError, "window_mask must have the spatial shape"),
-        ({"local": local.masked_fill(local_mask, math.nan)}, ValueError, "local must be finite"),
+        ({"captured_mask": captured_mask.float()}, TypeError, "captured_mask must be a bool tensor"),
+        ({"captured_mask": empty_local}, ValueError, r"captured_mask selects no pixel in sample\(s\) \[1\]"),
+        ({"reference_mask": torch.zeros_like(reference_mask)}, ValueError, "reference_mask selects no pixel"),
+        ({"reference_mask": reference_mask[..., :3]}, ValueError, "reference_mask must have the spatial shape"),
+        ({"captured": local.masked_fill(captured_mask, math.nan)}, ValueError, "captured must be finite"),
         ({"bins": 1}, ValueError, "bins must be an int >= 2"),
         ({"value_range": (5.0, 1.0)}, ValueError, "value_range must be finite with low < high"),
         ({"weights": "gauss"}, ValueError, "weights must be one of"),
         ({"log_prior": torch.zeros(3)}, ValueError, r"log_prior must have shape \(32,\)"),
-    ], (local, window, variance, local_mask, window_mask)
+    ], (local, window, variance, captured_mask, reference_mask)
 
 
 @pytest.mark.parametrize("index", range(16))
 def test_invalid_inputs_raise_clear_errors(index):
-    cases, (local, window, variance, local_mask, window_mask) = _invalid_cases()
+    cases, (local, window, variance, captured_mask, reference_mask) = _invalid_cases()
     change, error, message = cases[index]
-    arguments = {"local": local, "window": window, "variance": variance, "local_mask": local_mask}
-    arguments["window_mask"] = window_mask
+    arguments = {"captured": local, "reference": window, "variance": variance, "captured_mask": captured_mask}
+    arguments["reference_mask"] = reference_mask
     arguments.update(change)
     with pytest.raises(error, match=message):
         enmi_surface(**arguments)
@@ -286,18 +290,18 @@ def test_direct_surface_checks_its_metric_and_variance():
         score_surface.ecr_surface(local, window, variance, model_variance=-2.0)
     with pytest.raises(ValueError, match="variance must be a number or a tensor"):
         score_surface.ecr_surface(local, window, None)
-    with pytest.raises(ValueError, match="window must be at least as large as local"):
+    with pytest.raises(ValueError, match="reference must be at least as large as captured"):
         ncc_surface(local, window[..., :, :3])
 
 
 @pytest.mark.parametrize("masks", ["none", "local", "window", "both"])
 def test_ecr_fft_surface_equals_direct_loop(masks, dtype):
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
     # One window per sample, so a swapped sample/window pairing fails too.
     window = torch.cat([window, window.flip(-1) * 0.5 + 60])
     chosen = {
-        "local_mask": local_mask if masks in ("local", "both") else None,
-        "window_mask": torch.cat([window_mask, window_mask.flip(-2)]) if masks in ("window", "both") else None,
+        "captured_mask": captured_mask if masks in ("local", "both") else None,
+        "reference_mask": torch.cat([reference_mask, reference_mask.flip(-2)]) if masks in ("window", "both") else None,
     }
     fast = score_surface.ecr_surface(
         local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, model_variance=3.0, **chosen
@@ -315,11 +319,11 @@ def test_ecr_fft_surface_equals_direct_loop(masks, dtype):
 
 @pytest.mark.parametrize("masks", ["none", "local", "window", "both"])
 def test_reliability_weighted_enmi_surface_equals_direct_loop(masks, dtype):
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
     variance = variance**2  # 4 to 3800: strongly non-uniform
     chosen = {
-        "local_mask": local_mask if masks in ("local", "both") else None,
-        "window_mask": window_mask if masks in ("window", "both") else None,
+        "captured_mask": captured_mask if masks in ("local", "both") else None,
+        "reference_mask": reference_mask if masks in ("window", "both") else None,
     }
     fast = enmi_surface(local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, reliability=True, **chosen)
     slow = direct_surface(local, window, variance, metric="enmi", bins=12, reliability=True, **chosen)
@@ -346,8 +350,8 @@ def test_float32_surface_scores_a_nearly_constant_overlap_like_nmi():
 
 @pytest.mark.parametrize("masks", ["none", "both"])
 def test_ecr_linear_fft_surface_equals_direct_loop(masks, dtype):
-    local, window, variance, local_mask, window_mask = _case(torch.float64)
-    chosen = {"local_mask": local_mask, "window_mask": window_mask} if masks == "both" else {}
+    local, window, variance, captured_mask, reference_mask = _case(torch.float64)
+    chosen = {"captured_mask": captured_mask, "reference_mask": reference_mask} if masks == "both" else {}
     fast = score_surface.ecr_surface(local.to(dtype), window.to(dtype), variance.to(dtype), response="linear", **chosen)
     slow = direct_surface(local, window, variance, metric="ecr", response="linear", **chosen)
     tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-3}

@@ -47,7 +47,7 @@ def _parse_yaws(text: str) -> list[float]:
 _PROG = "enmi-localize"
 _EPILOG = f"""example (files from python data_tools/localization_benchmark.py --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
-      --local-mask runs/example/local_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
+      --local-mask runs/example/captured_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
 
 output: one JSON line, for example
   {{"dx": -8.99, "dy": 4.98, "yaw_deg": 2.8, "row": 304.98, "col": 211.01, "score": 1.1127, "margin": 0.5266}}
@@ -110,9 +110,10 @@ def _parser() -> argparse.ArgumentParser:
 # Library argument names as this command's options, for error messages.
 _OPTION_NAMES = {
     "valid_mask": "--local-mask",
-    "local_mask": "--local-mask",
-    "map_mask": "--map-mask",
-    "prior_map": "--map",
+    "captured_mask": "--local-mask",
+    "reference_mask": "--map-mask",
+    "reference": "--map",
+    "captured": "--local",
     "min_overlap": "--min-overlap",
     "exclusion_radius": "--exclusion-radius",
     "coarse_factor": "--coarse-factor",
@@ -152,10 +153,13 @@ def _command(argv: Sequence[str]) -> dict:
         except ValueError:
             variance = torch.as_tensor(_read_array(args.variance, "variance"), dtype=dtype)
     masks = {}
-    for name, path in (("local_mask", args.local_mask), ("map_mask", args.map_mask)):
+    for name, path, option in (
+        ("captured_mask", args.local_mask, "local-mask"),
+        ("reference_mask", args.map_mask, "map-mask"),
+    ):
         if path is not None:
-            masks[name] = torch.as_tensor(_read_array(path, name.replace("_", "-")) != 0)
-    for name, image, mask_name in (("local", local, "local_mask"), ("map", prior_map, "map_mask")):
+            masks[name] = torch.as_tensor(_read_array(path, option) != 0)
+    for name, image, mask_name in (("local", local, "captured_mask"), ("map", prior_map, "reference_mask")):
         mask = masks.get(mask_name)
         _check_finite_file(name, image, mask if mask is not None and mask.shape == image.shape else None)
     if len(args.shifts) not in (1, 2):

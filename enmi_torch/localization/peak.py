@@ -49,20 +49,20 @@ class Localization(NamedTuple):
 
     @property
     def yaw(self) -> Tensor:
-        """``(B,)`` rotation of the local image against the map, degrees, counter-clockwise as displayed."""
+        """``(B,)`` rotation of the captured image against the map, degrees, counter-clockwise as displayed."""
         return self.pose[:, 2]
 
     def local_to_map(self, center: tuple[int, int] | Tensor, local_shape: tuple[int, int]) -> Tensor:
-        """``(B, 3, 3)`` transform from local pixel coordinates ``(x, y)`` to map coordinates ``(x, y)``.
+        """``(B, 3, 3)`` transform from captured pixel coordinates ``(x, y)`` to map coordinates ``(x, y)``.
 
-        Points are ``(x, y) = (column, row)`` with y down, as in kornia. A local pixel ``p`` shows the map at
-        ``T @ [x, y, 1]``: the search turns the local image by ``-yaw`` about its centre ``((w - 1) / 2, (h - 1) / 2)``
-        (kornia's :func:`~kornia.geometry.transform.rotate`) and puts its pixel ``(h // 2, w // 2)`` on map cell
-        ``(row + dy, col + dx)``.
+        Points are ``(x, y) = (column, row)`` with y down, as in kornia. A captured pixel ``p`` shows the map at
+        ``T @ [x, y, 1]``: the search turns the captured image by ``-yaw`` about its centre
+        ``((w - 1) / 2, (h - 1) / 2)`` (kornia's :func:`~kornia.geometry.transform.rotate`) and puts its pixel
+        ``(h // 2, w // 2)`` on map cell ``(row + dy, col + dx)``.
 
         Args:
             center: the ``center`` given to :func:`localize`: ``(row, col)`` or ``(B, 2)`` integers.
-            local_shape: ``(h, w)`` of the local images.
+            local_shape: ``(h, w)`` of the captured images.
 
         Example:
             >>> result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
@@ -75,7 +75,7 @@ class Localization(NamedTuple):
         height, width = local_shape
         pose = self.pose.double()
         centers = torch.as_tensor(center, dtype=torch.float64, device=pose.device).reshape(-1, 2).expand(len(pose), 2)
-        angle = torch.deg2rad(-pose[:, 2])  # the search turns the local image by -yaw
+        angle = torch.deg2rad(-pose[:, 2])  # the search turns the captured image by -yaw
         cos, sin = angle.cos(), angle.sin()
         middle_x, middle_y = (width - 1) / 2, (height - 1) / 2
         # OpenCV/kornia rotation about the centre (source to destination), then the placement of the centre pixel.

@@ -1,6 +1,6 @@
-"""Localization: search a prior map for the pose (x/y shift and yaw) of a local image with dense score surfaces.
+"""Localization: search a prior map for the pose (x/y shift and yaw) of a captured image with dense score surfaces.
 
-The vehicle's local image (a rectified camera view or a lidar intensity grid, on the map's cell grid) is compared
+The vehicle's captured image (a rectified camera view or a lidar intensity grid, on the map's cell grid) is compared
 with the map at every integer shift of a window around the prior pose and at a few yaw angles; the best candidate is
 refined below one cell by a quadratic fit of the surface, and the surface's curvature and its second peak say how
 sure the estimate is. Surfaces come from :mod:`enmi_torch.localization.surface` (ENMI, NMI or NCC by FFT).
@@ -8,11 +8,11 @@ sure the estimate is. Surfaces come from :mod:`enmi_torch.localization.surface` 
 Run ``enmi-localize --help`` (or ``python -m enmi_torch.localization --help``) for the command-line tool.
 
 Convention:
-    Poses are in map cells and degrees. ``center = (row, col)`` is the map cell under the local image's centre
+    Poses are in map cells and degrees. ``center = (row, col)`` is the map cell under the captured image's centre
     pixel ``(h // 2, w // 2)`` at the prior pose; a pose ``(dx, dy, yaw)`` puts that pixel on map cell
-    ``(row + dy, col + dx)`` (``dx`` along columns, ``dy`` along rows) and says that the local image is the map
+    ``(row + dy, col + dx)`` (``dx`` along columns, ``dy`` along rows) and says that the captured image is the map
     section there rotated by ``yaw`` degrees about its centre, counter-clockwise as displayed (kornia's
-    :func:`~kornia.geometry.transform.rotate`, y axis down). Each yaw is searched by rotating the local image, its
+    :func:`~kornia.geometry.transform.rotate`, y axis down). Each yaw is searched by rotating the captured image, its
     variance and its valid mask by ``-yaw`` (nearest neighbour by default; with ``resample="bilinear"`` a pixel
     stays valid only where all four of its neighbours are); corners that rotate out of the ``(h, w)`` frame are
     lost. Map cells outside the map are invalid. Searches run without gradient.
@@ -30,8 +30,8 @@ from torch import Tensor, nn
 from enmi_torch._budget import check_search_memory
 from enmi_torch._checks import (
     check_bins,
+    check_captured_in_reference,
     check_floating,
-    check_local_in_map,
     check_log_prior,
     check_option,
     check_tensor,
@@ -49,8 +49,8 @@ _FULL_SUPPORT = 1 - 1e-3
 
 
 def localize(
-    local: Tensor,
-    prior_map: Tensor,
+    captured: Tensor,
+    reference: Tensor,
     variance: Tensor | float | VarianceModel | None = None,
     *,
     shifts: int | tuple[int, int] = 16,
@@ -65,25 +65,25 @@ def localize(
     response: str = "binned",
     reliability: bool = False,
     em_steps: int = 0,
-    local_mask: Tensor | None = None,
-    map_mask: Tensor | None = None,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
     min_overlap: float = 0.5,
     exclusion_radius: int = 3,
     coarse_factor: int = 1,
     coarse_peaks: int = 3,
     resample: str = "nearest",
 ) -> Localization:
-    """Find the pose of each local image in the prior map: the best of a window of shifts and a set of yaws.
+    """Find the pose of each captured image in the prior map: the best of a window of shifts and a set of yaws.
 
     Args:
-        local: local images ``(B, 1, h, w)``, floating point, on the map's cell grid.
-        prior_map: ``(1, 1, Hm, Wm)`` (one map for all) or ``(B, 1, Hm, Wm)``, floating point.
-        variance: for ``metric="ecr"`` and ``"enmi"``: the local images' per-pixel noise variance (a number,
+        captured: captured images ``(B, 1, h, w)``, floating point, on the map's cell grid.
+        reference: ``(1, 1, Hm, Wm)`` (one map for all) or ``(B, 1, Hm, Wm)``, floating point.
+        variance: for ``metric="ecr"`` and ``"enmi"``: the captured images' per-pixel noise variance (a number,
             ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel` (its
             ``valid_mask`` is used too). Must be ``None`` for the other metrics.
         shifts: search radius in cells, ``r`` or ``(ry, rx)``: shifts ``dy`` in ``[-ry, ry]``, ``dx`` in
             ``[-rx, rx]``.
-        center: prior pose: map cell ``(row, col)`` under the local centre pixel, or ``(B, 2)`` integers, one per
+        center: prior pose: map cell ``(row, col)`` under the captured centre pixel, or ``(B, 2)`` integers, one per
             sample; ``None`` for the map's centre cell ``(Hm // 2, Wm // 2)``.
         yaws: yaw angles to search, in degrees; ``None`` for ``[0]``.
         metric: ``"ecr"`` (the noise-aware correlation ratio, :func:`~enmi_torch.correlation_ratio.ecr`: the
@@ -101,17 +101,17 @@ def localize(
         reliability: reliability-weighted counts (ENMI, see :func:`~enmi_torch.information.enmi`).
         em_steps: EM steps of the mixture score (``metric="mixture"``, see :func:`~enmi_torch.mixture.mixture_surface`:
             shifts that its cheap first stage does not rescore are ``-inf`` in ``surface``).
-        local_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
-        map_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
-        min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) local image's
+        captured_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
+        reference_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
+        min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) captured image's
             valid pixels land on valid map cells; the others score ``-inf``.
         exclusion_radius: cells around the peak (Chebyshev distance) left out when looking for the second peak.
         coarse_factor: ``1`` searches every shift exhaustively. ``f > 1`` searches first on images averaged over
             ``f x f`` cells (variance divided by ``f^2``), keeps the ``coarse_peaks`` best separated coarse
             candidates and searches every shift within ``f`` cells of each at full resolution (at its yaw and the
-            two next ones): for windows much larger than the local image.
+            two next ones): for windows much larger than the captured image.
         coarse_peaks: coarse candidates refined when ``coarse_factor > 1``.
-        resample: how the local image, its variance and mask are rotated for a yaw: ``"nearest"`` (default: every
+        resample: how the captured image, its variance and mask are rotated for a yaw: ``"nearest"`` (default: every
             pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
             geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
             noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
@@ -120,27 +120,27 @@ def localize(
         :class:`Localization`.
 
     Raises:
-        ValueError: on inconsistent shapes, empty masks, a local image larger than the map, or when no candidate of
+        ValueError: on inconsistent shapes, empty masks, a captured image larger than the map, or when no candidate of
             a sample passes ``min_overlap``.
 
     Convention:
-        No gradient (a search). Scores are computed in float64 for float64 ``local`` and in float32 otherwise;
-        results have the dtype and device of ``local``. Cost: one FFT surface per sample and yaw, dominated by
+        No gradient (a search). Scores are computed in float64 for float64 ``captured`` and in float32 otherwise;
+        results have the dtype and device of ``captured``. Cost: one FFT surface per sample and yaw, dominated by
         ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
-        >>> prior_map = torch.rand(1, 1, 48, 48, generator=generator) * 256
-        >>> local = prior_map[..., 14:30, 19:35] + 8 * torch.randn(1, 1, 16, 16, generator=generator)
-        >>> result = localize(local, prior_map, 64.0, shifts=6, bins=16)
+        >>> reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
+        >>> captured = reference[..., 14:30, 19:35] + 8 * torch.randn(1, 1, 16, 16, generator=generator)
+        >>> result = localize(captured, reference, 64.0, shifts=6, bins=16)
         >>> result.pose.round().tolist(), result.surface.shape
         ([[3.0, -2.0, 0.0]], torch.Size([1, 1, 13, 13]))
     """
     check_option("metric", metric, METRICS)
     check_option("resample", resample, RESAMPLING)
-    batch = check_local_in_map(local, prior_map, "prior_map", "Hm, Wm")[0]
+    batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
     radius = _check_shifts(shifts)
-    centers = _check_center(center, batch, tuple(prior_map.shape[2:]), local.device)
+    centers = _check_center(center, batch, tuple(reference.shape[2:]), captured.device)
     yaw_list = _check_yaws(yaws)
     if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
         raise ValueError(f"min_overlap must be a fraction in (0, 1], got {min_overlap!r}")
@@ -163,7 +163,7 @@ def localize(
     if log_prior is not None and metric != "enmi":
         raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
     if log_prior is not None:
-        log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins).to(local.device)
+        log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins).to(captured.device)
     if model_variance is not None and metric != "ecr":
         raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
     if metric == "ecr":
@@ -175,16 +175,25 @@ def localize(
         raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
     if em_steps != 0 and metric != "mixture":
         raise ValueError(f"em_steps is only used by metric='mixture', got metric={metric!r}")
-    check_search_memory(local, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
+    check_search_memory(captured, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
-        local_valid = _local_valid(local, local_mask, variance)
-        variance_map = _variance_map(local, variance)
-        map_valid = _map_valid(prior_map, map_mask)
+        captured_valid = _local_valid(captured, captured_mask, variance)
+        variance_map = _variance_map(captured, variance)
+        reference_valid = _map_valid(reference, reference_mask)
         ecr_options = {"model_variance": model_variance, "response": response}
         score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps)
         search = _Search(
-            local, variance_map, local_valid, prior_map, map_valid, centers, radius, yaw_list, score_fn, resample
+            captured,
+            variance_map,
+            captured_valid,
+            reference,
+            reference_valid,
+            centers,
+            radius,
+            yaw_list,
+            score_fn,
+            resample,
         )
         if coarse_factor == 1:
             surface = search.exhaustive(min_overlap)
@@ -216,9 +225,9 @@ class Localizer(nn.Module):
     Example:
         >>> from enmi_torch.variance import ConstantVariance
         >>> generator = torch.Generator().manual_seed(0)
-        >>> prior_map = torch.rand(1, 1, 40, 40, generator=generator) * 256
+        >>> reference = torch.rand(1, 1, 40, 40, generator=generator) * 256
         >>> localizer = Localizer(ConstantVariance(16.0), shifts=5, bins=16)
-        >>> localizer(prior_map[..., 15:31, 14:30], prior_map).pose.round().tolist()
+        >>> localizer(reference[..., 15:31, 14:30], reference).pose.round().tolist()
         [[2.0, 3.0, 0.0]]
     """
 
@@ -264,20 +273,20 @@ class Localizer(nn.Module):
 
     def forward(
         self,
-        local: Tensor,
-        prior_map: Tensor,
+        captured: Tensor,
+        reference: Tensor,
         variance: Tensor | float | None = None,
         *,
         center: tuple[int, int] | Tensor | None = None,
-        local_mask: Tensor | None = None,
-        map_mask: Tensor | None = None,
+        captured_mask: Tensor | None = None,
+        reference_mask: Tensor | None = None,
     ) -> Localization:
-        """Localize ``local`` ``(B, 1, h, w)`` in ``prior_map``; ``variance`` per call unless a model is stored."""
+        """Localize ``captured`` ``(B, 1, h, w)`` in ``reference``; ``variance`` per call unless a model is stored."""
         if variance is not None and self.variance_model is not None:
             raise ValueError("variance must be None when Localizer has a variance_model; pass one or the other")
         return localize(
-            local,
-            prior_map,
+            captured,
+            reference,
             self.variance_model if variance is None else variance,
             shifts=self.shifts,
             center=center,
@@ -288,8 +297,8 @@ class Localizer(nn.Module):
             weights=self.weights,
             log_prior=self.log_prior,
             model_variance=self.model_variance,
-            local_mask=local_mask,
-            map_mask=map_mask,
+            captured_mask=captured_mask,
+            reference_mask=reference_mask,
             **self.options,
         )
 
@@ -315,7 +324,7 @@ def _check_yaws(yaws) -> list[float]:
 
 
 def _check_center(center, batch: int, map_shape: tuple[int, int], device: torch.device) -> Tensor:
-    """``(B, 2)`` int64 map cells of the local centre at the prior pose."""
+    """``(B, 2)`` int64 map cells of the captured centre at the prior pose."""
     if center is None:
         return torch.tensor([[map_shape[0] // 2, map_shape[1] // 2]], device=device).expand(batch, 2)
     if isinstance(center, Tensor):
@@ -334,72 +343,72 @@ def _check_center(center, batch: int, map_shape: tuple[int, int], device: torch.
     return torch.tensor([list(center)], device=device).expand(batch, 2)
 
 
-def _local_valid(local: Tensor, local_mask: Tensor | None, variance) -> Tensor:
+def _local_valid(captured: Tensor, captured_mask: Tensor | None, variance) -> Tensor:
     """``(B, 1, h, w)`` bool: the given mask and the variance model's."""
-    valid = torch.ones_like(local, dtype=torch.bool)
-    masks = [("local_mask", local_mask)]
+    valid = torch.ones_like(captured, dtype=torch.bool)
+    masks = [("captured_mask", captured_mask)]
     if isinstance(variance, VarianceModel):
-        masks.append(("variance.valid_mask", variance.valid_mask(local)))
+        masks.append(("variance.valid_mask", variance.valid_mask(captured)))
     for name, mask in masks:
         if mask is None:
             continue
         check_tensor(name, mask)
         if mask.dtype != torch.bool:
             raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
-        valid = valid & _as_local_map(name, mask, local)
+        valid = valid & _as_local_map(name, mask, captured)
     empty = ~valid.flatten(1).any(1)
     if bool(empty.any()):
-        raise ValueError(f"local_mask selects no pixel in sample(s) {empty.nonzero()[:, 0].tolist()}")
+        raise ValueError(f"captured_mask selects no pixel in sample(s) {empty.nonzero()[:, 0].tolist()}")
     return valid
 
 
-def _as_local_map(name: str, values: Tensor, local: Tensor) -> Tensor:
+def _as_local_map(name: str, values: Tensor, captured: Tensor) -> Tensor:
     """A per-pixel map given as ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``, as ``(B, 1, h, w)``."""
-    batch, _, height, width = local.shape
+    batch, _, height, width = captured.shape
     if values.shape == (height, width):
         values = values.reshape(1, 1, height, width)
     if values.ndim != 4 or values.shape[1:] != (1, height, width) or values.shape[0] not in (1, batch):
         raise ValueError(
             f"{name} must have shape ({height}, {width}), (1, 1, {height}, {width}) or ({batch}, 1, {height}, "
-            f"{width}) to match local, got {tuple(values.shape)}"
+            f"{width}) to match captured, got {tuple(values.shape)}"
         )
-    return values.to(local.device).expand(batch, 1, height, width)
+    return values.to(captured.device).expand(batch, 1, height, width)
 
 
-def _variance_map(local: Tensor, variance) -> Tensor | None:
-    """``(B, 1, h, w)`` variance in the local dtype, or ``None`` for the metrics without one."""
+def _variance_map(captured: Tensor, variance) -> Tensor | None:
+    """``(B, 1, h, w)`` variance in the captured dtype, or ``None`` for the metrics without one."""
     if variance is None:
         return None
     if isinstance(variance, VarianceModel):
-        variance = variance(local)
+        variance = variance(captured)
     if isinstance(variance, (int, float)) and not isinstance(variance, bool):
-        return torch.full_like(local, float(variance))
+        return torch.full_like(captured, float(variance))
     check_floating("variance", variance)
     if variance.ndim == 0:
-        return variance.to(local).expand_as(local)
-    return _as_local_map("variance", variance, local).to(local.dtype)
+        return variance.to(captured).expand_as(captured)
+    return _as_local_map("variance", variance, captured).to(captured.dtype)
 
 
-def _map_valid(prior_map: Tensor, map_mask: Tensor | None) -> Tensor:
+def _map_valid(reference: Tensor, reference_mask: Tensor | None) -> Tensor:
     """``(1 or B, 1, Hm, Wm)`` bool."""
-    if map_mask is None:
-        return torch.ones_like(prior_map, dtype=torch.bool)
-    check_tensor("map_mask", map_mask)
-    if map_mask.dtype != torch.bool:
-        raise TypeError(f"map_mask must be a bool tensor, got dtype {map_mask.dtype}")
-    shape = tuple(prior_map.shape[2:])
-    if map_mask.shape == shape:
-        map_mask = map_mask.reshape(1, 1, *shape)
-    if map_mask.ndim != 4 or tuple(map_mask.shape[1:]) != (1, *shape):
+    if reference_mask is None:
+        return torch.ones_like(reference, dtype=torch.bool)
+    check_tensor("reference_mask", reference_mask)
+    if reference_mask.dtype != torch.bool:
+        raise TypeError(f"reference_mask must be a bool tensor, got dtype {reference_mask.dtype}")
+    shape = tuple(reference.shape[2:])
+    if reference_mask.shape == shape:
+        reference_mask = reference_mask.reshape(1, 1, *shape)
+    if reference_mask.ndim != 4 or tuple(reference_mask.shape[1:]) != (1, *shape):
         raise ValueError(
-            f"map_mask must have shape {shape}, (1, 1, *{shape}) or (B, 1, *{shape}) to match prior_map, "
-            f"got {tuple(map_mask.shape)}"
+            f"reference_mask must have shape {shape}, (1, 1, *{shape}) or (B, 1, *{shape}) to match reference, "
+            f"got {tuple(reference_mask.shape)}"
         )
-    if map_mask.shape[0] not in (1, prior_map.shape[0]):
-        raise ValueError(f"map_mask must hold 1 or {prior_map.shape[0]} masks, got {map_mask.shape[0]}")
-    if not bool(map_mask.any()):
-        raise ValueError("map_mask selects no cell; the map needs at least one valid cell")
-    return map_mask.to(prior_map.device)
+    if reference_mask.shape[0] not in (1, reference.shape[0]):
+        raise ValueError(f"reference_mask must hold 1 or {reference.shape[0]} masks, got {reference_mask.shape[0]}")
+    if not bool(reference_mask.any()):
+        raise ValueError("reference_mask selects no cell; the map needs at least one valid cell")
+    return reference_mask.to(reference.device)
 
 
 class _ScoreFunction:
@@ -410,15 +419,15 @@ class _ScoreFunction:
         self.weights, self.log_prior, self.ecr_options = weights, log_prior, ecr_options
         self.reliability, self.em_steps = reliability, em_steps
 
-    def __call__(self, local, window, variance, local_mask, window_mask, *, sample: int = 0) -> Surface:
-        masks = {"local_mask": local_mask, "window_mask": window_mask}
+    def __call__(self, captured, window, variance, captured_mask, reference_mask, *, sample: int = 0) -> Surface:
+        masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
         if self.metric == "ncc":
-            return ncc_surface(local, window, **masks)
+            return ncc_surface(captured, window, **masks)
         if self.metric == "nmi":
-            return nmi_surface(local, window, bins=self.bins, value_range=self.value_range, **masks)
+            return nmi_surface(captured, window, bins=self.bins, value_range=self.value_range, **masks)
         if self.metric == "mixture":
             return mixture_surface(
-                local,
+                captured,
                 window,
                 variance,
                 bins=self.bins,
@@ -428,7 +437,7 @@ class _ScoreFunction:
             )
         if self.metric == "ecr":
             return ecr_surface(
-                local,
+                captured,
                 window,
                 variance,
                 bins=self.bins,
@@ -437,7 +446,7 @@ class _ScoreFunction:
                 **masks,
             )
         return enmi_surface(
-            local,
+            captured,
             window,
             variance,
             bins=self.bins,
@@ -453,26 +462,27 @@ class _ScoreFunction:
 RESAMPLING = ("nearest", "bilinear")
 
 
-def _rotated(local: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float], resample: str):
+def _rotated(captured: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float], resample: str):
     """Image, variance and mask of one sample ``(1, 1, h, w)`` rotated by ``-yaw`` for each yaw: ``(Y, 1, h, w)``."""
     count = len(yaws)
-    local = torch.where(valid, local, 0.0)
+    captured = torch.where(valid, captured, 0.0)
     if variance is not None:
         variance = torch.where(valid, variance, 1.0)
     if all(yaw == 0 for yaw in yaws):
-        expand = (count, 1, *local.shape[2:])
-        return local.expand(expand), None if variance is None else variance.expand(expand), valid.expand(expand)
-    angles = -torch.tensor(yaws, dtype=local.dtype, device=local.device)
+        expand = (count, 1, *captured.shape[2:])
+        return captured.expand(expand), None if variance is None else variance.expand(expand), valid.expand(expand)
+    angles = -torch.tensor(yaws, dtype=captured.dtype, device=captured.device)
     zero = angles == 0
-    channels = [local, valid.to(local.dtype)]
+    channels = [captured, valid.to(captured.dtype)]
     if variance is not None:
         channels.append(variance)
         if resample == "bilinear":
             # Bilinear resampling of a linear ramp gives back the source coordinates: their fractions give the weights.
             rows, cols = torch.meshgrid(
-                *(torch.arange(size, dtype=local.dtype, device=local.device) for size in local.shape[2:]), indexing="ij"
+                *(torch.arange(size, dtype=captured.dtype, device=captured.device) for size in captured.shape[2:]),
+                indexing="ij",
             )
-            channels += [cols.expand_as(local), rows.expand_as(local)]
+            channels += [cols.expand_as(captured), rows.expand_as(captured)]
     stacked = torch.cat(channels, dim=1)
     turned = rotate(stacked.expand(count, -1, -1, -1), angles, mode=resample)
     # Yaw 0 keeps the exact pixels (no resampling round-off).
@@ -495,55 +505,55 @@ class _Search:
     """Windows around the prior poses and the surfaces over them."""
 
     def __init__(
-        self, local, variance, local_valid, prior_map, map_valid, centers, radius, yaws, score_fn, resample
+        self, captured, variance, captured_valid, reference, reference_valid, centers, radius, yaws, score_fn, resample
     ) -> None:
-        self.local, self.variance, self.local_valid = local, variance, local_valid
+        self.captured, self.variance, self.captured_valid = captured, variance, captured_valid
         self.resample = resample
-        self.prior_map, self.map_valid = prior_map, map_valid
+        self.reference, self.reference_valid = reference, reference_valid
         self.radius, self.yaws, self.score_fn = radius, yaws, score_fn
-        height, width = local.shape[2:]
-        # Map cell of the local top-left pixel at shift (-ry, -rx), per sample.
-        self.origins = centers - torch.tensor([height // 2 + radius[0], width // 2 + radius[1]], device=local.device)
+        height, width = captured.shape[2:]
+        # Map cell of the captured top-left pixel at shift (-ry, -rx), per sample.
+        self.origins = centers - torch.tensor([height // 2 + radius[0], width // 2 + radius[1]], device=captured.device)
 
     def _window(self, sample: int, top: int, left: int, rows: int, cols: int, factor: int = 1):
         """Map section ``(1, 1, rows, cols)`` at ``(top, left)`` on the map pooled by ``factor``, and its mask."""
-        index = sample if self.prior_map.shape[0] > 1 else 0
-        mask_index = sample if self.map_valid.shape[0] > 1 else 0
-        prior_map = self.prior_map[index : index + 1]
-        map_valid = self.map_valid[mask_index : mask_index + 1]
+        index = sample if self.reference.shape[0] > 1 else 0
+        mask_index = sample if self.reference_valid.shape[0] > 1 else 0
+        reference = self.reference[index : index + 1]
+        reference_valid = self.reference_valid[mask_index : mask_index + 1]
         if factor > 1:
-            map_valid = _pooled(map_valid.to(prior_map.dtype), factor) >= _FULL_SUPPORT
-            prior_map = _pooled(torch.where(self.map_valid[mask_index : mask_index + 1], prior_map, 0.0), factor)
-        window = prior_map.new_zeros(1, 1, rows, cols)
-        valid = torch.zeros(1, 1, rows, cols, dtype=torch.bool, device=prior_map.device)
-        map_rows, map_cols = prior_map.shape[2:]
+            reference_valid = _pooled(reference_valid.to(reference.dtype), factor) >= _FULL_SUPPORT
+            reference = _pooled(torch.where(self.reference_valid[mask_index : mask_index + 1], reference, 0.0), factor)
+        window = reference.new_zeros(1, 1, rows, cols)
+        valid = torch.zeros(1, 1, rows, cols, dtype=torch.bool, device=reference.device)
+        map_rows, map_cols = reference.shape[2:]
         row_low, row_high = max(top, 0), min(top + rows, map_rows)
         col_low, col_high = max(left, 0), min(left + cols, map_cols)
         if row_low < row_high and col_low < col_high:
             target = (..., slice(row_low - top, row_high - top), slice(col_low - left, col_high - left))
-            window[target] = prior_map[..., row_low:row_high, col_low:col_high]
-            valid[target] = map_valid[..., row_low:row_high, col_low:col_high]
+            window[target] = reference[..., row_low:row_high, col_low:col_high]
+            valid[target] = reference_valid[..., row_low:row_high, col_low:col_high]
         return window, valid
 
     def _rotations(self, sample: int, yaws: list[float]):
         variance = None if self.variance is None else self.variance[sample : sample + 1]
         return _rotated(
-            self.local[sample : sample + 1], variance, self.local_valid[sample : sample + 1], yaws, self.resample
+            self.captured[sample : sample + 1], variance, self.captured_valid[sample : sample + 1], yaws, self.resample
         )
 
-    def _surface(self, sample, local, variance, valid, window, window_valid, min_overlap) -> Tensor:
+    def _surface(self, sample, captured, variance, valid, window, window_valid, min_overlap) -> Tensor:
         """``(Y, Sy, Sx)`` scores of one sample's rotations.
 
         ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows.
         """
-        rows, cols = window.shape[2] - local.shape[2] + 1, window.shape[3] - local.shape[3] + 1
-        result = local.new_full((local.shape[0], rows, cols), -math.inf, dtype=self.local.dtype)
+        rows, cols = window.shape[2] - captured.shape[2] + 1, window.shape[3] - captured.shape[3] + 1
+        result = captured.new_full((captured.shape[0], rows, cols), -math.inf, dtype=self.captured.dtype)
         kept = valid.flatten(1).any(1)
         if not bool(window_valid.any()) or not bool(kept.any()):
             return result
-        local, valid = local[kept], valid[kept]
+        captured, valid = captured[kept], valid[kept]
         surface = self.score_fn(
-            local, window, None if variance is None else variance[kept], valid, window_valid, sample=sample
+            captured, window, None if variance is None else variance[kept], valid, window_valid, sample=sample
         )
         needed = min_overlap * valid.flatten(1).sum(1).to(surface.overlap.dtype)
         enough = surface.overlap >= needed[:, None, None] - 0.5
@@ -552,33 +562,33 @@ class _Search:
 
     def exhaustive(self, min_overlap: float) -> Tensor:
         """``(B, Y, 2 ry + 1, 2 rx + 1)`` surface over every shift and yaw."""
-        height, width = self.local.shape[2:]
+        height, width = self.captured.shape[2:]
         rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
         surfaces = []
-        for sample in range(self.local.shape[0]):
+        for sample in range(self.captured.shape[0]):
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
-            local, variance, valid = self._rotations(sample, self.yaws)
-            surfaces.append(self._surface(sample, local, variance, valid, window, window_valid, min_overlap))
+            captured, variance, valid = self._rotations(sample, self.yaws)
+            surfaces.append(self._surface(sample, captured, variance, valid, window, window_valid, min_overlap))
         return torch.stack(surfaces)
 
     def coarse_to_fine(self, min_overlap: float, factor: int, peaks: int, exclusion_radius: int) -> Tensor:
         """Coarse surface on ``factor``-pooled images, then full-resolution surfaces around its best peaks."""
-        height, width = self.local.shape[2:]
+        height, width = self.captured.shape[2:]
         if height < factor or width < factor:
-            raise ValueError(f"coarse_factor must not exceed the local image size {(height, width)}, got {factor}")
+            raise ValueError(f"coarse_factor must not exceed the captured image size {(height, width)}, got {factor}")
         radius_y, radius_x = self.radius
-        shape = (self.local.shape[0], len(self.yaws), 2 * radius_y + 1, 2 * radius_x + 1)
-        full = self.local.new_full(shape, -math.inf)
+        shape = (self.captured.shape[0], len(self.yaws), 2 * radius_y + 1, 2 * radius_x + 1)
+        full = self.captured.new_full(shape, -math.inf)
         evaluated = torch.zeros(shape, dtype=torch.bool)
-        for sample in range(self.local.shape[0]):
+        for sample in range(self.captured.shape[0]):
             rotations = self._rotations(sample, self.yaws)
-            local, variance, valid = rotations
-            coarse_local = _pooled(local * valid, factor)
-            coarse_valid = _pooled(valid.to(local.dtype), factor) >= _FULL_SUPPORT
+            captured, variance, valid = rotations
+            coarse_local = _pooled(captured * valid, factor)
+            coarse_valid = _pooled(valid.to(captured.dtype), factor) >= _FULL_SUPPORT
             coarse_variance = (
                 None if variance is None else _pooled(torch.where(valid, variance, 1.0), factor) / factor**2
             )
-            # Coarse candidates are the shifts whose local top-left lands on a multiple of the factor.
+            # Coarse candidates are the shifts whose captured top-left lands on a multiple of the factor.
             top, left = self.origins[sample].tolist()
             first_row, first_col = -(-top // factor), -(-left // factor)
             last_row, last_col = (top + 2 * radius_y) // factor, (left + 2 * radius_x) // factor
@@ -608,7 +618,7 @@ class _Search:
 
     def _refine(self, full, evaluated, sample, rotations, yaw_index, row, col, reach, min_overlap) -> bool:
         """Evaluate every shift within ``reach`` of ``(row, col)`` at a yaw and its neighbours; False if all were."""
-        height, width = self.local.shape[2:]
+        height, width = self.captured.shape[2:]
         row_low, row_high = max(row - reach, 0), min(row + reach, full.shape[2] - 1)
         col_low, col_high = max(col - reach, 0), min(col + reach, full.shape[3] - 1)
         region = (slice(row_low, row_high + 1), slice(col_low, col_high + 1))
@@ -623,10 +633,10 @@ class _Search:
         window, window_valid = self._window(
             sample, top + row_low, left + col_low, row_high - row_low + height, col_high - col_low + width
         )
-        local, variance, valid = rotations
+        captured, variance, valid = rotations
         fine = self._surface(
             sample,
-            local[yaw_indices],
+            captured[yaw_indices],
             None if variance is None else variance[yaw_indices],
             valid[yaw_indices],
             window,

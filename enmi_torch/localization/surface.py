@@ -1,22 +1,22 @@
-"""Dense score surfaces: ENMI, NMI or NCC of a local image at every integer placement inside a map window, by FFT.
+"""Dense score surfaces: ECR, ENMI, NMI or NCC of a captured image at every placement inside a reference, by FFT.
 
-With the map hard-binned, the joint histogram of the local image placed with its top-left pixel at window cell
+With the map hard-binned, the joint histogram of the captured image placed with its top-left pixel at reference cell
 ``s`` is
 
-    ``J[i, j](s) = sum_n W[n, i] local_valid[n] * R_j[n + s]``,   ``R_j = window_valid * [window bin == j]``,
+    ``J[i, j](s) = sum_n W[n, i] captured_valid[n] * R_j[n + s]``,   ``R_j = reference_valid * [reference bin == j]``,
 
-the cross-correlation of the local image's bin-weight plane ``W[:, i]`` (a Gaussian likelihood for ENMI, one-hot
-for NMI) with the window's bin-indicator plane ``R_j``. All ``K x K`` correlations over all placements come from one
+the cross-correlation of the captured image's bin-weight plane ``W[:, i]`` (a Gaussian likelihood for ENMI, one-hot
+for NMI) with the reference's bin-indicator plane ``R_j``. All ``K x K`` correlations over all placements come from one
 batched real FFT of each image's planes, a product per bin pair and a pruned inverse FFT (rows first, cropped to the
 placements, then columns); bins whose planes are empty on either side are skipped, and the masks add a plane only
 where they leave pixels out (otherwise the marginals are constants and box sums). :func:`direct_surface` is the
 reference: one :func:`~enmi_torch.histogram.joint_histogram` per placement.
 
 Convention:
-    ``local`` is ``(B, 1, h, w)``; ``window`` is ``(1, 1, Hw, Ww)`` (shared) or ``(B, 1, Hw, Ww)``, with
+    ``captured`` is ``(B, 1, h, w)``; ``reference`` is ``(1, 1, Hw, Ww)`` (shared) or ``(B, 1, Hw, Ww)``, with
     ``Hw >= h`` and ``Ww >= w``. The surface is ``(B, Hw - h + 1, Ww - w + 1)``: entry ``[b, u, v]`` scores the
-    local image with its top-left pixel on window cell ``(u, v)`` (row, column). Masked pixels of either image are
-    left out of that placement's histogram; ``overlap`` counts the local pixels that remain. A placement without any
+    captured image with its top-left pixel on reference cell ``(u, v)`` (row, column). Masked pixels of either image are
+    left out of that placement's histogram; ``overlap`` counts the captured pixels that remain. A placement without any
     overlap scores 1 (ENMI, NMI; the value of independent images) or 0 (NCC). Surfaces are computed without
     gradient (a search, not a loss: use :func:`~enmi_torch.information.enmi` to differentiate one placement), in
     float64 for float64 inputs and in float32 otherwise; float32 round-off moves a score by about 1e-6 (3e-7
@@ -34,8 +34,8 @@ from torch import Tensor
 from enmi_torch._budget import check_surface_memory
 from enmi_torch._checks import (
     check_bins,
+    check_captured_in_reference,
     check_finite_where,
-    check_local_in_map,
     check_log_prior,
     check_option,
     check_resolved_by_bins,
@@ -57,7 +57,7 @@ from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
 METRICS = ("ecr", "enmi", "mixture", "nmi", "ncc")
 
 # The product of one captured plane with a block of reference planes (whole half spectra) stays near this many complex
-# elements (4 MiB in complex64, 16 reference planes for a 128 x 128 image in a 228 x 228 window): batched enough for
+# elements (4 MiB in complex64, 16 reference planes for a 128 x 128 image in a 228 x 228 reference): batched enough for
 # the FFTs, small enough for the CPU cache.
 _BLOCK_ELEMENTS = 1 << 19
 
@@ -67,7 +67,7 @@ class Surface(NamedTuple):
 
     Attributes:
         score: ``(B, Sy, Sx)`` score per placement.
-        overlap: ``(B, Sy, Sx)`` number of valid local pixels that land on valid window cells (integer-valued).
+        overlap: ``(B, Sy, Sx)`` number of valid captured pixels that land on valid reference cells (integer-valued).
     """
 
     score: Tensor
@@ -75,52 +75,53 @@ class Surface(NamedTuple):
 
 
 class _Inputs(NamedTuple):
-    local: Tensor  # (B, h, w), masked pixels set to the low end of the range
-    window: Tensor  # (Bw, Hw, Ww), masked cells set to the low end of the range
-    local_valid: Tensor  # (B, h, w) bool
-    window_valid: Tensor  # (Bw, Hw, Ww) bool
+    captured: Tensor  # (B, h, w), masked pixels set to the low end of the range
+    reference: Tensor  # (Bw, Hw, Ww), masked cells set to the low end of the range
+    captured_valid: Tensor  # (B, h, w) bool
+    reference_valid: Tensor  # (Bw, Hw, Ww) bool
     variance: Tensor | None  # (B, h, w), 1 where masked
 
 
 def enmi_surface(
-    local: Tensor,
-    window: Tensor,
+    captured: Tensor,
+    reference: Tensor,
     variance: Tensor | float,
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
     weights: str = "mass",
     log_prior: Tensor | None = None,
-    local_mask: Tensor | None = None,
-    window_mask: Tensor | None = None,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
     reliability: bool = False,
 ) -> Surface:
-    """ENMI of ``local`` at every placement inside ``window``, by FFT correlation of bin planes.
+    """ENMI of ``captured`` at every placement inside ``reference``, by FFT correlation of bin planes.
 
     Args:
-        local: noisy local image ``(B, 1, h, w)``, floating point.
-        window: noiseless map section ``(1 or B, 1, Hw, Ww)`` holding every placement, ``Hw >= h``, ``Ww >= w``.
-        variance: per-pixel noise variance of ``local`` (> 0 where valid): a number, ``(h, w)``, ``(1, 1, h, w)``
+        captured: noisy captured image ``(B, 1, h, w)``, floating point.
+        reference: noiseless map section ``(1 or B, 1, Hw, Ww)`` holding every placement, ``Hw >= h``, ``Ww >= w``.
+        variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(h, w)``, ``(1, 1, h, w)``
             or ``(B, 1, h, w)``.
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``; values outside are clipped into the edge bins.
         weights: ``"mass"`` or ``"density"`` (see :func:`~enmi_torch.information.enmi`).
         log_prior: optional log prior of the amplitudes per bin, ``(bins,)``, ``(1, bins)`` or ``(B, bins)``.
-        local_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
-        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window; ``False`` cells are left out.
-        reliability: each local pixel counts with its reliability (see :func:`~enmi_torch.information.enmi`),
-            estimated once per local image over its valid pixels.
+        captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
+        reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
+        reliability: each captured pixel counts with its reliability (see :func:`~enmi_torch.information.enmi`),
+            estimated once per captured image over its valid pixels.
 
     Returns:
         :class:`Surface` with ``score`` ``(B, Hw - h + 1, Ww - w + 1)``: entry ``[b, u, v]`` equals
-        ``enmi(local[b], window[b, :, u:u + h, v:v + w], variance, valid_mask=local_mask & window_mask[...])``
-        (with ``reliability``, :func:`direct_surface`'s histogram of the local image's reliability weights).
+        ``enmi(captured[b], reference[b, :, u:u + h, v:v + w], variance,
+        valid_mask=captured_mask & reference_mask[...])``
+        (with ``reliability``, :func:`direct_surface`'s histogram of the captured image's reliability weights).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
-        >>> window = torch.rand(1, 1, 12, 12, generator=generator) * 256
-        >>> local = window[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
-        >>> surface = enmi_surface(local, window, 16.0, bins=8)
+        >>> reference = torch.rand(1, 1, 12, 12, generator=generator) * 256
+        >>> captured = reference[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
+        >>> surface = enmi_surface(captured, reference, 16.0, bins=8)
         >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
         (torch.Size([1, 7, 7]), (3, 2))
     """
@@ -129,65 +130,66 @@ def enmi_surface(
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance, bins)
-    check_surface_memory(inputs.local, inputs.window, bins)
-    batch = inputs.local.shape[0]
+    inputs = _check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance, bins)
+    check_surface_memory(inputs.captured, inputs.reference, bins)
+    batch = inputs.captured.shape[0]
     if log_prior is not None:
-        log_prior = check_log_prior(log_prior, bins, batch).to(inputs.local.dtype).unsqueeze(1)
+        log_prior = check_log_prior(log_prior, bins, batch).to(inputs.captured.dtype).unsqueeze(1)
     if not isinstance(reliability, bool):
         raise TypeError(f"reliability must be True or False, got {reliability!r}")
     with torch.no_grad():
-        plane_weights = likelihood_weights(inputs.local, inputs.variance, bins, value_range, weights, log_prior)
+        plane_weights = likelihood_weights(inputs.captured, inputs.variance, bins, value_range, weights, log_prior)
         pixel_weight = None
         if reliability:
             pixel_weight = reliability_weights(
-                inputs.local.flatten(1), inputs.variance.flatten(1), inputs.local_valid.flatten(1)
-            ).view_as(inputs.local)
+                inputs.captured.flatten(1), inputs.variance.flatten(1), inputs.captured_valid.flatten(1)
+            ).view_as(inputs.captured)
         return _information_surface(plane_weights, inputs, bins, value_range, pixel_weight)
 
 
 def ecr_surface(
-    local: Tensor,
-    window: Tensor,
+    captured: Tensor,
+    reference: Tensor,
     variance: Tensor | float,
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
     model_variance: float | None = None,
-    local_mask: Tensor | None = None,
-    window_mask: Tensor | None = None,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
     response: str = "binned",
 ) -> Surface:
-    """ECR (:func:`~enmi_torch.correlation_ratio.ecr`) of ``local`` at every placement inside ``window``, by FFT.
+    """ECR (:func:`~enmi_torch.correlation_ratio.ecr`) of ``captured`` at every placement inside ``reference``, by FFT.
 
     Per placement ECR needs, per reference bin ``j``, the count, the weight sum ``W_j`` and the weighted value sum
-    ``S_j`` of the local pixels over it: three correlations of local planes (valid mask, weights, weighted values)
-    with each bin's indicator plane, ``3 K`` inverse FFTs instead of ENMI's ``K^2`` (two when ``local`` has no mask:
+    ``S_j`` of the captured pixels over it: three correlations of captured planes (valid mask, weights, weighted values)
+    with each bin's indicator plane, ``3 K`` inverse FFTs instead of ENMI's ``K^2`` (two when ``captured`` has no mask:
     the counts are then exact box sums).
 
     Args:
-        local: noisy local image ``(B, 1, h, w)``, floating point.
-        window: noiseless map section ``(1 or B, 1, Hw, Ww)`` holding every placement, ``Hw >= h``, ``Ww >= w``.
-        variance: per-pixel noise variance of ``local`` (> 0 where valid): a number, ``(h, w)``, ``(1, 1, h, w)``
+        captured: noisy captured image ``(B, 1, h, w)``, floating point.
+        reference: noiseless map section ``(1 or B, 1, Hw, Ww)`` holding every placement, ``Hw >= h``, ``Ww >= w``.
+        variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(h, w)``, ``(1, 1, h, w)``
             or ``(B, 1, h, w)``.
         bins: number of equal-width reference bins over ``value_range``.
         value_range: ``(low, high)``; reference values outside are clipped into the edge bins.
         model_variance: ``tau^2`` (see :func:`~enmi_torch.correlation_ratio.ecr`); ``None`` for ``bin_width^2 / 12``.
-        local_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
-        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window; ``False`` cells are left out.
+        captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
+        reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
         response: ``"binned"`` or ``"linear"`` (see :func:`~enmi_torch.correlation_ratio.ecr`; the linear response
-            takes nine correlations of local and window planes, whatever ``bins``).
+            takes nine correlations of captured and reference planes, whatever ``bins``).
 
     Returns:
         :class:`Surface`; ``score[b, u, v]`` equals
-        ``ecr(local[b], window[b, :, u:u + h, v:v + w], variance, valid_mask=local_mask & window_mask[...])``;
+        ``ecr(captured[b], reference[b, :, u:u + h, v:v + w], variance,
+        valid_mask=captured_mask & reference_mask[...])``;
         0 where nothing overlaps.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
-        >>> window = torch.rand(1, 1, 12, 12, generator=generator) * 256
-        >>> local = window[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
-        >>> surface = ecr_surface(local, window, 16.0, bins=8)
+        >>> reference = torch.rand(1, 1, 12, 12, generator=generator) * 256
+        >>> captured = reference[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
+        >>> surface = ecr_surface(captured, reference, 16.0, bins=8)
         >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
         (torch.Size([1, 7, 7]), (3, 2))
     """
@@ -196,9 +198,9 @@ def ecr_surface(
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     model_variance = check_model_variance(model_variance, bins, value_range)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance)
+    inputs = _check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance)
     check_option("response", response, RESPONSES)
-    check_surface_memory(inputs.local, inputs.window, bins)
+    check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():
         if response == "linear":
             return _linear_ecr_surface(inputs, model_variance)
@@ -206,74 +208,74 @@ def ecr_surface(
 
 
 def nmi_surface(
-    local: Tensor,
-    window: Tensor,
+    captured: Tensor,
+    reference: Tensor,
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    local_mask: Tensor | None = None,
-    window_mask: Tensor | None = None,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
 ) -> Surface:
-    """Hard-binned NMI of ``local`` at every placement inside ``window``, by FFT correlation of bin planes.
+    """Hard-binned NMI of ``captured`` at every placement inside ``reference``, by FFT correlation of bin planes.
 
     Args:
-        local: local image ``(B, 1, h, w)``, floating point.
-        window: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
+        captured: captured image ``(B, 1, h, w)``, floating point.
+        reference: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``.
-        local_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
-        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window.
+        captured_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
+        reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference.
 
     Returns:
-        :class:`Surface`; ``score[b, u, v]`` equals ``nmi(local[b], window[b, :, u:u + h, v:v + w], ...)``.
+        :class:`Surface`; ``score[b, u, v]`` equals ``nmi(captured[b], reference[b, :, u:u + h, v:v + w], ...)``.
 
     Example:
-        >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
-        >>> round(nmi_surface(window[..., 2:6, 1:5], window, bins=64).score[0, 2, 1].item(), 4)
+        >>> reference = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+        >>> round(nmi_surface(reference[..., 2:6, 1:5], reference, bins=64).score[0, 2, 1].item(), 4)
         2.0
     """
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, bins=bins)
-    check_surface_memory(inputs.local, inputs.window, bins)
+    inputs = _check_inputs(captured, reference, captured_mask, reference_mask, value_range, bins=bins)
+    check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():
-        one_hot = torch.nn.functional.one_hot(hard_bin_index(inputs.local, bins, value_range), bins)
-        return _information_surface(one_hot.to(inputs.local.dtype), inputs, bins, value_range)
+        one_hot = torch.nn.functional.one_hot(hard_bin_index(inputs.captured, bins, value_range), bins)
+        return _information_surface(one_hot.to(inputs.captured.dtype), inputs, bins, value_range)
 
 
 def ncc_surface(
-    local: Tensor,
-    window: Tensor,
+    captured: Tensor,
+    reference: Tensor,
     *,
-    local_mask: Tensor | None = None,
-    window_mask: Tensor | None = None,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
 ) -> Surface:
-    """Normalised cross-correlation (Pearson) of ``local`` at every placement inside ``window``, masked, by FFT.
+    """Normalised cross-correlation (Pearson) of ``captured`` at every placement inside ``reference``, masked, by FFT.
 
     Args:
-        local: local image ``(B, 1, h, w)``, floating point.
-        window: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
-        local_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
-        window_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per window.
+        captured: captured image ``(B, 1, h, w)``, floating point.
+        reference: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
+        captured_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
+        reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference.
 
     Returns:
         :class:`Surface`; ``score`` in ``[-1, 1]``, the Pearson correlation over the overlapping valid pixels; 0
         where fewer than two pixels overlap or either side is constant there.
 
     Example:
-        >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) ** 1.5
-        >>> round(ncc_surface(window[..., 2:6, 1:5], window).score[0, 2, 1].item(), 4)
+        >>> reference = torch.arange(64.0).reshape(1, 1, 8, 8) ** 1.5
+        >>> round(ncc_surface(reference[..., 2:6, 1:5], reference).score[0, 2, 1].item(), 4)
         1.0
     """
-    inputs = _check_inputs(local, window, local_mask, window_mask, (0.0, 1.0))
-    check_surface_memory(inputs.local, inputs.window, None)
+    inputs = _check_inputs(captured, reference, captured_mask, reference_mask, (0.0, 1.0))
+    check_surface_memory(inputs.captured, inputs.reference, None)
     with torch.no_grad():
         return _ncc_surface(inputs)
 
 
 def direct_surface(
-    local: Tensor,
-    window: Tensor,
+    captured: Tensor,
+    reference: Tensor,
     variance: Tensor | float | None = None,
     *,
     metric: str = "enmi",
@@ -282,8 +284,8 @@ def direct_surface(
     weights: str = "mass",
     log_prior: Tensor | None = None,
     model_variance: float | None = None,
-    local_mask: Tensor | None = None,
-    window_mask: Tensor | None = None,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
     reliability: bool = False,
     em_steps: int = 0,
     response: str = "binned",
@@ -295,8 +297,8 @@ def direct_surface(
     arguments.
 
     Args:
-        local: ``(B, 1, h, w)``.
-        window: ``(1 or B, 1, Hw, Ww)``.
+        captured: ``(B, 1, h, w)``.
+        reference: ``(1 or B, 1, Hw, Ww)``.
         variance: as in :func:`enmi_surface`, for ``metric="ecr"``, ``"enmi"`` and ``"mixture"`` only.
         metric: ``"ecr"``, ``"enmi"``, ``"mixture"``, ``"nmi"`` or ``"ncc"``.
         bins: number of bins (ECR, ENMI, NMI).
@@ -305,18 +307,18 @@ def direct_surface(
         log_prior: optional log prior per bin (ENMI).
         model_variance: ``tau^2`` (ECR).
         response: ``"binned"`` or ``"linear"`` (ECR).
-        reliability: reliability-weighted counts (ENMI), weights from each whole local image's valid pixels.
+        reliability: reliability-weighted counts (ENMI), weights from each whole captured image's valid pixels.
         em_steps: EM steps of the mixture score (``metric="mixture"``, every placement scored exactly by
             :func:`~enmi_torch.mixture.direct_mixture_surface`).
-        local_mask: as in :func:`enmi_surface`.
-        window_mask: as in :func:`enmi_surface`.
+        captured_mask: as in :func:`enmi_surface`.
+        reference_mask: as in :func:`enmi_surface`.
 
     Returns:
         :class:`Surface`, as the FFT functions.
 
     Example:
-        >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
-        >>> direct_surface(window[..., 2:6, 1:5], window, metric="nmi", bins=64).score[0, 2, 1]
+        >>> reference = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+        >>> direct_surface(reference[..., 2:6, 1:5], reference, metric="nmi", bins=64).score[0, 2, 1]
         tensor(2.)
     """
     check_option("metric", metric, METRICS)
@@ -328,55 +330,55 @@ def direct_surface(
         from enmi_torch.localization.mixture_surface import direct_mixture_surface  # mixture builds on this module
 
         return direct_mixture_surface(
-            local,
-            window,
+            captured,
+            reference,
             variance,
             bins=bins,
             value_range=value_range,
             em_steps=em_steps,
-            local_mask=local_mask,
-            window_mask=window_mask,
+            captured_mask=captured_mask,
+            reference_mask=reference_mask,
         )
     if metric == "ncc":
         value_range = (0.0, 1.0)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     binned = bins if metric in ("enmi", "nmi") else None
-    inputs = _check_inputs(local, window, local_mask, window_mask, value_range, variance, binned)
-    batch, height, width = inputs.local.shape
+    inputs = _check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance, binned)
+    batch, height, width = inputs.captured.shape
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins)
-    rows = inputs.window.shape[1] - height + 1
-    cols = inputs.window.shape[2] - width + 1
+    rows = inputs.reference.shape[1] - height + 1
+    cols = inputs.reference.shape[2] - width + 1
     pixel_weight = None
     if reliability:
         if metric != "enmi":
             raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
         pixel_weight = reliability_weights(
-            inputs.local.flatten(1), inputs.variance.flatten(1), inputs.local_valid.flatten(1)
-        ).view_as(inputs.local)
-    score = inputs.local.new_empty(batch, rows, cols)
-    overlap = inputs.local.new_empty(batch, rows, cols)
+            inputs.captured.flatten(1), inputs.variance.flatten(1), inputs.captured_valid.flatten(1)
+        ).view_as(inputs.captured)
+    score = inputs.captured.new_empty(batch, rows, cols)
+    overlap = inputs.captured.new_empty(batch, rows, cols)
     for sample in range(batch):
-        window_index = sample if inputs.window.shape[0] > 1 else 0
+        window_index = sample if inputs.reference.shape[0] > 1 else 0
         for row in range(rows):
             for col in range(cols):
-                section = inputs.window[window_index, row : row + height, col : col + width]
+                section = inputs.reference[window_index, row : row + height, col : col + width]
                 valid = (
-                    inputs.local_valid[sample]
-                    & inputs.window_valid[window_index, row : row + height, col : col + width]
+                    inputs.captured_valid[sample]
+                    & inputs.reference_valid[window_index, row : row + height, col : col + width]
                 )
                 count = int(valid.sum())
                 overlap[sample, row, col] = count
-                captured = inputs.local[sample]
+                values = inputs.captured[sample]
                 if metric == "ncc":
-                    score[sample, row, col] = _pearson(captured[valid], section[valid])
+                    score[sample, row, col] = _pearson(values[valid], section[valid])
                 elif metric == "ecr":
                     score[sample, row, col] = (
                         0.0
                         if count == 0
                         else ecr(
-                            captured[None, None],
+                            values[None, None],
                             section[None, None],
                             inputs.variance[sample][None, None],
                             bins=bins,
@@ -390,7 +392,7 @@ def direct_surface(
                     score[sample, row, col] = 1.0
                 else:
                     counts = joint_histogram(
-                        captured[None, None],
+                        values[None, None],
                         section[None, None],
                         bins=bins,
                         value_range=value_range,
@@ -416,39 +418,42 @@ def _pearson(captured: Tensor, section: Tensor) -> Tensor:
 
 
 def _check_inputs(
-    local: Tensor,
-    window: Tensor,
-    local_mask: Tensor | None,
-    window_mask: Tensor | None,
+    captured: Tensor,
+    reference: Tensor,
+    captured_mask: Tensor | None,
+    reference_mask: Tensor | None,
     value_range: tuple[float, float],
     variance: Tensor | float | None = None,
     bins: int | None = None,
 ) -> _Inputs:
     """Shapes, masks and values checked; images as ``(B, h, w)`` and ``(Bw, Hw, Ww)`` in the compute dtype.
 
-    With ``bins`` (the local image is binned) a local image whose values all fall in one bin while varying is refused.
+    With ``bins`` (the captured image is binned) a captured image whose values all fall in one bin while varying is
+    refused.
     """
-    batch, height, width = check_local_in_map(local, window, "window", "Hw, Ww")
-    dtype = torch.float64 if local.dtype == torch.float64 else torch.float32
-    local_flat = local.reshape(batch, -1).to(dtype)
-    window_flat = window.reshape(window.shape[0], -1).to(dtype)
+    batch, height, width = check_captured_in_reference(captured, reference, "Hw, Ww")
+    dtype = torch.float64 if captured.dtype == torch.float64 else torch.float32
+    local_flat = captured.reshape(batch, -1).to(dtype)
+    window_flat = reference.reshape(reference.shape[0], -1).to(dtype)
 
-    local_valid = _mask("local_mask", local_mask, local)
-    window_valid = _mask("window_mask", window_mask, window)
-    check_finite_where("local", local_flat, local_valid)
-    check_finite_where("window", window_flat, window_valid)
+    captured_valid = _mask("captured_mask", captured_mask, captured)
+    reference_valid = _mask("reference_mask", reference_mask, reference)
+    check_finite_where("captured", local_flat, captured_valid)
+    check_finite_where("reference", window_flat, reference_valid)
     if bins is not None:
-        check_resolved_by_bins("local", local_flat, local_valid, bins, value_range)
-    local_flat = torch.where(local_valid, local_flat, value_range[0])
-    window_flat = torch.where(window_valid, window_flat, value_range[0])
+        check_resolved_by_bins("captured", local_flat, captured_valid, bins, value_range)
+    local_flat = torch.where(captured_valid, local_flat, value_range[0])
+    window_flat = torch.where(reference_valid, window_flat, value_range[0])
     variance_flat = None
     if variance is not None:
-        variance_flat = variance_map("variance", variance, local, dtype, local_valid).reshape(batch, height, width)
+        variance_flat = variance_map("variance", variance, captured, dtype, captured_valid).reshape(
+            batch, height, width
+        )
     return _Inputs(
         local_flat.reshape(batch, height, width),
-        window_flat.reshape(window.shape[0], *window.shape[2:]),
-        local_valid.reshape(batch, height, width),
-        window_valid.reshape(window.shape[0], *window.shape[2:]),
+        window_flat.reshape(reference.shape[0], *reference.shape[2:]),
+        captured_valid.reshape(batch, height, width),
+        reference_valid.reshape(reference.shape[0], *reference.shape[2:]),
         variance_flat,
     )
 
@@ -457,7 +462,7 @@ def _mask(name: str, mask: Tensor | None, like: Tensor) -> Tensor:
     """A bool mask as ``(B, N)`` for ``like``'s batch; all ``True`` when ``None``; raises if a sample selects none."""
     if mask is None:
         return torch.ones(like.shape[0], like[0].numel(), dtype=torch.bool, device=like.device)
-    return mask_map(name, mask, like, "local" if name == "local_mask" else "window")
+    return mask_map(name, mask, like, "captured" if name == "captured_mask" else "reference")
 
 
 def fft_size(length: int) -> int:
@@ -496,7 +501,7 @@ class _Correlator:
     def __init__(self, local_shape: tuple[int, int], window_shape: tuple[int, int]) -> None:
         self.rows = window_shape[0] - local_shape[0] + 1
         self.cols = window_shape[1] - local_shape[1] + 1
-        # Circular correlation is exact for these placements once the FFT covers the window (no wrap-around).
+        # Circular correlation is exact for these placements once the FFT covers the reference (no wrap-around).
         self.shape = (fft_size(window_shape[0]), fft_size(window_shape[1]))
 
     def spectra(self, planes: Tensor, *, captured: bool) -> Tensor:
@@ -552,7 +557,7 @@ def _box_sums(planes: Tensor, height: int, width: int) -> Tensor:
     """Sums of 0/1 planes ``(K, H, W)`` over every ``height x width`` box, ``(K, H - height + 1, W - width + 1)``.
 
     Exact integers: float32 while every partial sum stays below 2^24, float64 beyond. The column sums run over the
-    row-summed planes, which are narrower than the window.
+    row-summed planes, which are narrower than the reference.
     """
     dtype = torch.float32 if planes.shape[-2] * planes.shape[-1] < 1 << 24 else torch.float64
     cumulative = torch.nn.functional.pad(planes.to(dtype).cumsum(-1), (1, 0))
@@ -562,21 +567,21 @@ def _box_sums(planes: Tensor, height: int, width: int) -> Tensor:
 
 
 class _ReferencePlanes:
-    """The window's side of the information surfaces, computed once per window.
+    """The reference's side of the information surfaces, computed once per reference.
 
-    ``spectra`` holds the indicator planes of the bins present in the window, then the window mask where it leaves
+    ``spectra`` holds the indicator planes of the bins present in the reference, then the reference mask where it leaves
     cells out (``complete`` is ``False``). :meth:`counts` gives, on demand, the exact number of cells of each present
-    bin and of valid cells under a local image at each placement.
+    bin and of valid cells under a captured image at each placement.
     """
 
     def __init__(
-        self, correlator: _Correlator, window_bins: Tensor, window_valid: Tensor, bins: int, dtype: torch.dtype
+        self, correlator: _Correlator, window_bins: Tensor, reference_valid: Tensor, bins: int, dtype: torch.dtype
     ) -> None:
         present = torch.bincount(window_bins.flatten(), minlength=bins + 1)[:bins].nonzero()[:, 0]
         planes = window_bins == present[:, None, None]
-        self.complete = bool(window_valid.all())
+        self.complete = bool(reference_valid.all())
         if not self.complete:
-            planes = torch.cat([planes, window_valid[None]])
+            planes = torch.cat([planes, reference_valid[None]])
         self.spectra = correlator.spectra(planes.to(dtype), captured=False)
         self.bin_count = present.shape[0]
         self._labels = torch.cat([present, present.new_tensor([bins])])
@@ -600,26 +605,27 @@ def _information_surface(
     value_range: tuple[float, float],
     pixel_weight: Tensor | None = None,
 ) -> Surface:
-    """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard window.
+    """NMI of the joint histograms at every placement, from ``(B, h, w, K)`` captured weights and a hard reference.
 
     The joint counts are the correlations of the occupied captured planes with the present reference planes; bins
     whose planes are empty are skipped. The marginals and the overlap come from one more plane on each side, the
-    local and the window masks, where these leave pixels out. Where they do not, the captured marginals are constant
-    (each pixel's weights sum to 1 and every placement lies inside the window), and the reference marginals and the
-    overlap are box sums of indicator planes, exact integers. Entropies come from ``H = log T - sum(c log c) / T``
-    with ``T`` the overlap. With ``pixel_weight`` ``(B, h, w)`` (reliability; 0 where invalid) each pixel counts
-    with its weight: the weight plane gives the reference marginals and ``T``, the mask plane the overlap count.
+    captured and the reference masks, where these leave pixels out. Where they do not, the captured marginals are
+    constant (each pixel's weights sum to 1 and every placement lies inside the reference), and the reference marginals
+    and the overlap are box sums of indicator planes, exact integers. Entropies come from
+    ``H = log T - sum(c log c) / T`` with ``T`` the overlap. With ``pixel_weight`` ``(B, h, w)`` (reliability; 0 where
+    invalid) each pixel counts with its weight: the weight plane gives the reference marginals and ``T``, the mask
+    plane the overlap count.
     A placement whose joint histogram holds all but half a pixel's weight in one cell (a constant overlap, up to
     round-off) scores 1, as the core does for a zero joint entropy.
     """
-    batch, height, width = inputs.local.shape
-    windows = inputs.window.shape[0]
-    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
-    dtype = inputs.local.dtype
+    batch, height, width = inputs.captured.shape
+    windows = inputs.reference.shape[0]
+    correlator = _Correlator((height, width), tuple(inputs.reference.shape[1:]))
+    dtype = inputs.captured.dtype
     weighted = pixel_weight is not None
-    pixel_planes = pixel_weight if weighted else inputs.local_valid.to(dtype)
+    pixel_planes = pixel_weight if weighted else inputs.captured_valid.to(dtype)
     plane_weights = (plane_weights * pixel_planes.unsqueeze(-1)).permute(0, 3, 1, 2)
-    window_bins = torch.where(inputs.window_valid, hard_bin_index(inputs.window, bins, value_range), bins)
+    window_bins = torch.where(inputs.reference_valid, hard_bin_index(inputs.reference, bins, value_range), bins)
     shape = (correlator.rows, correlator.cols)
     scores, overlaps = [], []
     reference = None
@@ -627,19 +633,19 @@ def _information_surface(
         window_index = sample if windows > 1 else 0
         if reference is None or windows > 1:
             reference = _ReferencePlanes(
-                correlator, window_bins[window_index], inputs.window_valid[window_index], bins, dtype
+                correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, dtype
             )
-        local_valid = inputs.local_valid[sample]
-        local_complete = bool(local_valid.all()) and not weighted
+        captured_valid = inputs.captured_valid[sample]
+        local_complete = bool(captured_valid.all()) and not weighted
         weights = plane_weights[sample]
         weights = weights[weights.flatten(1).amax(1).nonzero()[:, 0]]
-        extra = [] if local_complete else [pixel_planes[sample]] + ([local_valid.to(dtype)] if weighted else [])
+        extra = [] if local_complete else [pixel_planes[sample]] + ([captured_valid.to(dtype)] if weighted else [])
         planes = torch.cat([weights, *(plane[None] for plane in extra)])
         captured = correlator.spectra(planes, captured=True)
 
-        scratch = inputs.local.new_empty(reference.spectra.shape[0], *shape)
+        scratch = inputs.captured.new_empty(reference.spectra.shape[0], *shape)
         joint, captured_sum, reference_sum = _EntropySum(scratch), _EntropySum(scratch), _EntropySum(scratch)
-        joint_peak = inputs.local.new_zeros(shape)
+        joint_peak = inputs.captured.new_zeros(shape)
         overlap = total = None
         for index, start, block in correlator.blocks(captured, reference.spectra):
             bin_rows = block[: max(0, reference.bin_count - start)]
@@ -648,9 +654,9 @@ def _information_surface(
                 if bin_rows.shape[0]:
                     torch.maximum(joint_peak, bin_rows.amax(0), out=joint_peak)
                 joint.add(bin_rows)
-                captured_sum.add(mask_row)  # this captured bin's marginal: its correlation with the window mask
+                captured_sum.add(mask_row)  # this captured bin's marginal: its correlation with the reference mask
             elif index == weights.shape[0]:
-                reference_sum.add(bin_rows)  # the reference marginals: the local weights against each bin plane
+                reference_sum.add(bin_rows)  # the reference marginals: the captured weights against each bin plane
                 if mask_row.shape[0]:
                     total = mask_row[0].clone()
                     overlap = None if weighted else total.round()
@@ -664,7 +670,7 @@ def _information_surface(
             reference_sum.total += torch.special.xlogy(counts[:-1], counts[:-1]).sum(0)
             overlap = counts[-1]
         if overlap is None:
-            overlap = local_valid.sum().to(dtype).expand(shape)
+            overlap = captured_valid.sum().to(dtype).expand(shape)
         if total is None:
             total = overlap if not weighted else pixel_planes[sample].sum().expand(shape)
         smallest = pixel_planes[sample][pixel_planes[sample] > 0].amin() if weighted else 1.0
@@ -682,37 +688,37 @@ def _information_surface(
 
 
 def _moment_blocks(inputs: _Inputs, local_planes: Tensor) -> Iterator[Tensor]:
-    """Per sample, the ``(3, 3, rows, cols)`` correlations of three local planes with three window planes.
+    """Per sample, the ``(3, 3, rows, cols)`` correlations of three captured planes with three reference planes.
 
-    The local planes ``(B, 3, h, w)`` meet the window's valid mask, centred values and their squares at every
+    The captured planes ``(B, 3, h, w)`` meet the reference's valid mask, centred values and their squares at every
     placement: the sums behind NCC and ECR's linear response.
     """
-    correlator = _Correlator(tuple(inputs.local.shape[1:]), tuple(inputs.window.shape[1:]))
-    windows = inputs.window.shape[0]
-    window_valid = inputs.window_valid.to(inputs.local.dtype)
-    # Centring on the window's valid mean keeps the sums small, so the FFT round-off stays relative.
-    window = (inputs.window - _masked_mean(inputs.window, window_valid)) * window_valid
-    reference = None
-    for sample in range(inputs.local.shape[0]):
+    correlator = _Correlator(tuple(inputs.captured.shape[1:]), tuple(inputs.reference.shape[1:]))
+    windows = inputs.reference.shape[0]
+    reference_valid = inputs.reference_valid.to(inputs.captured.dtype)
+    # Centring on the reference's valid mean keeps the sums small, so the FFT round-off stays relative.
+    centred = (inputs.reference - _masked_mean(inputs.reference, reference_valid)) * reference_valid
+    spectra = None
+    for sample in range(inputs.captured.shape[0]):
         window_index = sample if windows > 1 else 0
-        if reference is None or windows > 1:
-            planes = torch.stack([window_valid[window_index], window[window_index], window[window_index].square()])
-            reference = correlator.spectra(planes, captured=False)
+        if spectra is None or windows > 1:
+            planes = torch.stack([reference_valid[window_index], centred[window_index], centred[window_index].square()])
+            spectra = correlator.spectra(planes, captured=False)
         captured = correlator.spectra(local_planes[sample], captured=True)
-        block = inputs.local.new_empty(3, 3, correlator.rows, correlator.cols)
-        for index, start, part in correlator.blocks(captured, reference):
+        block = inputs.captured.new_empty(3, 3, correlator.rows, correlator.cols)
+        for index, start, part in correlator.blocks(captured, spectra):
             block[index, start : start + part.shape[0]] = part
         yield block
 
 
 def _ncc_surface(inputs: _Inputs) -> Surface:
     """Masked Pearson correlation from six correlations of masks, centred images and their squares."""
-    eps = torch.finfo(inputs.local.dtype).eps
-    local_valid = inputs.local_valid.to(inputs.local.dtype)
+    eps = torch.finfo(inputs.captured.dtype).eps
+    captured_valid = inputs.captured_valid.to(inputs.captured.dtype)
     # Centring on the image's own valid mean keeps the sums small, so the FFT round-off stays relative.
-    local = (inputs.local - _masked_mean(inputs.local, local_valid)) * local_valid
+    captured = (inputs.captured - _masked_mean(inputs.captured, captured_valid)) * captured_valid
     scores, overlaps = [], []
-    for block in _moment_blocks(inputs, torch.stack([local_valid, local, local.square()], dim=1)):
+    for block in _moment_blocks(inputs, torch.stack([captured_valid, captured, captured.square()], dim=1)):
         count = block[0, 0].round()
         local_sum, window_sum = block[1, 0], block[0, 1]
         local_square, window_square, cross = block[2, 0], block[0, 2], block[1, 1]
@@ -733,29 +739,29 @@ def _masked_mean(images: Tensor, valid: Tensor) -> Tensor:
 
 
 def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range: tuple[float, float]) -> Surface:
-    """ECR at every placement from the per-bin correlations of the local count, weight and weighted-value planes."""
-    batch, height, width = inputs.local.shape
-    windows = inputs.window.shape[0]
-    correlator = _Correlator((height, width), tuple(inputs.window.shape[1:]))
-    dtype = inputs.local.dtype
-    valid = inputs.local_valid.to(dtype)
+    """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes."""
+    batch, height, width = inputs.captured.shape
+    windows = inputs.reference.shape[0]
+    correlator = _Correlator((height, width), tuple(inputs.reference.shape[1:]))
+    dtype = inputs.captured.dtype
+    valid = inputs.captured_valid.to(dtype)
     weight = valid / (inputs.variance + model_variance)
     # Centring on the weighted mean keeps S_j^2 / W_j - S^2 / W free of cancellation; the score does not depend on it.
-    centre = (weight * inputs.local).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
-    weighted_value = weight * (inputs.local - centre)
-    window_bins = torch.where(inputs.window_valid, hard_bin_index(inputs.window, bins, value_range), bins)
+    centre = (weight * inputs.captured).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
+    weighted_value = weight * (inputs.captured - centre)
+    window_bins = torch.where(inputs.reference_valid, hard_bin_index(inputs.reference, bins, value_range), bins)
     scores, overlaps = [], []
     reference = None
     for sample in range(batch):
         window_index = sample if windows > 1 else 0
         if reference is None or windows > 1:
             reference = _ReferencePlanes(
-                correlator, window_bins[window_index], inputs.window_valid[window_index], bins, dtype
+                correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, dtype
             )
-        local_complete = bool(inputs.local_valid[sample].all())
+        local_complete = bool(inputs.captured_valid[sample].all())
         planes = [weight[sample], weighted_value[sample]] + ([] if local_complete else [valid[sample]])
         captured = correlator.spectra(torch.stack(planes), captured=True)
-        sums = inputs.local.new_empty(len(planes), reference.spectra.shape[0], correlator.rows, correlator.cols)
+        sums = inputs.captured.new_empty(len(planes), reference.spectra.shape[0], correlator.rows, correlator.cols)
         for index, start, block in correlator.blocks(captured, reference.spectra):
             sums[index, start : start + block.shape[0]] = block
         present = reference.bin_count
@@ -771,10 +777,10 @@ def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range:
 
 def _linear_ecr_surface(inputs: _Inputs, model_variance: float) -> Surface:
     """ECR of the increasing affine response at every placement: weighted sums from correlations of planes."""
-    valid = inputs.local_valid.to(inputs.local.dtype)
+    valid = inputs.captured_valid.to(inputs.captured.dtype)
     weight = valid / (inputs.variance + model_variance)
-    centre = (weight * inputs.local).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
-    planes = torch.stack([weight, weight * (inputs.local - centre), valid], dim=1)
+    centre = (weight * inputs.captured).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
+    planes = torch.stack([weight, weight * (inputs.captured - centre), valid], dim=1)
     scores, overlaps = [], []
     for block in _moment_blocks(inputs, planes):
         count = block[2, 0].round()

@@ -77,7 +77,7 @@ def localization_trials(
     inner = (..., slice(max_shift, height - max_shift), slice(max_shift, width - max_shift))
     crop, crop_valid = local[inner].float(), valid[inner]
     window = prior.float()
-    options = {"bins": bins, "value_range": value_range, "local_mask": crop_valid}
+    options = {"bins": bins, "value_range": value_range, "captured_mask": crop_valid}
     surfaces = {}
     for name, variance in variances.items():
         if isinstance(variance, Tensor):
@@ -88,7 +88,7 @@ def localization_trials(
             for factor in uniform_grid:
                 surfaces[f"enmi_uniform_x{factor:g}"] = enmi_surface(crop, window, variance * factor, **options)
     surfaces["nmi"] = nmi_surface(crop, window, **options)
-    surfaces["ncc"] = ncc_surface(crop, window, local_mask=crop_valid)
+    surfaces["ncc"] = ncc_surface(crop, window, captured_mask=crop_valid)
     span = 2 * max_shift + 1
     offsets = torch.arange(span, device=local.device) - max_shift
     far = (offsets.abs().view(-1, 1) > 1) | (offsets.abs().view(1, -1) > 1)
