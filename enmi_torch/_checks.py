@@ -63,6 +63,14 @@ def check_tensor(name: str, value: Any) -> Tensor:
     return value
 
 
+def check_bool_mask(name: str, value: Any) -> Tensor:
+    """Raise ``TypeError`` unless ``value`` is a bool tensor (a mask); return it."""
+    check_tensor(name, value)
+    if value.dtype != torch.bool:
+        raise TypeError(f"{name} must be a bool tensor, got dtype {value.dtype}")
+    return value
+
+
 def check_floating(name: str, value: Any) -> Tensor:
     """Raise ``TypeError`` unless ``value`` is a floating-point tensor."""
     check_tensor(name, value)

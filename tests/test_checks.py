@@ -31,10 +31,10 @@ WINDOW = torch.zeros(1, 1, 8, 8)
         ("captured", lambda: direct_surface(EMPTY, WINDOW, metric="nmi")),
         ("captured", lambda: localize(EMPTY, WINDOW, 1.0, shifts=1)),
         ("residual", lambda: gaussian_nll(EMPTY, torch.zeros(4, 4))),
-        ("local", lambda: LearnedVariance((4, 4)).nll(EMPTY, EMPTY)),
-        ("local", lambda: empirical_variance(EMPTY, EMPTY)),
-        ("local", lambda: EmpiricalVariance((4, 4)).update(EMPTY, EMPTY)),
-        ("prior", lambda: match_intensity(EMPTY, EMPTY)),
+        ("captured", lambda: LearnedVariance((4, 4)).nll(EMPTY, EMPTY)),
+        ("captured", lambda: empirical_variance(EMPTY, EMPTY)),
+        ("captured", lambda: EmpiricalVariance((4, 4)).update(EMPTY, EMPTY)),
+        ("captured", lambda: match_intensity(EMPTY, EMPTY)),
     ],
 )
 def test_an_empty_batch_is_refused_the_same_way_everywhere(name, call):

@@ -21,7 +21,8 @@ def test_the_core_imports_without_the_training_extra():
     script = BLOCK_TRAINING + (
         "import enmi_torch, enmi_torch.data, enmi_torch.localization, enmi_torch.geometry, enmi_torch.variance\n"
         "from enmi_torch.data import SyntheticPairs, match_intensity\n"
-        "print(sorted(n for n, m in sys.modules.items() if m is not None and n.split('.')[0] in ('lightning', 'tensorboard')))\n"
+        "print(sorted(n for n, m in sys.modules.items()\n"
+        "             if m is not None and n.split('.')[0] in ('lightning', 'tensorboard')))\n"
         "try:\n"
         "    enmi_torch.data.PairDataModule\n"
         "except ImportError as error:\n"
