@@ -33,7 +33,9 @@ from enmi_torch._checks import (
     check_captured_in_reference,
     check_log_prior,
     check_mask_not_empty,
+    check_non_negative_int,
     check_option,
+    check_positive_int,
     check_value_range,
 )
 from enmi_torch._layout import mask_map, variance_map
@@ -144,11 +146,9 @@ def localize(
     yaw_list = _check_yaws(yaws)
     if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
         raise ValueError(f"min_overlap must be a fraction in (0, 1], got {min_overlap!r}")
-    if isinstance(exclusion_radius, bool) or not isinstance(exclusion_radius, int) or exclusion_radius < 0:
-        raise ValueError(f"exclusion_radius must be an int >= 0, got {exclusion_radius!r}")
-    for name, value in (("coarse_factor", coarse_factor), ("coarse_peaks", coarse_peaks)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    check_non_negative_int("exclusion_radius", exclusion_radius)
+    check_positive_int("coarse_factor", coarse_factor)
+    check_positive_int("coarse_peaks", coarse_peaks)
     if metric != "ncc":
         check_bins(bins)
         check_value_range(value_range)

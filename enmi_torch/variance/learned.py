@@ -16,8 +16,6 @@ Convention:
 from __future__ import annotations
 
 import math
-import pickle
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +32,7 @@ from enmi_torch._checks import (
     check_positive_number,
     check_tensor,
 )
-from enmi_torch._files import read_npy
+from enmi_torch._files import load_plain_torch, read_npy
 from enmi_torch._layout import broadcast_map, mask_map
 from enmi_torch.variance.base import VarianceModel
 
@@ -393,13 +391,7 @@ class LearnedVariance(VarianceModel):
             raise FileNotFoundError(f"no variance mask file at {path}")
         if suffix == ".npy":
             return cls._load_npy(path)
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
-            raise ValueError(
-                f"{path} is refused: it is not a plain tensor file that loads with weights_only=True ({error})"
-            ) from None
-        return cls._from_payload(path, payload)
+        return cls._from_payload(path, load_plain_torch(path, "a plain tensor file"))
 
     @classmethod
     def _load_npy(cls, path: Path) -> LearnedVariance:
