@@ -23,7 +23,7 @@ WINDOW = torch.zeros(1, 1, 8, 8)
         ("captured", lambda: joint_histogram(EMPTY, EMPTY)),
         ("captured", lambda: hard_entropies(EMPTY, EMPTY)),
         ("captured", lambda: NMILoss()(EMPTY, EMPTY)),
-        ("captured", lambda: ENMILoss()(EMPTY, EMPTY, 1.0)),
+        ("captured", lambda: ENMILoss()(EMPTY, EMPTY, variance=1.0)),
         ("captured", lambda: nmi(torch.zeros(2, 1, 0, 4), torch.zeros(2, 1, 0, 4))),
         ("captured", lambda: enmi_surface(EMPTY, WINDOW, 1.0)),
         ("captured", lambda: nmi_surface(EMPTY, WINDOW)),
