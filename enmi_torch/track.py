@@ -225,23 +225,68 @@ def update(belief: Belief, log_likelihood: Tensor) -> Belief:
 
 
 def belief_pose(belief: Belief) -> tuple[Tensor, Tensor]:
-    """Posterior mean ``(B, 3)`` ``(x, y, yaw)`` and covariance ``(B, 3, 3)`` of a belief.
+    """Posterior pose ``(B, 3)`` ``(x, y, yaw)`` and covariance ``(B, 3, 3)`` of a belief.
 
-    The covariance adds the spread of a pose uniform within its cell and yaw bin (``1 / 12`` cell², ``step² / 12``)
-    to the spread of the bins, so a belief on one cell is not taken for an exact pose.
+    The pose is the mean of the bins, or, when one bin holds at least half of the mass, that bin refined below one
+    bin by a parabola through the log belief and its neighbours along each axis. The covariance is then the Laplace
+    approximation, the inverse of the parabolas' curvatures (diagonal, at most one bin² per axis); otherwise the bins'
+    second moment plus the spread of a pose uniform within its cell and yaw bin (``1 / 12`` cell², ``step² / 12``).
+    With a calibrated temperature (:func:`calibrate_temperature`) both are honest uncertainties.
+
+    Example:
+        >>> belief = initial_belief(torch.tensor([[5.0, 7.0, 0.0]]), shifts=2, yaw_bins=1)
+        >>> log_prob = torch.tensor([-8.0, -2.0, 0.0, -4.0, -10.0]).reshape(1, 1, 1, 5) + torch.zeros(1, 1, 5, 1)
+        >>> log_prob[:, :, [0, 1, 3, 4]] -= 50.0  # all but the middle row ruled out
+        >>> pose, covariance = belief_pose(belief._replace(log_prob=log_prob))
+        >>> pose.round(decimals=3).tolist()  # the parabola through -2, 0, -4 peaks 1/6 cell left of column 5
+        [[4.833, 7.0, 0.0]]
     """
     _check_belief(belief)
-    weights = _normalized(belief.log_prob).exp()
+    log_prob = _normalized(belief.log_prob)
+    weights = log_prob.exp()
     x, y, yaw = _grid_poses(belief)
     values = torch.stack(torch.broadcast_tensors(x, y, yaw), -1).flatten(1, 3)
     flat = weights.flatten(1)[..., None]
     mean = (values * flat).sum(1)
+    peak_mass, index = weights.flatten(1).max(1)
+    rows, cols = log_prob.shape[2:]
+    yaw_index, rest = index // (rows * cols), index % (rows * cols)
+    row, col = rest // cols, rest % cols
+    batch = torch.arange(log_prob.shape[0], device=log_prob.device)
+    peak = values[batch, index]
+    fits = [_parabola(log_prob, batch, (yaw_index, row, col), axis) for axis in (2, 1, 0)]
+    offsets = torch.stack([fit[0] for fit in fits], 1)
+    curvatures = torch.stack([fit[1] for fit in fits], 1)
+    steps = torch.tensor([1.0, 1.0, belief.yaw_step], dtype=torch.float64, device=mean.device)
+    sharp = peak_mass >= 0.5
+    pose = torch.where(sharp[:, None], peak + offsets * steps, mean)
     centred = values - mean[:, None]
-    covariance = torch.einsum("bni,bnj->bij", centred * flat, centred)
-    covariance = covariance + torch.diag(
-        torch.tensor([1 / 12, 1 / 12, belief.yaw_step**2 / 12], dtype=torch.float64, device=mean.device)
-    )
-    return mean, covariance
+    moments = torch.einsum("bni,bnj->bij", centred * flat, centred) + torch.diag(steps.square() / 12)
+    # Laplace: the inverse curvature of the log belief at its peak, per axis (a bin's width where it is flat).
+    laplace = torch.diag_embed(steps.square() / (-curvatures).clamp_min(1.0))
+    covariance = torch.where(sharp[:, None, None], laplace, moments)
+    return pose, covariance
+
+
+def _parabola(
+    log_prob: Tensor, batch: Tensor, index: tuple[Tensor, Tensor, Tensor], axis: int
+) -> tuple[Tensor, Tensor]:
+    """Vertex offset in ``[-0.5, 0.5]`` bins and curvature (< 0, or -1 if none) of the parabola through the peak."""
+    size = log_prob.shape[1 + axis]
+    middle = index[axis]
+    inside = (middle > 0) & (middle < size - 1)
+    neighbours = []
+    for step in (-1, 1):
+        moved = list(index)
+        moved[axis] = (middle + step).clamp(0, size - 1)
+        neighbours.append(log_prob[batch, moved[0], moved[1], moved[2]])
+    centre = log_prob[batch, index[0], index[1], index[2]]
+    left, right = neighbours
+    curvature = left - 2 * centre + right
+    fitted = inside & (curvature < 0)
+    curvature = torch.where(fitted, curvature, -1.0)
+    offset = 0.5 * (left - right) / curvature
+    return torch.where(fitted, offset.clamp(-0.5, 0.5), 0.0), curvature
 
 
 def calibrate_temperature(
@@ -348,13 +393,14 @@ def track_step(
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
     temperature: float = 1.0,
-    min_peak_z: float = 4.0,
+    min_peak_z: float = 3.0,
     max_surprise: float = 30.0,
     weak_frames: Tensor | None = None,
     patience: int = 2,
     relocalize_shifts: int = 32,
     relocalize_yaw_bins: int = 9,
     coarse_factor: int = 4,
+    relocalize_odds: float = 10.0,
 ) -> tuple[Belief, TrackOutput, Tensor]:
     """One frame of the filter: predict by ``odometry``, update by the frame's score surface, read the pose.
 
@@ -380,6 +426,8 @@ def track_step(
         relocalize_shifts: radius in cells of the relocalization search.
         relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
         coarse_factor: pooling factor of the coarse-to-fine relocalization search.
+        relocalize_odds: the relocalization moves the belief only if its match beats the window's best by this
+            many nats of log-likelihood, or lands within 1.5 cells of the window's own peak.
 
     Returns:
         ``(belief, output, weak_frames)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the updated
@@ -399,6 +447,7 @@ def track_step(
     temperature = _check_positive("temperature", temperature)
     _check_positive("min_peak_z", min_peak_z)
     _check_positive("max_surprise", max_surprise)
+    _check_positive("relocalize_odds", relocalize_odds)
     patience = check_positive_int("patience", patience)
     relocalize_shifts = check_non_negative_int("relocalize_shifts", relocalize_shifts)
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
@@ -418,11 +467,16 @@ def track_step(
     )
     weak_frames = torch.where(healthy, 0, weak_frames + 1)
     relocalized = weak_frames >= patience
+    accepted = torch.zeros_like(relocalized)
     for vehicle in relocalized.nonzero()[:, 0].tolist():
         found = search.wide(vehicle, posterior, relocalize_shifts, relocalize_yaw_bins, coarse_factor)
         fresh = _restart(posterior, vehicle, found)
         vehicle_likelihood, vehicle_score, vehicle_z = search.window(fresh, vehicle)
-        if bool(vehicle_z[0] >= min_peak_z):
+        # A jump needs a much better match (in calibrated nats), or to confirm the window's own peak.
+        gain = vehicle_likelihood[0].max() - log_likelihood[vehicle].max()
+        window_peak = _peak_position(prior, log_likelihood, vehicle)
+        confirms = bool((window_peak - found[:2].to(window_peak)).abs().max() <= 1.5)
+        if bool(vehicle_z[0] >= min_peak_z) and (confirms or bool(gain >= relocalize_odds)):
             log_prob = posterior.log_prob.clone()
             log_prob[vehicle] = _normalized(vehicle_likelihood)[0]
             center, yaw_center = posterior.center.clone(), posterior.yaw_center.clone()
@@ -430,10 +484,10 @@ def track_step(
             posterior = Belief(log_prob, center, yaw_center, posterior.yaw_step)
             score, peak_z, healthy = score.clone(), peak_z.clone(), healthy.clone()
             score[vehicle], peak_z[vehicle], healthy[vehicle] = vehicle_score[0], vehicle_z[0], True
-            weak_frames = weak_frames.clone()
-            weak_frames[vehicle] = 0
+            weak_frames, accepted = weak_frames.clone(), accepted.clone()
+            weak_frames[vehicle], accepted[vehicle] = 0, True
     pose, covariance = belief_pose(posterior)
-    output = TrackOutput(pose, covariance, healthy, relocalized, score, peak_z)
+    output = TrackOutput(pose, covariance, healthy, accepted, score, peak_z)
     return posterior, output, weak_frames
 
 
@@ -535,6 +589,7 @@ _STEP_SETTINGS = (
     "relocalize_shifts",
     "relocalize_yaw_bins",
     "coarse_factor",
+    "relocalize_odds",
 )
 
 
@@ -623,6 +678,16 @@ def _surprise(log_prior: Tensor, log_likelihood: Tensor) -> Tensor:
     flat_likelihood, flat_prior = log_likelihood.flatten(1), log_prior.flatten(1)
     index = flat_likelihood.argmax(1, keepdim=True)
     return flat_prior.amax(1) - flat_prior.gather(1, index)[:, 0]
+
+
+def _peak_position(belief: Belief, log_likelihood: Tensor, vehicle: int) -> Tensor:
+    """``(2,)`` ``(x, y)`` of the best cell of a vehicle's log-likelihood on the belief's grid."""
+    _, rows, cols = log_likelihood.shape[1:]
+    rest = int(log_likelihood[vehicle].flatten().argmax()) % (rows * cols)
+    row, col = divmod(rest, cols)
+    radius_y, radius_x = belief.radius
+    center = belief.center[vehicle].double()
+    return torch.stack([center[1] + col - radius_x, center[0] + row - radius_y])
 
 
 def _grid_poses(belief: Belief) -> tuple[Tensor, Tensor, Tensor]:
