@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 from skimage import data
 
-from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify
+from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify, value_checks
 from enmi_torch.localize import localize
 from enmi_torch.rectify import ground_to_image_homography
 from enmi_torch.track import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
@@ -498,9 +498,11 @@ def main(argv=None) -> None:
     drive = Drive(args.frames, args.seed)
     results, calibrations = {}, {}
     for method in args.methods:
-        calibrations[method] = calibrate(drive, method)
-        filtered = run_filter(drive, method, calibrations[method])
-        results[method] = (filtered, run_argmax(drive, method))
+        # Featureless frames (the photograph's sky) are no error here: their flat surfaces are weak matches.
+        with value_checks(False):
+            calibrations[method] = calibrate(drive, method)
+            filtered = run_filter(drive, method, calibrations[method])
+            results[method] = (filtered, run_argmax(drive, method))
         print(f"{method}: {time.perf_counter() - start:.0f} s", flush=True)
     lines = print_tables(drive, results, calibrations)
     print("\n".join(lines))

@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_floating, check_non_negative_int, check_option, check_positive_int, check_tensor
+from enmi_torch._checks import check_floating, check_non_negative_int, check_option, check_positive_int
 from enmi_torch.localize import localize
 from enmi_torch.variance.base import VarianceModel
 
@@ -395,13 +395,14 @@ def track_step(
     temperature: float = 1.0,
     min_peak_z: float = 3.0,
     max_surprise: float = 30.0,
-    weak_frames: Tensor | None = None,
+    z_drop: float = 0.3,
+    health: Health | None = None,
     patience: int = 2,
     relocalize_shifts: int = 32,
     relocalize_yaw_bins: int = 9,
     coarse_factor: int = 4,
     relocalize_odds: float = 10.0,
-) -> tuple[Belief, TrackOutput, Tensor]:
+) -> tuple[Belief, TrackOutput, Health]:
     """One frame of the filter: predict by ``odometry``, update by the frame's score surface, read the pose.
 
     Args:
@@ -421,7 +422,8 @@ def track_step(
         min_peak_z: a surface whose best score's robust z-score is below this is no match.
         max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
             is no match (the prediction rules it out).
-        weak_frames: ``(B,)`` int64 count of consecutive frames without a match (``None``: zeros).
+        z_drop: a peak z-score below this fraction of the recent matches' (:class:`Health`) is no match.
+        health: the :class:`Health` from the previous step (``None`` at the start).
         patience: relocalize after this many consecutive frames without a match.
         relocalize_shifts: radius in cells of the relocalization search.
         relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
@@ -430,8 +432,8 @@ def track_step(
             many nats of log-likelihood, or lands within 1.5 cells of the window's own peak.
 
     Returns:
-        ``(belief, output, weak_frames)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the updated
-        count of frames without a match.
+        ``(belief, output, health)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the :class:`Health`
+        for the next step.
     """
     _check_belief(belief)
     check_option("metric", metric, METRICS)
@@ -448,47 +450,75 @@ def track_step(
     _check_positive("min_peak_z", min_peak_z)
     _check_positive("max_surprise", max_surprise)
     _check_positive("relocalize_odds", relocalize_odds)
+    _check_positive("z_drop", z_drop)
     patience = check_positive_int("patience", patience)
     relocalize_shifts = check_non_negative_int("relocalize_shifts", relocalize_shifts)
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
     batch = captured.shape[0]
-    if weak_frames is None:
-        weak_frames = torch.zeros(batch, dtype=torch.int64, device=captured.device)
-    check_tensor("weak_frames", weak_frames)
-    if weak_frames.shape != (batch,):
-        raise ValueError(f"weak_frames must have shape ({batch},), got {tuple(weak_frames.shape)}")
+    health = _check_health(health, batch, captured.device)
     search = _Searcher(captured, reference, variance, captured_mask, metric, bins, value_range, temperature)
     prior = predict(belief, odometry, motion_noise)
     log_likelihood, score, peak_z = search.window(prior)
     surprise = _surprise(prior.log_prob, log_likelihood)
-    healthy = (peak_z >= min_peak_z) & (surprise <= max_surprise)
-    posterior = prior._replace(
-        log_prob=torch.where(healthy[:, None, None, None], _normalized(prior.log_prob + log_likelihood), prior.log_prob)
-    )
-    weak_frames = torch.where(healthy, 0, weak_frames + 1)
-    relocalized = weak_frames >= patience
-    accepted = torch.zeros_like(relocalized)
-    for vehicle in relocalized.nonzero()[:, 0].tolist():
-        found = search.wide(vehicle, posterior, relocalize_shifts, relocalize_yaw_bins, coarse_factor)
-        fresh = _restart(posterior, vehicle, found)
-        vehicle_likelihood, vehicle_score, vehicle_z = search.window(fresh, vehicle)
-        # A jump needs a much better match (in calibrated nats), or to confirm the window's own peak.
-        gain = vehicle_likelihood[0].max() - log_likelihood[vehicle].max()
+    # A peak far weaker than the recent matches' is a match of some other place (a kidnap, a wrong window).
+    typical = torch.where(torch.isfinite(health.typical_z), health.typical_z, peak_z)
+    healthy = (peak_z >= min_peak_z) & (peak_z >= z_drop * typical) & (surprise <= max_surprise)
+    weak_frames = torch.where(healthy, 0, health.weak_frames + 1)
+    relocalized = torch.zeros_like(healthy)
+    log_prob = prior.log_prob.clone()
+    center, yaw_center = prior.center.clone(), prior.yaw_center.clone()
+    for vehicle in (weak_frames >= patience).nonzero()[:, 0].tolist():
+        found = search.wide(vehicle, prior, relocalize_shifts, relocalize_yaw_bins, coarse_factor)
         window_peak = _peak_position(prior, log_likelihood, vehicle)
-        confirms = bool((window_peak - found[:2].to(window_peak)).abs().max() <= 1.5)
-        if bool(vehicle_z[0] >= min_peak_z) and (confirms or bool(gain >= relocalize_odds)):
-            log_prob = posterior.log_prob.clone()
-            log_prob[vehicle] = _normalized(vehicle_likelihood)[0]
-            center, yaw_center = posterior.center.clone(), posterior.yaw_center.clone()
+        if bool((window_peak - found[:2].to(window_peak)).abs().max() <= 1.5) and bool(peak_z[vehicle] >= min_peak_z):
+            healthy[vehicle] = True  # the wide search confirms the window's own peak: use the frame
+            continue
+        fresh = _restart(prior, vehicle, found)
+        fresh_likelihood, fresh_score, fresh_z = search.window(fresh, vehicle)
+        # A jump needs a much better match than the window's, in calibrated nats.
+        gain = fresh_likelihood[0].max() - log_likelihood[vehicle].max()
+        if bool(fresh_z[0] >= min_peak_z) and bool(gain >= relocalize_odds):
+            log_prob[vehicle] = _normalized(fresh_likelihood)[0]
             center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
-            posterior = Belief(log_prob, center, yaw_center, posterior.yaw_step)
-            score, peak_z, healthy = score.clone(), peak_z.clone(), healthy.clone()
-            score[vehicle], peak_z[vehicle], healthy[vehicle] = vehicle_score[0], vehicle_z[0], True
-            weak_frames, accepted = weak_frames.clone(), accepted.clone()
-            weak_frames[vehicle], accepted[vehicle] = 0, True
+            score[vehicle], peak_z[vehicle], relocalized[vehicle] = fresh_score[0], fresh_z[0], True
+    used = healthy & ~relocalized
+    log_prob = torch.where(used[:, None, None, None], _normalized(log_prob + log_likelihood), log_prob)
+    healthy = healthy | relocalized
+    weak_frames = torch.where(healthy, 0, weak_frames)
+    typical_z = torch.where(
+        relocalized | ~torch.isfinite(health.typical_z),
+        torch.where(healthy, peak_z, health.typical_z),
+        torch.where(healthy, 0.7 * health.typical_z + 0.3 * peak_z, health.typical_z),
+    )
+    posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
-    output = TrackOutput(pose, covariance, healthy, accepted, score, peak_z)
-    return posterior, output, weak_frames
+    output = TrackOutput(pose, covariance, healthy, relocalized, score, peak_z)
+    return posterior, output, Health(weak_frames, typical_z)
+
+
+class Health(NamedTuple):
+    """The filter's running health per vehicle.
+
+    Attributes:
+        weak_frames: ``(B,)`` int64 consecutive frames without a usable match.
+        typical_z: ``(B,)`` float64 running mean of the used matches' peak z-scores (NaN before the first).
+    """
+
+    weak_frames: Tensor
+    typical_z: Tensor
+
+
+def _check_health(health: object, batch: int, device: torch.device) -> Health:
+    if health is None:
+        return Health(
+            torch.zeros(batch, dtype=torch.int64, device=device),
+            torch.full((batch,), math.nan, dtype=torch.float64, device=device),
+        )
+    if not isinstance(health, Health) or health.weak_frames.shape != (batch,) or health.typical_z.shape != (batch,):
+        raise ValueError(
+            f"health must be a Health of ({batch},) tensors from the previous step or None, got {health!r}"
+        )
+    return health
 
 
 class Tracker(nn.Module):
@@ -544,12 +574,12 @@ class Tracker(nn.Module):
             raise TypeError(f"Tracker got unknown setting(s) {sorted(unknown)}; known: {list(_STEP_SETTINGS)}")
         self.settings = settings
         self.belief: Belief | None = None
-        self.weak_frames: Tensor | None = None
+        self.health: Health | None = None
 
     def start(self, pose: Tensor, std: tuple[float, float, float] | None = None) -> None:
         """Start (or restart) the filter at ``(B, 3)`` poses ``(x, y, yaw)``: a flat or Gaussian belief."""
         self.belief = initial_belief(pose, shifts=self.shifts, yaw_bins=self.yaw_bins, yaw_step=self.yaw_step, std=std)
-        self.weak_frames = None
+        self.health = None
 
     def forward(
         self,
@@ -564,14 +594,14 @@ class Tracker(nn.Module):
         if variance is not None and self.variance_model is not None:
             raise ValueError("variance must be None when Tracker has a variance_model; pass one or the other")
         variance = self.variance_model if variance is None else variance
-        self.belief, output, self.weak_frames = track_step(
+        self.belief, output, self.health = track_step(
             self.belief,
             captured,
             self.reference,
             odometry,
             variance,
             captured_mask,
-            weak_frames=self.weak_frames,
+            health=self.health,
             **self.settings,
         )
         return output
@@ -585,6 +615,7 @@ _STEP_SETTINGS = (
     "temperature",
     "min_peak_z",
     "max_surprise",
+    "z_drop",
     "patience",
     "relocalize_shifts",
     "relocalize_yaw_bins",
