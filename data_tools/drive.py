@@ -18,7 +18,8 @@ bias of 0.05 degrees per frame and white noise.
 
 Calibration on held-out frames (other poses and noise draws): each score's temperature
 (:func:`enmi_torch.track.calibrate_temperature`), its peak z-score threshold and the odometry noise (the RMS of the
-increment errors); it is written as ``calibration_<method>.json`` next to the figure.
+increment errors); it is written as ``calibration_<method>.json`` under ``--logdir`` (``runs/drive``), with the
+TensorBoard logs of the errors (``tensorboard --logdir runs/drive/tensorboard``).
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
@@ -491,7 +492,8 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=240, help="frames of the drive")
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=OUT, help="figure; tables, calibration and TensorBoard next to it")
+    parser.add_argument("--out", type=Path, default=OUT, help="the figure")
+    parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     start = time.perf_counter()
@@ -506,7 +508,7 @@ def main(argv=None) -> None:
         print(f"{method}: {time.perf_counter() - start:.0f} s", flush=True)
     lines = print_tables(drive, results, calibrations)
     print("\n".join(lines))
-    folder = args.out.parent
+    folder = args.logdir
     folder.mkdir(parents=True, exist_ok=True)
     for method, calibration in calibrations.items():
         calibration.save(folder / f"calibration_{method}.json")
