@@ -3,7 +3,7 @@
 The map: scikit-image's CC0 textures and photographs tiled along a road, 320 cells wide and 2560 long (2.5 cm cells:
 8 m x 64 m): ``gravel``, ``grass``, ``brick`` (repetitive), ``camera`` and ``moon``, with painted edge lines, a
 dashed centre line and stop bars. The vehicle drives up the road (rows decreasing) at about 9 cells (22 cm) per
-frame, weaving (yaw within +-6 degrees). Each frame is rendered through the paper's road camera
+frame, weaving (yaw within about +-6 degrees). Each frame is rendered through the paper's road camera
 (:meth:`~enmi_torch.RoadCamera.paper`, 120 x 160 pixels): the road under the pose is warped into the camera with
 :func:`~enmi_torch.unrectify`, Gaussian pixel noise is added, and the image is rectified back with kornia
 (:func:`~enmi_torch.rectify`, 4 x 4 samples per cell) onto a 64 x 64 grid of 2.5 cm cells 40 cm to 200 cm ahead.
