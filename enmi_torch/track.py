@@ -12,10 +12,12 @@ step of the filter:
   ``temperature = 1`` is its own scale; :func:`calibrate_temperature` fits it on held-out frames for any score),
   is added to the log belief;
 * read: pose and covariance are the posterior's moments (sub-cell, plus the within-cell spread ``1 / 12``);
-* health: a frame whose surface has no clear peak (the best score's robust z-score below ``min_peak_z``) or whose
-  peak the prediction rules out (more than ``max_surprise`` nats below the prior's best) is not used; after
-  ``patience`` such frames the filter relocalizes: a coarse-to-fine :func:`~enmi_torch.localize.localize` over a
-  wider window, and a fresh belief there.
+* health: a frame whose surface has no clear peak (the best score's robust z-score below ``min_peak_z``, or below
+  ``z_drop`` times the recent matches'), or whose peak the prediction rules out (more than ``max_surprise`` nats
+  below the prediction's best), is not used; after ``patience`` such frames the filter searches a wider window
+  (a coarse-to-fine :func:`~enmi_torch.localize.localize`): if that search lands on the window's own peak the frame
+  is used after all, and if it finds a match better than the window's by ``relocalize_odds`` nats the filter
+  restarts there (relocalization).
 
 Convention:
     A pose is ``(x, y, yaw)``: ``x`` (column) and ``y`` (row) the map cell under the captured image's centre pixel

@@ -144,15 +144,19 @@ def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
     settings = {"shifts": 4, "yaw_bins": 1, "bins": 16, "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
     tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
     tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
-    x, y, recovered_after = 40, 60, None
+    x, y, recovered_after, relocalized = 40, 60, None, []
     for step in range(16):
         x += 3
         if step == 5:
             x, y = x + 25, y - 12  # the vehicle is carried away; odometry reports the usual move
         output = tracker(_cut(reference, x, y).float(), torch.tensor([[3.0, 0.0, 0.0]]), 1.0)
         error = (output.pose[0, :2] - torch.tensor([x, y], dtype=torch.float64)).abs().max()
+        if bool(output.relocalized[0]):
+            relocalized.append(step)
+            assert bool(output.healthy[0])  # a relocalized frame is a used match
         if step >= 5 and recovered_after is None and float(error) < 1:
             recovered_after = step - 5
+    assert len(relocalized) == 1 and relocalized[0] == 5 + recovered_after
     assert recovered_after is not None and recovered_after <= 2
     assert float(error) < 0.5
 
