@@ -19,7 +19,6 @@ from pathlib import Path
 
 import torch
 
-from enmi_torch.localize import localize
 from enmi_torch.track import initial_belief, track_step
 
 
@@ -59,16 +58,7 @@ def main(argv=None) -> None:
     yaws = (truth[0, 2].round() + torch.arange(-2.0, 3.0)).tolist()
 
     def search():
-        localize(
-            frame,
-            reference,
-            variance,
-            shifts=8,
-            center=center,
-            yaws=yaws,
-            bins=args.bins,
-            local_mask=drive.valid,
-        )
+        drive_tools.search(frame, reference, variance, drive.valid, center, yaws, "ecr", args.bins)
 
     def step():
         track_step(

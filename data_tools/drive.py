@@ -233,10 +233,10 @@ def calibrate(drive: Drive, method: str) -> Calibration:
     surfaces, aligned_z = [], []
     count = int(drive.valid.sum())
     for index in range(len(centers)):
-        options = _options(metric, None if variance is None else variance[index : index + 1], drive.valid)
+        frame_variance = None if variance is None else variance[index : index + 1]
         frame = drive.held_out_frames[index : index + 1].float()
         yaws = (yaw_centers[index] + torch.arange(-2.0, 3.0) * YAW_STEP).tolist()
-        surface = localize(frame, drive.map.float(), shifts=SHIFTS, center=centers[index], yaws=yaws, **options)
+        surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, metric)
         surfaces.append(surface.surface[0].double())
         aligned_z.append(_peak_z(surface.surface[0]))
     grid_truth = torch.stack(
@@ -260,13 +260,12 @@ def _peak_z(surface: torch.Tensor) -> float:
     return float((values.max() - median) / (1.4826 * (values - median).abs().median()).clamp_min(1e-12))
 
 
-def _options(metric: str, variance, valid) -> dict:
-    options = {"metric": metric, "local_mask": valid}
-    if metric != "ncc":
-        options["bins"] = BINS
-    if variance is not None:
-        options["variance"] = variance
-    return options
+def search(frame, reference, variance, valid, center, yaws, metric: str, bins: int = BINS) -> Localization:
+    """The benchmark's one ``localize`` call (+-8 cells): ``frame`` ``(1, 1, 64, 64)`` around map cell ``center``."""
+    options = {"bins": bins} if metric != "ncc" else {}
+    return localize(
+        frame, reference, variance, shifts=SHIFTS, center=center, yaws=yaws, metric=metric, local_mask=valid, **options
+    )
 
 
 def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
@@ -314,14 +313,14 @@ def run_argmax(drive: Drive, method: str) -> dict:
         guess = _moved(poses[-1], drive.odometry[index])
         center = torch.stack([guess[1], guess[0]]).round().long()
         yaw_center = round(float(guess[2]))
-        options = _options(metric, None if variance is None else variance[index : index + 1], drive.valid)
-        result = localize(
+        result = search(
             drive.frames[index : index + 1].float(),
             drive.map.float(),
-            shifts=SHIFTS,
-            center=center,
-            yaws=[yaw_center + step * YAW_STEP for step in range(-2, 3)],
-            **options,
+            None if variance is None else variance[index : index + 1],
+            drive.valid,
+            center,
+            [yaw_center + step * YAW_STEP for step in range(-2, 3)],
+            metric,
         )
         pose = result.pose[0].double()
         poses.append(torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]]))
