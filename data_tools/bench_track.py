@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from enmi_torch.track import initial_belief, track_step
+from enmi_torch.localization.track import initial_belief, track_step
 
 
 def _drive():

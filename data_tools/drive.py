@@ -1,4 +1,4 @@
-"""Track a simulated drive with the histogram filter of :mod:`enmi_torch.track`, against per-frame argmax search.
+"""Track a simulated drive with the histogram filter (:mod:`enmi_torch.localization.track`) against per-frame argmax.
 
 The map: scikit-image's CC0 textures and photographs tiled along a road, 320 cells wide and 2560 long (2.5 cm cells:
 8 m x 64 m): ``gravel``, ``grass``, ``brick`` (repetitive), ``camera`` and ``moon``, with painted edge lines, a
@@ -17,9 +17,9 @@ repetitive ``brick`` tile. Odometry (``du``, ``dv``, ``dyaw`` in the frame's axe
 bias of 0.05 degrees per frame and white noise.
 
 Calibration on held-out frames (other poses and noise draws): each score's temperature
-(:func:`enmi_torch.track.calibrate_temperature`), its peak z-score threshold and the odometry noise (the RMS of the
-increment errors); it is written as ``calibration_<method>.json`` under ``--logdir`` (``runs/drive``), with the
-TensorBoard logs of the errors (``tensorboard --logdir runs/drive/tensorboard``).
+(:func:`enmi_torch.localization.track.calibrate_temperature`), its peak z-score threshold and the odometry noise
+(the RMS of the increment errors); it is written as ``calibration_<method>.json`` under ``--logdir``
+(``runs/drive``), with the TensorBoard logs of the errors (``tensorboard --logdir runs/drive/tensorboard``).
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
@@ -45,9 +45,9 @@ import torch.nn.functional as F
 from skimage import data
 
 from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify, value_checks
-from enmi_torch.localize import localize
-from enmi_torch.rectify import ground_to_image_homography
-from enmi_torch.track import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
+from enmi_torch.geometry.rectify import ground_to_image_homography
+from enmi_torch.localization.search import localize
+from enmi_torch.localization.track import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
 
@@ -100,7 +100,7 @@ def trajectory(frames: int) -> tuple[torch.Tensor, torch.Tensor]:
     """True poses ``(frames, 3)`` ``(x, y, yaw)`` and true increments ``(frames, 3)`` ``(du, dv, dyaw)`` (row 0: 0).
 
     The vehicle moves up the map (forward is ``-v`` in the frame): each pose is the previous one moved by its
-    increment turned by the previous yaw, the motion model of :func:`enmi_torch.track.predict`.
+    increment turned by the previous yaw, the motion model of :func:`enmi_torch.localization.track.predict`.
     """
     steps = torch.arange(frames, dtype=torch.float64)
     yaw = 6.0 * torch.sin(2 * math.pi * steps / 110) + 2.0 * torch.sin(2 * math.pi * steps / 37)
@@ -116,7 +116,7 @@ def trajectory(frames: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def move(pose: torch.Tensor, increment: torch.Tensor) -> torch.Tensor:
-    """``pose`` moved by ``(du, dv, dyaw)`` in its frame's axes (the convention of :mod:`enmi_torch.track`)."""
+    """``pose`` moved by ``(du, dv, dyaw)`` in its frame's axes (as in :mod:`enmi_torch.localization.track`)."""
     angle = math.radians(-float(pose[2]))
     cos, sin = math.cos(angle), math.sin(angle)
     du, dv, dyaw = increment.tolist()
@@ -264,7 +264,15 @@ def search(frame, reference, variance, valid, center, yaws, metric: str, bins: i
     """The benchmark's one ``localize`` call (+-8 cells): ``frame`` ``(1, 1, 64, 64)`` around map cell ``center``."""
     options = {"bins": bins} if metric != "ncc" else {}
     return localize(
-        frame, reference, variance, shifts=SHIFTS, center=center, yaws=yaws, metric=metric, local_mask=valid, **options
+        frame,
+        reference,
+        variance,
+        shifts=SHIFTS,
+        center=center,
+        yaws=yaws,
+        metric=metric,
+        captured_mask=valid,
+        **options,
     )
 
 

@@ -19,6 +19,7 @@ from enmi_torch.localization.mixture_surface import mixture_surface
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.localization.surface import Surface, direct_surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.track import Calibration, Tracker
 from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ecr_loss, enmi_loss, mixture_loss, nmi_loss
 from enmi_torch.mixture import mixture_information
 from enmi_torch.variance import (
@@ -36,6 +37,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BinSums",
+    "Calibration",
     "ConstantVariance",
     "ECRLoss",
     "ENMILoss",
@@ -50,6 +52,7 @@ __all__ = [
     "PerspectiveVariance",
     "RoadCamera",
     "Surface",
+    "Tracker",
     "VarianceModel",
     "bin_centers",
     "bin_edges",

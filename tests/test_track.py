@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from enmi_torch import Localization, value_checks
-from enmi_torch.track import (
+from enmi_torch.localization.track import (
     CHI2_95_2D,
     Belief,
     Calibration,

@@ -1,7 +1,7 @@
-"""Sequential localization over a drive: a Bayes (histogram) filter on the score surfaces of :mod:`localize`.
+"""Sequential localization over a drive: a Bayes (histogram) filter on the score surfaces of :func:`localize`.
 
 The belief over the vehicle's pose is a histogram on a local window of map cells and a few yaw bins around the
-predicted pose: the same ``(Y, 2 ry + 1, 2 rx + 1)`` grid as a :func:`~enmi_torch.localize.localize` surface. One
+predicted pose: the same ``(Y, 2 ry + 1, 2 rx + 1)`` grid as a :func:`~enmi_torch.localize` surface. One
 step of the filter:
 
 * predict: each yaw bin's mass moves by the odometry increment turned into the map at that bin's yaw, and is blurred
@@ -15,15 +15,15 @@ step of the filter:
 * health: a frame whose surface has no clear peak (the best score's robust z-score below ``min_peak_z``, or below
   ``z_drop`` times the recent matches'), or whose peak the prediction rules out (more than ``max_surprise`` nats
   below the prediction's best), is not used; after ``patience`` such frames the filter searches a wider window
-  (a coarse-to-fine :func:`~enmi_torch.localize.localize`): if that search lands on the window's own peak the frame
+  (a coarse-to-fine :func:`~enmi_torch.localize`): if that search lands on the window's own peak the frame
   is used after all, and if it finds a match better than the window's by ``relocalize_odds`` nats the filter
   restarts there (relocalization).
 
 Convention:
     A pose is ``(x, y, yaw)``: ``x`` (column) and ``y`` (row) the map cell under the captured image's centre pixel
     ``(h // 2, w // 2)``, in cells, and ``yaw`` in degrees: the captured image is the map section there rotated by
-    ``yaw`` counter-clockwise as displayed, as in :func:`~enmi_torch.localize.localize` with ``center = (y, x)``
-    rounded and ``pose`` the rest (:meth:`~enmi_torch.localize.Localization.local_to_map` gives the transform).
+    ``yaw`` counter-clockwise as displayed, as in :func:`~enmi_torch.localize` with ``center = (y, x)``
+    rounded and ``pose`` the rest (:meth:`~enmi_torch.Localization.local_to_map` gives the transform).
     Odometry is ``(du, dv, dyaw)``: the move of the captured image's centre along its own columns (``du``) and rows
     (``dv``), in cells, and the change of yaw in degrees, from the previous frame to this one; on the map the move
     is ``(dx, dy) = (cos a du + sin a dv, -sin a du + cos a dv)`` with ``a = -yaw`` (the linear part of
@@ -43,10 +43,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from enmi_torch._checks import check_floating, check_non_negative_int, check_option, check_positive_int
-from enmi_torch.localize import localize
+from enmi_torch.localization.search import localize
+from enmi_torch.localization.surface import METRICS
 from enmi_torch.variance.base import VarianceModel
 
-METRICS = ("ecr", "enmi", "mixture", "nmi", "ncc")
 # Chi-square quantile with 2 degrees of freedom at 95 %: the (x, y) ellipse radius squared.
 CHI2_95_2D = 5.991464547107979
 
@@ -56,7 +56,7 @@ class Belief(NamedTuple):
 
     Attributes:
         log_prob: ``(B, Y, 2 ry + 1, 2 rx + 1)`` float64 log probability per yaw bin and cell, laid out like a
-            :class:`~enmi_torch.localize.Localization` surface: ``[b, k, ry + i, rx + j]`` is the pose
+            :class:`~enmi_torch.Localization` surface: ``[b, k, ry + i, rx + j]`` is the pose
             ``x = center[b, 1] + j``, ``y = center[b, 0] + i``, ``yaw = yaw_center[b] + (k - Y // 2) * yaw_step``.
         center: ``(B, 2)`` int64 map cell ``(row, col)`` of the window's middle cell.
         yaw_center: ``(B,)`` float64 yaw of the middle yaw bin, degrees.
@@ -417,7 +417,7 @@ def track_step(
             ``None`` for ``"nmi"`` and ``"ncc"``.
         captured_mask: bool, like ``variance``: ``False`` pixels are unobserved.
         motion_noise: standard deviations of the odometry's error ``(du, dv, dyaw)`` per frame.
-        metric: the score (see :func:`~enmi_torch.localize.localize`).
+        metric: the score (see :func:`~enmi_torch.localize`).
         bins: bins of the score.
         value_range: range of the bins.
         temperature: ``score * n_valid / temperature`` is the log-likelihood (:func:`calibrate_temperature`).
@@ -651,7 +651,7 @@ class _Searcher:
         return values
 
     def _localize(self, vehicle: int, center: Tensor, yaws: list[float], shifts: int | tuple[int, int], **options):
-        """The one call of :func:`~enmi_torch.localize.localize` (its mask keyword in one place)."""
+        """The one call of :func:`~enmi_torch.localize` (its mask keyword in one place)."""
         return localize(
             self.captured[vehicle : vehicle + 1],
             self.reference,
@@ -659,7 +659,7 @@ class _Searcher:
             shifts=shifts,
             center=center.reshape(1, 2),
             yaws=yaws,
-            local_mask=self._per_vehicle(self.mask, slice(vehicle, vehicle + 1)),
+            captured_mask=self._per_vehicle(self.mask, slice(vehicle, vehicle + 1)),
             **self.options,
             **options,
         )
