@@ -136,6 +136,18 @@ def check_non_negative_int(name: str, value: Any) -> int:
     return value
 
 
+def check_shifts(shifts: Any) -> tuple[int, int]:
+    """Raise unless ``shifts`` is a search radius ``r >= 0`` or a pair ``(ry, rx)`` of them; returns the pair."""
+    pair = (shifts, shifts) if isinstance(shifts, int) and not isinstance(shifts, bool) else shifts
+    if (
+        not isinstance(pair, (tuple, list))
+        or len(pair) != 2
+        or not all(isinstance(value, int) and not isinstance(value, bool) and value >= 0 for value in pair)
+    ):
+        raise ValueError(f"shifts must be an int >= 0 or a pair (ry, rx) of them, got {shifts!r}")
+    return int(pair[0]), int(pair[1])
+
+
 def check_not_empty(name: str, images: Tensor) -> None:
     """Raise ``ValueError`` unless the batch ``images`` ``(B, ...)`` holds at least one sample and one pixel."""
     if images.numel() == 0:

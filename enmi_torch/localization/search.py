@@ -36,6 +36,7 @@ from enmi_torch._checks import (
     check_non_negative_int,
     check_option,
     check_positive_int,
+    check_shifts,
     check_value_range,
 )
 from enmi_torch._layout import mask_map, variance_map
@@ -141,7 +142,7 @@ def localize(
     check_option("metric", metric, METRICS)
     check_option("resample", resample, RESAMPLING)
     batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
-    radius = _check_shifts(shifts)
+    radius = check_shifts(shifts)
     centers = _check_center(center, batch, tuple(reference.shape[2:]), captured.device)
     yaw_list = _check_yaws(yaws)
     if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
@@ -252,7 +253,7 @@ class Localizer(nn.Module):
         super().__init__()
         self.variance_model = check_variance_model(variance_model)
         self.metric = check_option("metric", metric, METRICS)
-        self.shifts = _check_shifts(shifts)
+        self.shifts = check_shifts(shifts)
         self.register_buffer("yaws", torch.tensor(_check_yaws(yaws), dtype=torch.float64), persistent=False)
         self.bins = check_bins(bins)
         self.value_range = check_value_range(value_range)
@@ -301,17 +302,6 @@ class Localizer(nn.Module):
             reference_mask=reference_mask,
             **self.options,
         )
-
-
-def _check_shifts(shifts) -> tuple[int, int]:
-    pair = (shifts, shifts) if isinstance(shifts, int) and not isinstance(shifts, bool) else shifts
-    if (
-        not isinstance(pair, (tuple, list))
-        or len(pair) != 2
-        or not all(isinstance(value, int) and not isinstance(value, bool) and value >= 0 for value in pair)
-    ):
-        raise ValueError(f"shifts must be an int >= 0 or a pair (ry, rx) of them, got {shifts!r}")
-    return int(pair[0]), int(pair[1])
 
 
 def _check_yaws(yaws) -> list[float]:

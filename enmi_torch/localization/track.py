@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_floating, check_non_negative_int, check_option, check_positive_int
+from enmi_torch._checks import check_floating, check_non_negative_int, check_option, check_positive_int, check_shifts
 from enmi_torch.localization.search import localize
 from enmi_torch.localization.surface import METRICS
 from enmi_torch.variance.base import VarianceModel
@@ -124,7 +124,7 @@ def initial_belief(
         (torch.Size([1, 3, 5, 7]), [[20, 10]], [[2.0, 3.0, 4.0]])
     """
     pose = _check_pose("pose", pose)
-    radius = _check_shifts(shifts)
+    radius = check_shifts(shifts)
     yaw_bins = check_positive_int("yaw_bins", yaw_bins)
     if yaw_bins % 2 == 0:
         raise ValueError(f"yaw_bins must be odd (a middle bin on the predicted yaw), got {yaw_bins}")
@@ -565,7 +565,7 @@ class Tracker(nn.Module):
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
             raise TypeError(f"variance_model must be a VarianceModel or None, got {type(variance_model).__name__}")
         self.variance_model = variance_model
-        self.shifts = _check_shifts(shifts)
+        self.shifts = check_shifts(shifts)
         self.yaw_bins, self.yaw_step = yaw_bins, yaw_step
         if calibration is not None:
             if not isinstance(calibration, Calibration):
@@ -846,17 +846,6 @@ def _check_noise(noise: object, batch: int) -> Tensor:
             f"noise must be three standard deviations >= 0 (du, dv, dyaw) or ({batch}, 3) of them, got {noise!r}"
         )
     return values
-
-
-def _check_shifts(shifts: object) -> tuple[int, int]:
-    pair = (shifts, shifts) if isinstance(shifts, int) and not isinstance(shifts, bool) else shifts
-    if (
-        not isinstance(pair, (tuple, list))
-        or len(pair) != 2
-        or not all(isinstance(value, int) and not isinstance(value, bool) and value >= 0 for value in pair)
-    ):
-        raise ValueError(f"shifts must be an int >= 0 or a pair (ry, rx) of them, got {shifts!r}")
-    return int(pair[0]), int(pair[1])
 
 
 def _check_positive(name: str, value: object) -> float:
