@@ -113,6 +113,16 @@ def test_learned_mask_matches_the_empirical_mask_and_the_truth(tmp_path, flavour
     assert 0.5 * np.sqrt(2 / 2000) < errors["empirical_rel_rms_vs_truth"] < 2 * np.sqrt(2 / 2000)
 
 
+def test_kept_pairs_give_the_mask_of_pairs_drawn_every_epoch(tmp_path):
+    masks = []
+    for keep in ("true", "false"):
+        summary = run(tmp_path / keep, "--data.keep_pairs", keep, "--model.localization_pairs", "0")
+        masks.append(LearnedVariance.load(summary["files"]["pt"]).variance_map())
+    learned = torch.isfinite(masks[0])
+    assert torch.equal(learned, torch.isfinite(masks[1])) and learned.any()
+    assert torch.equal(masks[0][learned], masks[1][learned])  # bit for bit
+
+
 def test_perspective_form_from_the_camera_truth(tmp_path):
     summary = run(tmp_path, "--data.flavour", "camera", "--model.form", "perspective", "--model.lr", "0.1")
     mask = LearnedVariance.load(summary["files"]["pt"])
