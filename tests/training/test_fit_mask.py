@@ -234,6 +234,22 @@ def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
     assert results["ecr_uniform"][0] == 3
 
 
+def test_localization_of_fixed_methods_apart_equals_one_call():
+    """The module scores the true map, NMI and NCC once per fit and the mask's methods at every validation."""
+    generator = torch.Generator().manual_seed(1)
+    prior = torch.rand(2, 1, 18, 22, generator=generator) * 255
+    valid = torch.rand(2, 1, 18, 22, generator=generator) > 0.1
+    truth = torch.linspace(1, 400, 18 * 22).reshape(18, 22)
+    noisy = prior + torch.randn(prior.shape, generator=generator) * truth.sqrt()
+    options = {"max_shift": 2, "bins": 16, "value_range": (0.0, 256.0)}
+    mine = {"learned": truth * 1.5, "uniform": 120.0}
+    together = localization_trials(noisy, prior, valid, {**mine, "analytic": truth}, uniform_grid=(0.5,), **options)
+    apart = localization_trials(noisy, prior, valid, mine, uniform_grid=(0.5,), nmi_ncc=False, **options)
+    assert "nmi" not in apart and "ecr_analytic" not in apart
+    apart.update(localization_trials(noisy, prior, valid, {"analytic": truth}, **options))
+    assert apart == together
+
+
 def test_help_lists_this_commands_options_in_plain_text(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["--help"])
