@@ -50,8 +50,9 @@ class PairDataModule(LightningDataModule):
         keep_pairs: generate the synthetic pairs once, in :meth:`setup`, and keep them in memory
             (:class:`~enmi_torch.data.synthetic.KeptPairs`, ``9 H W`` bytes per pair); ``False`` draws each pair again
             whenever it is read. Either way every epoch sees the same pairs (pair ``i`` is a function of the seed and
-            ``i``; only their order changes from epoch to epoch), so the fitted mask is the same; keeping them makes
-            the default fit several times faster. A folder's pairs are always read from disk.
+            ``i``; only their order changes from epoch to epoch), so the fitted mask is the same, bit for bit;
+            keeping them saves drawing every pair again each epoch (most of an epoch's time: ``python
+            data_tools/bench_fit_mask.py``). A folder's pairs are always read from disk.
 
     Attributes:
         shape: ``(H, W)`` of the images.

@@ -62,8 +62,8 @@ def _paint_marking(patch: np.ndarray, rng: np.random.Generator, rows: np.ndarray
     angle = math.radians(rng.uniform(-12.0, 12.0))
     column = rng.uniform(0.1, 0.9) * width
     half_width = rng.uniform(1.0, 3.5)
-    # Only the columns the marking can touch are painted (the others would get coverage 0): the same values, a
-    # quarter of the work on 128 x 128. The band's bound is that of |across| < half_width + 0.5, plus 2 pixels.
+    # Only the columns the marking can touch are painted (the others would get coverage 0): the same values, at
+    # most a third of a 128-pixel-wide patch. The band's bound is that of |across| < half_width + 0.5, plus 2 pixels.
     reach = (abs(height / 2 * math.sin(angle)) + half_width + 0.5) / math.cos(angle) + 2
     first, last = max(0, math.floor(column - reach)), min(width, math.ceil(column + reach) + 1)
     patch, cols = patch[:, first:last], cols[:, first:last]
@@ -150,9 +150,9 @@ class SyntheticPairs(Dataset):
 class KeptPairs(Dataset):
     """The items of ``pairs`` read once and kept in memory as stacked tensors: item ``i`` equals ``pairs[i]``.
 
-    Reading a :class:`SyntheticPairs` item draws the pair again (a crop, lane markings, noise): over many epochs of
-    the same pairs, keeping them is several times faster, at ``9 H W`` bytes per pair (2,000 pairs of 128 x 128:
-    0.3 GB).
+    Reading a :class:`SyntheticPairs` item draws the pair again (a crop, lane markings, noise); over many epochs of
+    the same pairs, keeping them costs ``9 H W`` bytes per pair (2,000 pairs of 128 x 128: 0.3 GB) and saves that
+    work.
 
     Args:
         pairs: a dataset whose items are dicts like :class:`SyntheticPairs`'s (``local``, ``prior``, ``valid``,
