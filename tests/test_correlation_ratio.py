@@ -147,7 +147,8 @@ def test_ecr_loss_agrees_with_function_and_its_variance_model():
     captured, reference, variance, valid = _case(torch.float32)
     loss = ECRLoss(bins=5, reduction="none")
     torch.testing.assert_close(
-        loss(captured, reference, variance=variance, valid_mask=valid), -ecr(captured, reference, variance, bins=5, valid_mask=valid)
+        loss(captured, reference, variance=variance, valid_mask=valid),
+        -ecr(captured, reference, variance, bins=5, valid_mask=valid),
     )
     with_model = ECRLoss(bins=5, variance_model=ConstantVariance(100.0), reduction="sum")
     torch.testing.assert_close(with_model(captured, reference), loss(captured, reference, variance=100.0).sum())

@@ -8,10 +8,11 @@ from typing import Any
 
 from enmi_torch.data.intensity import match_intensity
 from enmi_torch.data.pairs import PairDataset, write_pairs
-from enmi_torch.data.synthetic import SyntheticPairs, gravel_texture, road_patch
+from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs, gravel_texture, road_patch
 from enmi_torch.data.truth import VarianceTruth, camera_truth, lidar_truth, make_truth
 
 __all__ = [
+    "KeptPairs",
     "PairDataModule",
     "PairDataset",
     "ShardSampler",

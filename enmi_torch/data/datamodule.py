@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Subset
 
 from enmi_torch._checks import check_non_negative_int, check_option, check_positive_int, check_positive_number
 from enmi_torch.data.pairs import PairDataset
-from enmi_torch.data.synthetic import SyntheticPairs
+from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs
 from enmi_torch.data.truth import FLAVOURS, VarianceTruth, make_truth
 
 
@@ -47,6 +47,12 @@ class PairDataModule(LightningDataModule):
         batch_size: pairs per optimisation step over all processes (split evenly between them).
         num_workers: data-loading worker processes per training process.
         seed: synthetic training pairs use seed ``2 seed``, held-out ones ``2 seed + 1``; shuffling uses ``seed``.
+        keep_pairs: generate the synthetic pairs once, in :meth:`setup`, and keep them in memory
+            (:class:`~enmi_torch.data.synthetic.KeptPairs`, ``9 H W`` bytes per pair); ``False`` draws each pair again
+            whenever it is read. Either way every epoch sees the same pairs (pair ``i`` is a function of the seed and
+            ``i``; only their order changes from epoch to epoch), so the fitted mask is the same, bit for bit;
+            keeping them saves drawing every pair again each epoch (most of an epoch's time: ``python
+            data_tools/bench_fit_mask.py``). A folder's pairs are always read from disk.
 
     Attributes:
         shape: ``(H, W)`` of the images.
@@ -67,12 +73,16 @@ class PairDataModule(LightningDataModule):
         batch_size: int = 64,
         num_workers: int = 0,
         seed: int = 0,
+        keep_pairs: bool = True,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.batch_size = check_positive_int("batch_size", batch_size)
         self.num_workers = check_non_negative_int("num_workers", num_workers)
         self.seed = check_non_negative_int("seed", seed)
+        if not isinstance(keep_pairs, bool):
+            raise TypeError(f"keep_pairs must be a bool, got {type(keep_pairs).__name__}")
+        self.keep_pairs = keep_pairs
         if root is None:
             check_option("flavour", flavour, FLAVOURS)
             truth = make_truth(flavour, (check_positive_int("size", size),) * 2, noise_std)
@@ -93,6 +103,11 @@ class PairDataModule(LightningDataModule):
         self.val_set = Subset(pairs, sorted(order[:held_out]))
         self.truth = pairs.truth
         self.shape = pairs.shape
+
+    def setup(self, stage: str | None = None) -> None:
+        """Generate the synthetic pairs once and keep them (``keep_pairs``), in every process."""
+        if self.keep_pairs and isinstance(self.train_set, SyntheticPairs):
+            self.train_set, self.val_set = KeptPairs(self.train_set), KeptPairs(self.val_set)
 
     @property
     def num_train_pairs(self) -> int:

@@ -4,7 +4,7 @@ Prior patches come from scikit-image's bundled ``gravel()`` texture (CC0, shippe
 downloaded) with painted lane markings; the local image is the same patch, optionally with a global intensity change,
 plus Gaussian noise drawn from a :class:`~enmi_torch.data.truth.VarianceTruth`. Pair ``i`` is a pure function of
 ``(seed, i)``, so a dataset of any length costs no memory, every worker and process sees the same pairs, and runs
-are reproducible.
+are reproducible. :class:`KeptPairs` generates them once and keeps them in memory, for training over many epochs.
 """
 
 from __future__ import annotations
@@ -62,6 +62,11 @@ def _paint_marking(patch: np.ndarray, rng: np.random.Generator, rows: np.ndarray
     angle = math.radians(rng.uniform(-12.0, 12.0))
     column = rng.uniform(0.1, 0.9) * width
     half_width = rng.uniform(1.0, 3.5)
+    # Only the columns the marking can touch are painted (the others would get coverage 0): the same values, at
+    # most a third of a 128-pixel-wide patch. The band's bound is that of |across| < half_width + 0.5, plus 2 pixels.
+    reach = (abs(height / 2 * math.sin(angle)) + half_width + 0.5) / math.cos(angle) + 2
+    first, last = max(0, math.floor(column - reach)), min(width, math.ceil(column + reach) + 1)
+    patch, cols = patch[:, first:last], cols[:, first:last]
     # Signed distance across the marking and position along it, for a line through (height / 2, column).
     across = (cols - column) * math.cos(angle) - (rows - height / 2) * math.sin(angle)
     along = (cols - column) * math.sin(angle) + (rows - height / 2) * math.cos(angle)
@@ -139,4 +144,60 @@ class SyntheticPairs(Dataset):
             "prior": torch.from_numpy(prior).unsqueeze(0),
             "valid": torch.from_numpy(self._valid.copy()).unsqueeze(0),
             "index": index,
+        }
+
+
+class KeptPairs(Dataset):
+    """The items of ``pairs`` read once and kept in memory as stacked tensors: item ``i`` equals ``pairs[i]``.
+
+    Reading a :class:`SyntheticPairs` item draws the pair again (a crop, lane markings, noise); over many epochs of
+    the same pairs, keeping them costs ``9 H W`` bytes per pair (2,000 pairs of 128 x 128: 0.3 GB) and saves that
+    work.
+
+    Args:
+        pairs: a dataset whose items are dicts like :class:`SyntheticPairs`'s (``local``, ``prior``, ``valid``,
+            ``index``); its ``truth`` and ``shape`` are kept when it has them.
+
+    Example:
+        >>> from enmi_torch.data.truth import lidar_truth
+        >>> pairs = SyntheticPairs(lidar_truth((32, 32)), count=4, seed=3)
+        >>> kept = KeptPairs(pairs)
+        >>> all(torch.equal(kept[2][key], pairs[2][key]) for key in ("local", "prior", "valid")), kept[2]["index"]
+        (True, 2)
+    """
+
+    def __init__(self, pairs: Dataset) -> None:
+        count = len(pairs)
+        if count < 1:
+            raise ValueError(f"pairs must hold at least one pair, got {count}")
+        self.truth = getattr(pairs, "truth", None)
+        self.indices: list[int] = []
+        for position in range(count):
+            item = pairs[position]
+            if position == 0:
+                # Filled in place: no list of items and stacked copy at the same time.
+                self.local = torch.empty((count, *item["local"].shape), dtype=item["local"].dtype)
+                self.prior = torch.empty((count, *item["prior"].shape), dtype=item["prior"].dtype)
+                self.valid = torch.empty((count, *item["valid"].shape), dtype=item["valid"].dtype)
+            self.local[position], self.prior[position], self.valid[position] = (
+                item["local"],
+                item["prior"],
+                item["valid"],
+            )
+            self.indices.append(int(item["index"]))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the images."""
+        return tuple(self.local.shape[-2:])
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, index: int) -> dict:
+        return {
+            "local": self.local[index],
+            "prior": self.prior[index],
+            "valid": self.valid[index],
+            "index": self.indices[index],
         }

@@ -12,7 +12,9 @@ Dashboards (TensorBoard): ``train/nll``, ``val/nll``; ``mask/rel_rms_vs_empirica
 by a whole-image search, the protocol of ``data_tools/yardstick.py``) and ``localization_z/<method>`` (the mean
 z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
 (``*_learned``), the true field (``*_analytic``, synthetic data) and the uniform controls (``*_uniform``: the learned
-mask's mean; ``enmi_best_uniform``: the best of the mean times ``localization_grid``), hard NMI and NCC;
+mask's mean; ``enmi_best_uniform``: the best of the mean times ``localization_grid``), hard NMI and NCC (the
+methods that do not depend on the mask, ``*_analytic``, NMI and NCC, are scored at a fit's first validation and
+reused: the same pairs give the same scores);
 ``speed/pairs_per_second``; the mask figure; histograms of raw and standardised residuals.
 """
 
@@ -50,6 +52,7 @@ def localization_trials(
     bins: int,
     value_range: tuple[float, float],
     uniform_grid: tuple[float, ...] = (),
+    nmi_ncc: bool = True,
 ) -> dict[str, tuple[int, float]]:
     """Whole-image localization of aligned pairs, the protocol of ``data_tools/yardstick.py``: hits and peak z-scores.
 
@@ -69,9 +72,10 @@ def localization_trials(
         bins: bins of ECR (reference), ENMI and NMI.
         value_range: range of the bins.
         uniform_grid: factors for the best-uniform control.
+        nmi_ncc: also score hard NMI and NCC (methods ``"nmi"``, ``"ncc"``).
 
     Returns:
-        Method -> ``(hits, sum of peak z-scores)`` over the pairs, for the methods above, ``"nmi"`` and ``"ncc"``.
+        Method -> ``(hits, sum of peak z-scores)`` over the pairs, for the methods above (and ``"nmi"``, ``"ncc"``).
     """
     height, width = local.shape[-2:]
     inner = (..., slice(max_shift, height - max_shift), slice(max_shift, width - max_shift))
@@ -87,8 +91,9 @@ def localization_trials(
         if name == "uniform":
             for factor in uniform_grid:
                 surfaces[f"enmi_uniform_x{factor:g}"] = enmi_surface(crop, window, variance * factor, **options)
-    surfaces["nmi"] = nmi_surface(crop, window, **options)
-    surfaces["ncc"] = ncc_surface(crop, window, captured_mask=crop_valid)
+    if nmi_ncc:
+        surfaces["nmi"] = nmi_surface(crop, window, **options)
+        surfaces["ncc"] = ncc_surface(crop, window, captured_mask=crop_valid)
     span = 2 * max_shift + 1
     offsets = torch.arange(span, device=local.device) - max_shift
     far = (offsets.abs().view(-1, 1) > 1) | (offsets.abs().view(1, -1) > 1)
@@ -156,6 +161,7 @@ class MaskFitModule(LightningModule):
         self._epoch_start, self._epoch_pairs = 0.0, 0
         self.epoch_seconds: list[float] = []
         self._figure_pair: tuple[Tensor, Tensor, Tensor] | None = None
+        self._fixed_results: dict[tuple, dict[str, tuple[int, float]]] = {}
 
     # ----- set-up -------------------------------------------------------------------------------------------------
     @property
@@ -229,6 +235,10 @@ class MaskFitModule(LightningModule):
         self.mask.reset_parameters(max(float(sum_squares / count), 1e-12))
         self.statistics_ready.fill_(True)
 
+    def on_fit_end(self) -> None:
+        """Forget the localization results kept between validations."""
+        self._fixed_results = {}
+
     def _pair(self, batch: dict) -> tuple[Tensor, Tensor, Tensor]:
         local, prior, valid = batch["local"].to(self.device), batch["prior"].to(self.device), batch["valid"]
         valid = valid.to(self.device)
@@ -259,7 +269,7 @@ class MaskFitModule(LightningModule):
                 self._histogram_batch = self._residuals(local, prior, valid)
             self._epoch_pairs += batch_size * self.trainer.world_size
         else:
-            self._localize(local, prior, valid)
+            self._localize(local, prior, valid, batch["index"])
             if self._figure_pair is None:
                 self._figure_pair = (local[0].detach(), prior[0].detach(), valid[0].detach())
         return loss
@@ -281,31 +291,39 @@ class MaskFitModule(LightningModule):
             standardised = residual / self.mask(local).expand_as(local)[keep].sqrt()
         return residual.detach().cpu(), standardised.detach().cpu()
 
-    def _localize(self, local: Tensor, prior: Tensor, valid: Tensor) -> None:
+    def _localize(self, local: Tensor, prior: Tensor, valid: Tensor, index: Tensor) -> None:
         room = self.hparams.localization_pairs - self._trials * self.trainer.world_size
         if room <= 0:
             return
         take = min(local.shape[0], -(-room // self.trainer.world_size))
         local, prior, valid = local[:take], prior[:take], valid[:take]
+        options = {
+            "max_shift": self.hparams.localization_shift,
+            "bins": self.hparams.bins,
+            "value_range": tuple(self.hparams.value_range),
+        }
         with torch.no_grad():
             learned = self.mask.variance_map().to(local.device)
-            usable = valid & self.mask.valid_mask(local)
-            variances: dict[str, Tensor | float] = {"learned": learned}
+            usable = valid & self.mask.valid_mask(local)  # the learned pixels are fixed from the fit's start
             truth = self.truth
             if truth is not None:
                 usable = usable & truth.valid.to(local.device)
-                variances["analytic"] = truth.variance.to(local.device)
-            variances["uniform"] = float(learned[self.mask.valid].mean())
+            # The true map, NMI and NCC score the same pairs the same way at every validation of a fit: once.
+            key = (tuple(index[:take].tolist()), self.hparams.localization_shift, self.hparams.bins)
+            if key not in self._fixed_results:
+                fixed = {} if truth is None else {"analytic": truth.variance.to(local.device)}
+                self._fixed_results[key] = localization_trials(local, prior, usable, fixed, **options)
+            variances = {"learned": learned, "uniform": float(learned[self.mask.valid].mean())}
             results = localization_trials(
                 local,
                 prior,
                 usable,
                 variances,
-                max_shift=self.hparams.localization_shift,
-                bins=self.hparams.bins,
-                value_range=tuple(self.hparams.value_range),
                 uniform_grid=tuple(self.hparams.localization_grid),
+                nmi_ncc=False,
+                **options,
             )
+            results.update(self._fixed_results[key])
         for name, (hits, z_sum) in results.items():
             self._hits[name] = self._hits.get(name, 0) + hits
             self._z_sums[name] = self._z_sums.get(name, 0.0) + z_sum

@@ -3,7 +3,15 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from enmi_torch.data import PairDataModule, ShardSampler, SyntheticPairs, lidar_truth, write_pairs
+from enmi_torch.data import (
+    KeptPairs,
+    PairDataModule,
+    PairDataset,
+    ShardSampler,
+    SyntheticPairs,
+    lidar_truth,
+    write_pairs,
+)
 
 
 def global_batches(module, world):
@@ -24,6 +32,33 @@ def test_synthetic_module_shapes_and_truth():
     assert batch["local"].shape == (4, 1, 16, 16) and batch["valid"].dtype == torch.bool
     assert len(module.val_set) == 6
     assert not torch.equal(module.train_set[0]["prior"], module.val_set[0]["prior"])
+
+
+def all_batches(module, epochs=(0, 1)):
+    """Every batch of the training loader at these epochs, of the statistics and of the validation loaders."""
+    batches = []
+    for epoch in epochs:
+        loader = module.train_dataloader()
+        loader.sampler.set_epoch(epoch)
+        batches += list(loader)
+    return batches + list(module.statistics_dataloader()) + list(module.val_dataloader())
+
+
+def test_kept_pairs_give_the_batches_of_pairs_drawn_every_epoch():
+    options = {"train_pairs": 20, "val_pairs": 6, "size": 16, "batch_size": 8, "gain_std": 0.1, "offset_std": 2.0}
+    kept, drawn = PairDataModule(**options), PairDataModule(**options, keep_pairs=False)
+    kept.setup("fit")
+    drawn.setup("fit")
+    assert isinstance(kept.train_set, KeptPairs) and isinstance(kept.val_set, KeptPairs)
+    assert isinstance(drawn.train_set, SyntheticPairs)
+    first, second = all_batches(kept), all_batches(drawn)
+    assert len(first) == len(second) == 2 * 3 + 3 + 1
+    for mine, theirs in zip(first, second, strict=True):
+        assert mine.keys() == theirs.keys()
+        assert all(torch.equal(mine[key], theirs[key]) for key in mine)
+    # The epochs differ only in order: the same pairs, shuffled again.
+    epoch_0, epoch_1 = (torch.cat([batch["index"] for batch in first[start : start + 3]]) for start in (0, 3))
+    assert not torch.equal(epoch_0, epoch_1) and torch.equal(epoch_0.sort().values, epoch_1.sort().values)
 
 
 def test_global_batches_do_not_depend_on_the_number_of_processes():
@@ -51,6 +86,8 @@ def test_folder_split_is_disjoint_and_seeded(tmp_path):
     assert set(module.val_set.indices).isdisjoint(module.train_set.indices)
     assert module.val_set.indices == again.val_set.indices
     assert module.shape == (8, 8) and module.truth is not None
+    module.setup("fit")
+    assert isinstance(module.train_set.dataset, PairDataset)  # a folder is read from disk, not kept
     statistics = [batch["index"] for batch in module.statistics_dataloader()]
     assert sorted(torch.cat(statistics).tolist()) == sorted(module.train_set.indices)
 
@@ -63,10 +100,11 @@ def test_folder_split_is_disjoint_and_seeded(tmp_path):
         (lambda tmp: PairDataModule(batch_size=0), "batch_size"),
         (lambda tmp: PairDataModule(root=str(tmp), val_fraction=1.5), "val_fraction"),
         (lambda tmp: PairDataModule(root=str(tmp / "none")), "root must be a folder"),
+        (lambda tmp: PairDataModule(keep_pairs="yes"), "keep_pairs must be a bool"),
     ],
 )
 def test_invalid_inputs(tmp_path, make, match):
-    with pytest.raises((ValueError, FileNotFoundError), match=match):
+    with pytest.raises((ValueError, FileNotFoundError, TypeError), match=match):
         make(tmp_path)
 
 

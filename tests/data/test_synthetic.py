@@ -1,8 +1,19 @@
+import math
+
 import numpy as np
 import pytest
 import torch
 
-from enmi_torch.data import SyntheticPairs, gravel_texture, lidar_truth, make_truth, match_intensity, road_patch
+from enmi_torch.data import (
+    KeptPairs,
+    SyntheticPairs,
+    gravel_texture,
+    lidar_truth,
+    make_truth,
+    match_intensity,
+    road_patch,
+    synthetic,
+)
 from enmi_torch.variance import empirical_variance
 
 
@@ -49,6 +60,49 @@ def test_road_patch_is_gravel_with_lane_markings():
     assert np.mean([np.mean(patch > 200) for patch in patches]) > 5 * np.mean(texture > 200)
     with pytest.raises(ValueError, match="fit in the"):
         road_patch(np.random.default_rng(0), (600, 10))
+
+
+def paint_whole_width(patch, rng, rows, cols):
+    """The painting before it was cut to the marking's columns: coverage over every column."""
+    height, width = patch.shape
+    angle = math.radians(rng.uniform(-12.0, 12.0))
+    column = rng.uniform(0.1, 0.9) * width
+    half_width = rng.uniform(1.0, 3.5)
+    across = (cols - column) * math.cos(angle) - (rows - height / 2) * math.sin(angle)
+    along = (cols - column) * math.sin(angle) + (rows - height / 2) * math.cos(angle)
+    coverage = np.clip(half_width + 0.5 - np.abs(across), 0.0, 1.0)
+    if rng.random() < 0.5:
+        period = rng.uniform(0.3, 0.6) * height
+        dash = rng.uniform(0.4, 0.7) * period
+        coverage = coverage * (np.mod(along + rng.uniform(0, period), period) < dash)
+    paint = rng.uniform(200.0, 245.0)
+    patch += coverage * (paint - patch)
+
+
+@pytest.mark.parametrize("shape", [(128, 128), (64, 48), (12, 300), (300, 12), (5, 7)])
+def test_painting_the_markings_columns_equals_painting_the_whole_patch(monkeypatch, shape):
+    seeds = range(60)
+    banded = [road_patch(np.random.default_rng(seed), shape) for seed in seeds]
+    monkeypatch.setattr(synthetic, "_paint_marking", paint_whole_width)
+    whole = [road_patch(np.random.default_rng(seed), shape) for seed in seeds]
+    for fast, reference in zip(banded, whole, strict=True):
+        assert np.array_equal(fast.view(np.uint32), reference.view(np.uint32))  # bit for bit
+
+
+@pytest.mark.parametrize("options", [{}, {"gain_std": 0.2, "offset_std": 5.0}])
+def test_kept_pairs_equal_the_pairs_drawn_on_read(options):
+    pairs = SyntheticPairs(lidar_truth((24, 20)), 9, seed=5, **options)
+    kept = KeptPairs(pairs)
+    assert len(kept) == 9 and kept.shape == (24, 20) and kept.truth is pairs.truth
+    for index in (*range(9), -1):
+        drawn, item = pairs[index], kept[index]
+        assert item["index"] == drawn["index"]
+        for key in ("local", "prior", "valid"):
+            assert item[key].dtype == drawn[key].dtype and torch.equal(item[key], drawn[key])
+    with pytest.raises(IndexError):
+        kept[9]
+    with pytest.raises(ValueError, match="at least one pair"):
+        KeptPairs([])
 
 
 def test_intensity_change_is_undone_by_matching():

@@ -113,6 +113,16 @@ def test_learned_mask_matches_the_empirical_mask_and_the_truth(tmp_path, flavour
     assert 0.5 * np.sqrt(2 / 2000) < errors["empirical_rel_rms_vs_truth"] < 2 * np.sqrt(2 / 2000)
 
 
+def test_kept_pairs_give_the_mask_of_pairs_drawn_every_epoch(tmp_path):
+    masks = []
+    for keep in ("true", "false"):
+        summary = run(tmp_path / keep, "--data.keep_pairs", keep, "--model.localization_pairs", "0")
+        masks.append(LearnedVariance.load(summary["files"]["pt"]).variance_map())
+    learned = torch.isfinite(masks[0])
+    assert torch.equal(learned, torch.isfinite(masks[1])) and learned.any()
+    assert torch.equal(masks[0][learned], masks[1][learned])  # bit for bit
+
+
 def test_perspective_form_from_the_camera_truth(tmp_path):
     summary = run(tmp_path, "--data.flavour", "camera", "--model.form", "perspective", "--model.lr", "0.1")
     mask = LearnedVariance.load(summary["files"]["pt"])
@@ -222,6 +232,22 @@ def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
     # A one-pixel offset still counts as located (the yardstick's rule).
     results = localization_trials(noisy.roll(1, dims=-2), prior, valid, {"uniform": 50.0}, **options)
     assert results["ecr_uniform"][0] == 3
+
+
+def test_localization_of_fixed_methods_apart_equals_one_call():
+    """The module scores the true map, NMI and NCC once per fit and the mask's methods at every validation."""
+    generator = torch.Generator().manual_seed(1)
+    prior = torch.rand(2, 1, 18, 22, generator=generator) * 255
+    valid = torch.rand(2, 1, 18, 22, generator=generator) > 0.1
+    truth = torch.linspace(1, 400, 18 * 22).reshape(18, 22)
+    noisy = prior + torch.randn(prior.shape, generator=generator) * truth.sqrt()
+    options = {"max_shift": 2, "bins": 16, "value_range": (0.0, 256.0)}
+    mine = {"learned": truth * 1.5, "uniform": 120.0}
+    together = localization_trials(noisy, prior, valid, {**mine, "analytic": truth}, uniform_grid=(0.5,), **options)
+    apart = localization_trials(noisy, prior, valid, mine, uniform_grid=(0.5,), nmi_ncc=False, **options)
+    assert "nmi" not in apart and "ecr_analytic" not in apart
+    apart.update(localization_trials(noisy, prior, valid, {"analytic": truth}, **options))
+    assert apart == together
 
 
 def test_help_lists_this_commands_options_in_plain_text(capsys):
