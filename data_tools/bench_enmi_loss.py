@@ -168,9 +168,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--chunk_elements", type=int, default=None, help="elements per chunk of ENMILoss's histogram (CPU)"
+    )
     parser.add_argument("--memory-of", choices=METHODS, help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.chunk_elements is not None:
+        import enmi_torch.histogram
+
+        enmi_torch.histogram._CHUNK_ELEMENTS = args.chunk_elements
     if args.memory_of:
         print(json.dumps({"peak_bytes": peak_memory_of(args.memory_of, args)}))
         return
@@ -186,6 +193,8 @@ def main() -> None:
         f"B={args.batch}, {args.size}x{args.size}, {args.bins} bins, device={args.device}, "
         f"threads={torch.get_num_threads()}, torch {torch.__version__}; medians of {args.repeats} interleaved rounds"
     )
+    if args.chunk_elements is not None:
+        print(f"ENMILoss's histogram in chunks of {args.chunk_elements} elements")
     header = "| method | forward (ms) | forward+backward (ms) | peak memory (MiB) | fwd+bwd / MONAI | memory / MONAI |"
     print(header)
     print("|" + "---|" * 6)
