@@ -424,6 +424,39 @@ def _twice_mass_weights(values: Tensor, variance: Tensor, bins: int, value_range
     return weights
 
 
+def _likelihood_counts(
+    captured: Tensor,
+    variance: Tensor,
+    rows: Tensor,
+    log_prior: Tensor | None,
+    bins: int,
+    value_range: tuple[float, float],
+    kernel: str,
+    *,
+    normalized_later: bool = False,
+) -> Tensor:
+    """The transposed likelihood-weighted histogram ``(C * B * bins + 1, bins)`` of checked inputs, no autograd.
+
+    The forward pass of :class:`_LikelihoodJointHistogram` (see there for ``rows``), for callers that check their
+    inputs once and score many batches (the paper's simulation). ``normalized_later``: the caller only uses the
+    counts divided by their sum, so the ``"mass"`` weights skip their exact halving (the same probabilities, bit
+    for bit).
+    """
+    batch, pixels = captured.shape
+    transposed = captured.new_zeros(rows.shape[0] * batch * bins + 1, bins)
+    for part in _chunks(batch, pixels, bins, captured.device):
+        if kernel == "mass" and log_prior is None:
+            weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
+        else:
+            weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
+        weights = weights.reshape(-1, bins)
+        for candidate_rows in rows:
+            transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)
+    if kernel == "mass" and log_prior is None and not normalized_later:
+        transposed.mul_(0.5)
+    return transposed
+
+
 class _LikelihoodJointHistogram(torch.autograd.Function):
     """Likelihood-weighted captured pixels added to the rows of hard-binned references, in chunks.
 
@@ -437,18 +470,7 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, captured, variance, rows, log_prior, bins, value_range, kernel):
-        batch, pixels = captured.shape
-        transposed = captured.new_zeros(rows.shape[0] * batch * bins + 1, bins)
-        for part in _chunks(batch, pixels, bins, captured.device):
-            if kernel == "mass" and log_prior is None:
-                weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
-            else:
-                weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
-            weights = weights.reshape(-1, bins)
-            for candidate_rows in rows:
-                transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)
-        if kernel == "mass" and log_prior is None:
-            transposed.mul_(0.5)
+        transposed = _likelihood_counts(captured, variance, rows, log_prior, bins, value_range, kernel)
         ctx.save_for_backward(captured, variance, rows, log_prior)
         ctx.options = (bins, value_range, kernel)
         return transposed
