@@ -19,8 +19,8 @@ LIKELIHOOD_WEIGHTS = ("mass", "density", "truncated")
 # Below this standard deviation (in bin widths) a likelihood is already a unit count in float64; clamping the
 # variance here keeps (c - v)^2 / var^2 finite in gradients.
 _MIN_STD_IN_BINS = 1e-6
-# The derivatives' exp(-z^2 / 2) is clamped at e^-80 (1.8e-35, nothing next to the sums it enters): float32 exp is
-# 10-28x slower where its result is denormal (below about e^-87).
+# The derivatives' exp(-z^2 / 2) is clamped at e^-80 (1.8e-35, nothing next to the sums it enters): float32 exp
+# takes a slow path where its result is denormal (below about e^-87).
 _EXP_FLOOR = -80.0
 
 
@@ -256,7 +256,7 @@ def likelihood_weights_vjp(
         return grad_values, torch.where(clamped, 0.0, grad_variance)
     if weights == "mass":
         # d weight_i / d cdf_k is +1 for i = k and -1 for i = k + 1.
-        grad_values, grad_variance = mass_weights_vjp(
+        grad_values, grad_variance = _mass_weights_vjp(
             values, variance, upstream[..., :-1] - upstream[..., 1:], bins, value_range
         )
         return grad_values, torch.where(clamped, 0.0, grad_variance)
@@ -271,7 +271,7 @@ def likelihood_weights_vjp(
     return grad_values, torch.where(clamped, 0.0, grad_variance)
 
 
-def mass_weights_vjp(
+def _mass_weights_vjp(
     values: Tensor, variance: Tensor, edge_upstream: Tensor, bins: int, value_range: tuple[float, float]
 ) -> tuple[Tensor, Tensor]:
     """(d values, d variance) of the ``"mass"`` weights given ``upstream_k - upstream_k+1`` per interior edge.

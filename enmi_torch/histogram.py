@@ -26,11 +26,11 @@ from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
+    _mass_weights_vjp,
     bin_edges,
     hard_bin_index,
     likelihood_weights,
     likelihood_weights_vjp,
-    mass_weights_vjp,
     min_variance,
     parzen_weights,
 )
@@ -499,7 +499,7 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
             upstream = upstream.view(batch, -1, table.shape[-1])
             if mass:
                 part_variance = variance[:, part]
-                grad_captured[:, part], part_grad = mass_weights_vjp(
+                grad_captured[:, part], part_grad = _mass_weights_vjp(
                     captured[:, part], part_variance.clamp_min(floor), upstream, bins, value_range
                 )
                 grad_variance[:, part] = part_grad.masked_fill_(part_variance < floor, 0.0)
