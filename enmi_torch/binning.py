@@ -19,6 +19,9 @@ LIKELIHOOD_WEIGHTS = ("mass", "density", "truncated")
 # Below this standard deviation (in bin widths) a likelihood is already a unit count in float64; clamping the
 # variance here keeps (c - v)^2 / var^2 finite in gradients.
 _MIN_STD_IN_BINS = 1e-6
+# The derivatives' exp(-z^2 / 2) is clamped at e^-80 (1.8e-35, nothing next to the sums it enters): float32 exp
+# takes a slow path where its result is denormal (below about e^-87).
+_EXP_FLOOR = -80.0
 
 
 def bin_width(bins: int, value_range: tuple[float, float]) -> float:
@@ -252,26 +255,40 @@ def likelihood_weights_vjp(
             grad_values, grad_variance = torch.autograd.grad(result, (values, variance), upstream)
         return grad_values, torch.where(clamped, 0.0, grad_variance)
     if weights == "mass":
-        # d weight_i / d cdf_k is +1 for i = k and -1 for i = k + 1, and d cdf_k / d v = -pdf(z_k) / std.
-        per_edge_upstream = upstream[..., :-1] - upstream[..., 1:]
-        inverse_std = variance.rsqrt()
-        interior = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)[1:-1]
-        standardized = (interior - values.unsqueeze(-1)).mul_(inverse_std.unsqueeze(-1))
-        pdf = standardized.square().mul_(-0.5).exp_()
-        per_edge = per_edge_upstream.mul_(pdf)
-        scale = inverse_std * (-1 / math.sqrt(2 * math.pi))
-        grad_values = per_edge.sum(-1) * scale
-        grad_variance = torch.linalg.vecdot(per_edge, standardized) * scale * (0.5 * inverse_std)
-    else:
-        offset = bin_centers(bins, value_range, dtype=values.dtype, device=values.device) - values.unsqueeze(-1)
-        score = offset.square().mul_((-0.5 / variance).unsqueeze(-1))
-        if log_prior is not None:
-            score = score + log_prior
-        probability = torch.softmax(score, dim=-1)
-        grad_score = probability.mul_(upstream - torch.linalg.vecdot(probability, upstream).unsqueeze(-1))
-        grad_values = torch.linalg.vecdot(grad_score, offset) / variance
-        grad_variance = torch.linalg.vecdot(grad_score, offset.square_()) / (2 * variance.square())
+        # d weight_i / d cdf_k is +1 for i = k and -1 for i = k + 1.
+        grad_values, grad_variance = _mass_weights_vjp(
+            values, variance, upstream[..., :-1] - upstream[..., 1:], bins, value_range
+        )
+        return grad_values, torch.where(clamped, 0.0, grad_variance)
+    offset = bin_centers(bins, value_range, dtype=values.dtype, device=values.device) - values.unsqueeze(-1)
+    score = offset.square().mul_((-0.5 / variance).unsqueeze(-1))
+    if log_prior is not None:
+        score = score + log_prior
+    probability = torch.softmax(score, dim=-1)
+    grad_score = probability.mul_(upstream - torch.linalg.vecdot(probability, upstream).unsqueeze(-1))
+    grad_values = torch.linalg.vecdot(grad_score, offset) / variance
+    grad_variance = torch.linalg.vecdot(grad_score, offset.square_()) / (2 * variance.square())
     return grad_values, torch.where(clamped, 0.0, grad_variance)
+
+
+def _mass_weights_vjp(
+    values: Tensor, variance: Tensor, edge_upstream: Tensor, bins: int, value_range: tuple[float, float]
+) -> tuple[Tensor, Tensor]:
+    """(d values, d variance) of the ``"mass"`` weights given ``upstream_k - upstream_k+1`` per interior edge.
+
+    ``edge_upstream`` ``(..., bins - 1)`` is overwritten; ``variance`` must already be clamped to
+    :func:`min_variance` (the caller zeroes the variance gradient where it was). ``d cdf_k / d v = -pdf(z_k) / std``.
+    """
+    inverse_std = variance.rsqrt()
+    interior = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)[1:-1]
+    standardized = (interior - values.unsqueeze(-1)).mul_(inverse_std.unsqueeze(-1))
+    # -z^2 / 2 in one pass (halving is exact, so these are the bits of -(z * z) / 2).
+    exponent = torch.addcmul(standardized.new_zeros(()), standardized, standardized, value=-0.5)
+    per_edge = edge_upstream.mul_(exponent.clamp_min_(_EXP_FLOOR).exp_())
+    scale = inverse_std * (-1 / math.sqrt(2 * math.pi))
+    grad_values = per_edge.sum(-1).mul_(scale)
+    grad_variance = torch.linalg.vecdot(per_edge, standardized).mul_(scale).mul_(0.5 * inverse_std)
+    return grad_values, grad_variance
 
 
 def reliability_weights(values: Tensor, variance: Tensor, valid: Tensor | None = None) -> Tensor:

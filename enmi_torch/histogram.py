@@ -26,6 +26,7 @@ from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
+    _mass_weights_vjp,
     bin_edges,
     hard_bin_index,
     likelihood_weights,
@@ -36,8 +37,11 @@ from enmi_torch.binning import (
 
 CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
 
-# Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements (8 MiB in float64).
-_CHUNK_ELEMENTS = 1 << 20
+# Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements: on CPU 1 MiB in
+# float32, which keeps a chunk's temporaries in cache (data_tools/bench_enmi_loss.py --chunk_elements compares
+# sizes); on accelerators larger chunks amortise the kernel launches.
+_CHUNK_ELEMENTS = 1 << 18
+_ACCELERATOR_CHUNK_ELEMENTS = 1 << 20
 # Hard entropies count pixels in a table of every cell up to this many cells (or 16 per pixel), else by sorting.
 _TABLE_CELLS = 1 << 20
 
@@ -354,8 +358,9 @@ def _reference_rows(reference: Tensor, bins: int, value_range: tuple[float, floa
     return hard_bin_index(reference, bins, value_range) + offsets
 
 
-def _chunks(batch: int, pixels: int, bins: int):
-    step = max(1, _CHUNK_ELEMENTS // (batch * bins))
+def _chunks(batch: int, pixels: int, bins: int, device: torch.device):
+    elements = _CHUNK_ELEMENTS if device.type == "cpu" else _ACCELERATOR_CHUNK_ELEMENTS
+    step = max(1, elements // (batch * bins))
     for start in range(0, pixels, step):
         yield slice(start, min(start + step, pixels))
 
@@ -419,6 +424,39 @@ def _twice_mass_weights(values: Tensor, variance: Tensor, bins: int, value_range
     return weights
 
 
+def _likelihood_counts(
+    captured: Tensor,
+    variance: Tensor,
+    rows: Tensor,
+    log_prior: Tensor | None,
+    bins: int,
+    value_range: tuple[float, float],
+    kernel: str,
+    *,
+    normalized_later: bool = False,
+) -> Tensor:
+    """The transposed likelihood-weighted histogram ``(C * B * bins + 1, bins)`` of checked inputs, no autograd.
+
+    The forward pass of :class:`_LikelihoodJointHistogram` (see there for ``rows``), for callers that check their
+    inputs once and score many batches (the paper's simulation). ``normalized_later``: the caller only uses the
+    counts divided by their sum, so the ``"mass"`` weights skip their exact halving (the same probabilities, bit
+    for bit).
+    """
+    batch, pixels = captured.shape
+    transposed = captured.new_zeros(rows.shape[0] * batch * bins + 1, bins)
+    for part in _chunks(batch, pixels, bins, captured.device):
+        if kernel == "mass" and log_prior is None:
+            weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
+        else:
+            weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
+        weights = weights.reshape(-1, bins)
+        for candidate_rows in rows:
+            transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)
+    if kernel == "mass" and log_prior is None and not normalized_later:
+        transposed.mul_(0.5)
+    return transposed
+
+
 class _LikelihoodJointHistogram(torch.autograd.Function):
     """Likelihood-weighted captured pixels added to the rows of hard-binned references, in chunks.
 
@@ -432,18 +470,7 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, captured, variance, rows, log_prior, bins, value_range, kernel):
-        batch, pixels = captured.shape
-        transposed = captured.new_zeros(rows.shape[0] * batch * bins + 1, bins)
-        for part in _chunks(batch, pixels, bins):
-            if kernel == "mass" and log_prior is None:
-                weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
-            else:
-                weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
-            weights = weights.reshape(-1, bins)
-            for candidate_rows in rows:
-                transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)
-        if kernel == "mass" and log_prior is None:
-            transposed.mul_(0.5)
+        transposed = _likelihood_counts(captured, variance, rows, log_prior, bins, value_range, kernel)
         ctx.save_for_backward(captured, variance, rows, log_prior)
         ctx.options = (bins, value_range, kernel)
         return transposed
@@ -456,19 +483,30 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
         want_captured, want_variance = ctx.needs_input_grad[:2]
         if not (want_captured or want_variance):
             return (None,) * 7
-        grad_transposed = grad_transposed.clone()
-        grad_transposed[-1] = 0
+        mass = kernel == "mass" and log_prior is None
+        # The mass weights' VJP needs upstream_k - upstream_k+1 per interior edge: differenced once per histogram row
+        # here, not once per pixel.
+        table = grad_transposed[:, :-1] - grad_transposed[:, 1:] if mass else grad_transposed.clone()
+        table[-1] = 0
+        floor = min_variance(bins, value_range)
         grad_captured = torch.empty(captured.shape, dtype=captured.dtype, device=captured.device)
         grad_variance = torch.empty(variance.shape, dtype=variance.dtype, device=variance.device)
         batch, pixels = captured.shape
-        for part in _chunks(batch, pixels, bins):
-            upstream = grad_transposed.index_select(0, rows[0, :, part].reshape(-1))
+        for part in _chunks(batch, pixels, bins, captured.device):
+            upstream = table.index_select(0, rows[0, :, part].reshape(-1))
             for candidate_rows in rows[1:]:
-                upstream += grad_transposed.index_select(0, candidate_rows[:, part].reshape(-1))
-            upstream = upstream.view(batch, -1, bins)
-            grad_captured[:, part], grad_variance[:, part] = likelihood_weights_vjp(
-                captured[:, part], variance[:, part], upstream, bins, value_range, kernel, log_prior
-            )
+                upstream += table.index_select(0, candidate_rows[:, part].reshape(-1))
+            upstream = upstream.view(batch, -1, table.shape[-1])
+            if mass:
+                part_variance = variance[:, part]
+                grad_captured[:, part], part_grad = _mass_weights_vjp(
+                    captured[:, part], part_variance.clamp_min(floor), upstream, bins, value_range
+                )
+                grad_variance[:, part] = part_grad.masked_fill_(part_variance < floor, 0.0)
+            else:
+                grad_captured[:, part], grad_variance[:, part] = likelihood_weights_vjp(
+                    captured[:, part], variance[:, part], upstream, bins, value_range, kernel, log_prior
+                )
         return (
             grad_captured if want_captured else None,
             grad_variance if want_variance else None,

@@ -33,7 +33,10 @@ def entropies(counts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 def _entropy(probability: Tensor, dims: tuple[int, ...]) -> Tensor:
     # Clamping inside the log only: p log p -> 0 at p = 0 and its gradient stays finite.
-    return -(probability * probability.clamp_min(torch.finfo(probability.dtype).tiny).log()).sum(dim=dims)
+    clamped = probability.clamp_min(torch.finfo(probability.dtype).tiny)
+    if torch.is_grad_enabled() and probability.requires_grad:
+        return -(probability * clamped.log()).sum(dim=dims)
+    return -clamped.log_().mul_(probability).sum(dim=dims)  # the same products, in place
 
 
 def nmi_from_joint_histogram(counts: Tensor) -> Tensor:

@@ -4,8 +4,10 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
+import enmi_torch.binning as binning_module
 import enmi_torch.histogram as histogram_module
-from enmi_torch import gaussian_log_prior, joint_histogram
+from enmi_torch import enmi, gaussian_log_prior, joint_histogram
+from enmi_torch.binning import bin_edges
 
 RANGE = (0.0, 16.0)
 BINS = 8
@@ -96,7 +98,7 @@ def test_chunked_custom_function_equals_dense_autograd(pair, kernel, with_prior,
     captured, reference, variance, valid = pair
     if clamped:  # two columns far below min_variance: clamped to it, so no gradient reaches their variance
         variance = variance.clone()
-        variance[..., :2] = 1e-9
+        variance[..., :2] = 1e-14  # min_variance(8, (0, 16)) is 4e-12
     log_prior = gaussian_log_prior(8.0, 4.0, BINS, RANGE, dtype=torch.float64) if with_prior else None
     cell_weights = torch.arange(BINS * BINS, dtype=torch.float64).reshape(BINS, BINS)
     monkeypatch.setattr(histogram_module, "_CHUNK_ELEMENTS", 40)  # several chunks for 35 pixels
@@ -132,6 +134,28 @@ def test_chunked_custom_function_equals_dense_autograd(pair, kernel, with_prior,
     torch.testing.assert_close(noise.grad.flatten(1), dense_noise.grad, rtol=1e-9, atol=1e-12)
     if clamped:
         assert (noise.grad[..., :2] == 0).all() and (noise.grad[..., 2:][valid[..., 2:]] != 0).any()
+
+
+def test_clamped_exponent_leaves_the_chunked_gradients_unchanged(dtype, monkeypatch):
+    generator = torch.Generator().manual_seed(5)
+    reference = torch.rand(3, 1, 20, 24, generator=generator, dtype=dtype) * 256
+    captured = (reference + 4 * torch.randn(3, 1, 20, 24, generator=generator, dtype=dtype)).requires_grad_()
+    variance = (torch.rand(1, 1, 20, 24, generator=generator, dtype=dtype) * 30 + 0.5).requires_grad_()
+    monkeypatch.setattr(histogram_module, "_CHUNK_ELEMENTS", 4096)  # several chunks
+    # The case the clamp is for: most of the backward's exponents -z^2 / 2 lie below float32's denormal range.
+    interior = bin_edges(32, (0.0, 256.0), dtype=dtype)[1:-1]
+    exponent = -((interior - captured.detach().reshape(3, -1, 1)) ** 2) / (2 * variance.detach().reshape(1, -1, 1))
+    assert (exponent < -87).double().mean() > 0.5
+
+    def gradients():
+        return torch.autograd.grad(enmi(captured, reference, variance).sum(), (captured, variance))
+
+    clamped = gradients()
+    monkeypatch.setattr(binning_module, "_EXP_FLOOR", -math.inf)
+    unclamped = gradients()
+    eps = torch.finfo(dtype).eps
+    for got, want in zip(clamped, unclamped, strict=True):
+        torch.testing.assert_close(got, want, rtol=4 * eps, atol=1e-30)
 
 
 @pytest.mark.parametrize("kernel", ["mass", "density"])

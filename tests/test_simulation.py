@@ -12,6 +12,7 @@ from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.simulation import (
     PAPER_ROW_COUNTS,
     SCORES,
+    _TrustedScorer,
     count_errors,
     draw_trials,
     error_rates,
@@ -147,6 +148,48 @@ def test_count_errors_scores_each_reference_like_a_separate_call(paper_tiles, sc
         return enmi(captured, reference, variance.reshape(1, -1), weights=weights, log_prior=log_prior)
 
     assert wrong.tolist() == (separate(trials.candidates) >= separate(trials.amplitudes)).tolist()
+
+
+@pytest.mark.parametrize("noise_power", [0.002, 0.03, 0.5])
+def test_error_rates_count_what_count_errors_counts(paper_tiles, noise_power, dtype):
+    result = error_rates(paper_tiles.area, [noise_power], trials=200, seed=4, dtype=dtype)
+    trials = draw_trials(200, 66, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    variance = noise_power / paper_tiles.area.to(dtype)
+    log_prior = gaussian_log_prior(128, 32, 32, (0, 256), dtype=dtype)
+    for score in SCORES:
+        errors = 0
+        for start in range(0, 200, 128):  # the public path, in other chunks
+            part = slice(start, start + 128)
+            prior = log_prior if score == "enmi_mass_prior" else None
+            wrong = count_errors(
+                trials.captured(variance, part),
+                trials.amplitudes[part],
+                trials.candidates[part],
+                variance,
+                score,
+                log_prior=prior,
+            )
+            errors += int(wrong.sum())
+        assert round(result.rates[score].item() * 200) == errors
+
+
+@pytest.mark.parametrize("score", SCORES)
+def test_trusted_scores_are_the_public_scores_bit_for_bit(paper_tiles, score, dtype):
+    trials = draw_trials(200, 66, generator=torch.Generator().manual_seed(6), dtype=dtype)
+    log_prior = gaussian_log_prior(128, 32, 32, (0, 256), dtype=dtype)
+    scorer = _TrustedScorer(trials, 32, (0.0, 256.0), log_prior)
+    references = torch.stack([trials.amplitudes, trials.candidates])
+    for noise_power in (0.002, 0.5):
+        variance = noise_power / paper_tiles.area.to(dtype)
+        part = slice(40, 137)
+        captured = trials.captured(variance, part)
+        if score == "nmi":
+            expected = nmi(captured, references[:, part])
+        else:
+            weights = "density" if score == "enmi_density" else "mass"
+            prior = log_prior if score == "enmi_mass_prior" else None
+            expected = enmi(captured, references[:, part], variance.reshape(1, -1), weights=weights, log_prior=prior)
+        assert torch.equal(scorer.scores(captured, part, variance, score), expected)
 
 
 def test_error_rates_do_not_depend_on_chunking_or_workers(paper_tiles):

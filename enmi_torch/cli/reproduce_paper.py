@@ -103,7 +103,7 @@ def build_parser() -> jsonargparse.ArgumentParser:
     parser.add_argument(
         "--output_dir", type=str, default="runs/paper_simulation", help="folder for the CSV and the figure"
     )
-    parser.add_argument("--chunk_trials", type=int, default=128, help="trials per scoring call")
+    parser.add_argument("--chunk_trials", type=int, default=96, help="trials per scoring call")
     parser.add_argument("--dtype", type=Literal["float32", "float64"], default="float32", help="precision")
     parser.add_argument("--workers", type=int, default=1, help="N0 points scored at once (threads)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads per worker")
