@@ -11,10 +11,17 @@ the overlap filter and the argmax. Its rotation of the captured image is left ou
 
 The case: a 128 x 128 captured image cut from scikit-image's gravel (CC0) with noise of a camera-like per-pixel
 variance, 101 x 101 shifts, 32 bins, float32, one torch thread by default. Each round times every method once, in
-turn; ratios are medians of per-round ratios (robust to the load bursts of a shared machine).
+turn; ratios are medians of per-round ratios (robust to the load bursts of a shared machine). The 36-yaw search is
+timed exhaustive and two-stage (``search="two_stage"``).
 
-    python data_tools/bench_search.py                 # about 1 minute on a busy 2-core CPU
-    python data_tools/bench_search.py --rounds 9
+Then the two-stage search's miss rate: how often its best candidate (yaw, shift) differs from the exhaustive search's,
+over random cases: 64 x 64 captured images cut at random shifts (+-12 cells) and yaws (-6..6 degrees) from
+scikit-image's gravel, brick (repetitive) and camera (CC0), seen through the identity or a non-monotonic response
+(``255 |2 v / 255 - 1|^0.8``), with noise of a camera-like variance profile (16-fold range) at four levels up to an
+extreme one (noise std 8 to 128 grey levels at the profile's mean), searched over +-16 cells and 7 yaws.
+
+    python data_tools/bench_search.py                 # about 2 minutes on a busy 2-core CPU
+    python data_tools/bench_search.py --rounds 9 --trials 8
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ from skimage import data
 from torch import Tensor
 
 from enmi_torch.binning import hard_bin_index
-from enmi_torch.localization.search import localize
+from enmi_torch.localization.search import _rotated, localize
 
 LOCAL, RADIUS, BINS, VALUE_RANGE = 128, 50, 32, (0.0, 256.0)
 YAWS = [float(angle) for angle in range(-35, 36, 2)]
@@ -91,6 +98,57 @@ class GlobalignAngle:
         return float(score.flatten()[best]), divmod(best, valid_shape[1])
 
 
+MISS_TEXTURES = {"gravel": data.gravel, "brick": data.brick, "camera": data.camera}
+MISS_RESPONSES = {
+    "identity": lambda values: values,
+    "non-monotonic": lambda values: 255 * (2 * values / 255 - 1).abs() ** 0.8,
+}
+MISS_NOISE = (8.0, 24.0, 64.0, 128.0)
+MISS_YAWS = [-6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0]
+
+
+def _miss_case(texture: str, response: str, noise: float, generator: torch.Generator):
+    """A random captured image of ``texture`` with its variance, the map and the prior centre."""
+    size, radius = 64, 16
+    image = torch.from_numpy(MISS_TEXTURES[texture]().astype(np.float64))[:512, :512].reshape(1, 1, 512, 512)
+    center = (256, 256)
+    dy, dx = (int(value) for value in torch.randint(-12, 13, (2,), generator=generator))
+    yaw = MISS_YAWS[int(torch.randint(len(MISS_YAWS), (1,), generator=generator))]
+    top, left = center[0] + dy - size, center[1] + dx - size
+    section = image[..., top : top + 2 * size, left : left + 2 * size]
+    turned = _rotated(section, None, torch.ones_like(section, dtype=torch.bool), [yaw], "bilinear")[0]
+    local = MISS_RESPONSES[response](turned[..., size // 2 : size // 2 + size, size // 2 : size // 2 + size])
+    rows = torch.arange(size, dtype=torch.float64)
+    profile = 1 + 15 * ((size - 1 - rows) / (size - 1)) ** 3
+    variance = (noise**2 * profile / profile.mean()).reshape(1, 1, size, 1).expand(1, 1, size, size)
+    local = local + torch.randn(local.shape, generator=generator, dtype=torch.float64) * variance.sqrt()
+    return image.float(), local.float(), variance.float(), center, radius, (dx, dy, -yaw)
+
+
+def miss_rate(trials: int) -> None:
+    """Print how often the two-stage search's best candidate differs from the exhaustive one's, per case."""
+    generator = torch.Generator().manual_seed(0)
+    cases = [(t, r, n) for t in MISS_TEXTURES for r in MISS_RESPONSES for n in MISS_NOISE]
+    print("\n| texture | response | noise std | misses / trials | exhaustive found the truth | rescored (mean) |")
+    print("|---|---|---|---|---|---|")
+    total_misses = 0
+    for index, (texture, response, noise) in enumerate(cases):
+        misses = found = rescored = 0
+        for _ in range(trials):
+            reference, captured, variance, center, radius, truth = _miss_case(texture, response, noise, generator)
+            options = {"shifts": radius, "center": center, "yaws": MISS_YAWS, "bins": BINS}
+            exhaustive = localize(captured, reference, variance, **options)
+            two_stage = localize(captured, reference, variance, search="two_stage", **options)
+            misses += int(exhaustive.surface.flatten().argmax()) != int(two_stage.surface.flatten().argmax())
+            rescored += int(torch.isfinite(two_stage.surface).sum())
+            error = (exhaustive.pose[0] - torch.tensor(truth)).abs()
+            found += bool((error[:2] <= 1).all() and error[2] <= 1)
+        total_misses += misses
+        print(f"| {texture} | {response} | {noise:g} | {misses} / {trials} | {found} | {rescored / trials:.0f} |")
+        print(f"  case {index + 1}/{len(cases)}", end="\r", file=sys.stderr, flush=True)
+    print(f"\nmisses: {total_misses} of {trials * len(cases)} cases")
+
+
 def _timed(function):
     start = time.perf_counter()
     result = function()
@@ -105,6 +163,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (default 5)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--trials", type=int, default=4, help="random cases per row of the miss-rate table")
     args = parser.parse_args(argv)
     if args.rounds < 1 or args.threads < 1:
         parser.error(f"--rounds and --threads must be >= 1, got {args.rounds} and {args.threads}")
@@ -118,6 +177,9 @@ def main(argv=None) -> None:
         "globalign, one angle": lambda: anchor(captured[0, 0]),
         "localize, ECR, 1 yaw": lambda: localize(captured, reference, variance, **options),
         "localize, ECR, 36 yaws": lambda: localize(captured, reference, variance, yaws=YAWS, **options),
+        "localize, ECR, 36 yaws, two-stage": lambda: localize(
+            captured, reference, variance, yaws=YAWS, search="two_stage", **options
+        ),
     }
     results = {name: function() for name, function in methods.items()}  # warm-up
     times = {name: [] for name in methods}
@@ -143,6 +205,10 @@ def main(argv=None) -> None:
     for name in methods:
         if name.startswith("localize"):
             print(f"{name}: pose (dx, dy, yaw) = {[round(value, 2) for value in results[name].pose[0].tolist()]}")
+    exhaustive, two_stage = times["localize, ECR, 36 yaws"], times["localize, ECR, 36 yaws, two-stage"]
+    ratios = [slow / fast for slow, fast in zip(exhaustive, two_stage, strict=True)]
+    print(f"36 yaws: exhaustive / two-stage = {statistics.median(ratios):.2f}x (median of per-round ratios)")
+    miss_rate(args.trials)
 
 
 if __name__ == "__main__":
