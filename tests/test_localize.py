@@ -528,6 +528,17 @@ def test_two_stage_search_equals_the_exhaustive_search_where_it_rescored_and_fin
         assert bool(around.all())
 
 
+def test_localizer_module_runs_the_two_stage_search_like_the_function(gravel_map):
+    local, variance, options = _two_stage_case(gravel_map, 1)
+    center = options.pop("center")
+    masks = {name: options.pop(name) for name in ("captured_mask", "reference_mask")}
+    options.update(search="two_stage", cheap_bins=8)
+    result = Localizer(**options)(local, gravel_map, variance, center=center, **masks)
+    expected = localize(local, gravel_map, variance, center=center, **options, **masks)
+    assert torch.equal(result.surface, expected.surface)
+    assert bool(torch.isinf(result.surface).any())
+
+
 def test_two_stage_search_in_float32_finds_the_exhaustive_pose(gravel_map):
     local, variance, options = _two_stage_case(gravel_map, 3)
     local, variance = local.float(), variance.float()

@@ -245,6 +245,8 @@ class Localizer(nn.Module):
         coarse_factor: see :func:`localize`.
         coarse_peaks: see :func:`localize`.
         resample: see :func:`localize`.
+        search: see :func:`localize`.
+        cheap_bins: see :func:`localize`.
 
     Example:
         >>> from enmi_torch.variance import ConstantVariance
@@ -272,6 +274,8 @@ class Localizer(nn.Module):
         coarse_factor: int = 1,
         coarse_peaks: int = 3,
         resample: str = "nearest",
+        search: str = "exhaustive",
+        cheap_bins: int = 4,
     ) -> None:
         super().__init__()
         self.variance_model = check_variance_model(variance_model)
@@ -293,6 +297,8 @@ class Localizer(nn.Module):
             "coarse_factor": coarse_factor,
             "coarse_peaks": coarse_peaks,
             "resample": check_option("resample", resample, RESAMPLING),
+            "search": check_option("search", search, SEARCHES),
+            "cheap_bins": cheap_bins,
         }
 
     def forward(
