@@ -125,7 +125,7 @@ def _miss_case(texture: str, response: str, noise: float, generator: torch.Gener
     return image.float(), local.float(), variance.float(), center, radius, (dx, dy, -yaw)
 
 
-def miss_rate(trials: int) -> None:
+def miss_rate(trials: int, cheap_bins: int) -> None:
     """Print how often the two-stage search's best candidate differs from the exhaustive one's, per case."""
     generator = torch.Generator().manual_seed(0)
     cases = [(t, r, n) for t in MISS_TEXTURES for r in MISS_RESPONSES for n in MISS_NOISE]
@@ -138,7 +138,7 @@ def miss_rate(trials: int) -> None:
             reference, captured, variance, center, radius, truth = _miss_case(texture, response, noise, generator)
             options = {"shifts": radius, "center": center, "yaws": MISS_YAWS, "bins": BINS}
             exhaustive = localize(captured, reference, variance, **options)
-            two_stage = localize(captured, reference, variance, search="two_stage", **options)
+            two_stage = localize(captured, reference, variance, search="two_stage", cheap_bins=cheap_bins, **options)
             misses += int(exhaustive.surface.flatten().argmax()) != int(two_stage.surface.flatten().argmax())
             rescored += int(torch.isfinite(two_stage.surface).sum())
             error = (exhaustive.pose[0] - torch.tensor(truth)).abs()
@@ -146,7 +146,7 @@ def miss_rate(trials: int) -> None:
         total_misses += misses
         print(f"| {texture} | {response} | {noise:g} | {misses} / {trials} | {found} | {rescored / trials:.0f} |")
         print(f"  case {index + 1}/{len(cases)}", end="\r", file=sys.stderr, flush=True)
-    print(f"\nmisses: {total_misses} of {trials * len(cases)} cases")
+    print(f"\nmisses (cheap_bins={cheap_bins}): {total_misses} of {trials * len(cases)} cases")
 
 
 def _timed(function):
@@ -164,10 +164,15 @@ def main(argv=None) -> None:
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (default 5)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--trials", type=int, default=4, help="random cases per row of the miss-rate table")
+    parser.add_argument("--cheap-bins", type=int, default=4, help="bins of the two-stage search's first stage")
+    parser.add_argument("--miss-only", action="store_true", help="skip the timings, measure the miss rate only")
     args = parser.parse_args(argv)
     if args.rounds < 1 or args.threads < 1:
         parser.error(f"--rounds and --threads must be >= 1, got {args.rounds} and {args.threads}")
     torch.set_num_threads(args.threads)
+    if args.miss_only:
+        miss_rate(args.trials, args.cheap_bins)
+        return
     reference, captured, variance, center = _case()
     top, left = center[0] - LOCAL // 2 - RADIUS, center[1] - LOCAL // 2 - RADIUS
     window = reference[0, 0, top : top + LOCAL + 2 * RADIUS, left : left + LOCAL + 2 * RADIUS]
@@ -178,7 +183,7 @@ def main(argv=None) -> None:
         "localize, ECR, 1 yaw": lambda: localize(captured, reference, variance, **options),
         "localize, ECR, 36 yaws": lambda: localize(captured, reference, variance, yaws=YAWS, **options),
         "localize, ECR, 36 yaws, two-stage": lambda: localize(
-            captured, reference, variance, yaws=YAWS, search="two_stage", **options
+            captured, reference, variance, yaws=YAWS, search="two_stage", cheap_bins=args.cheap_bins, **options
         ),
     }
     results = {name: function() for name, function in methods.items()}  # warm-up
@@ -208,7 +213,7 @@ def main(argv=None) -> None:
     exhaustive, two_stage = times["localize, ECR, 36 yaws"], times["localize, ECR, 36 yaws, two-stage"]
     ratios = [slow / fast for slow, fast in zip(exhaustive, two_stage, strict=True)]
     print(f"36 yaws: exhaustive / two-stage = {statistics.median(ratios):.2f}x (median of per-round ratios)")
-    miss_rate(args.trials)
+    miss_rate(args.trials, args.cheap_bins)
 
 
 if __name__ == "__main__":

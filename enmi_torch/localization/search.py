@@ -119,12 +119,14 @@ def localize(
             geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
             noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
         search: ``"exhaustive"`` (every shift and yaw scored) or ``"two_stage"`` (``metric="ecr"`` with the binned
-            response, ``coarse_factor=1``): ECR with ``cheap_bins`` bins over every shift and yaw, then the exact
-            score at the 3 x 3 x 3 (shift, shift, yaw) neighbourhoods of its best 4 peaks; while the exact best lies
-            by a peak of the lower half of that cheap ranking, the number of peaks doubles (up to 64), then the exact
-            best's own neighbourhood is completed for the sub-cell fit. Rescored candidates score as in the exhaustive
-            surface (up to round-off), the others are ``-inf`` in ``surface``. It can miss the exhaustive argmax when
-            the cheap score ranks it below 64 peaks (``data_tools/bench_search.py`` measures how often).
+            response, ``coarse_factor=1``): ECR with ``cheap_bins`` bins (spanning the 2nd to 98th percentile of
+            the map window's valid cells, so that few bins still split the map's values) over every shift and yaw,
+            then the exact score at the 3 x 3 x 3 (shift, shift, yaw) neighbourhoods of its best 4 peaks; while the
+            exact best lies by a peak of the lower half of that cheap ranking, the number of peaks doubles (up to
+            64), then the exact best's own neighbourhood is completed for the sub-cell fit. Rescored candidates score
+            as in the exhaustive surface (up to round-off), the others are ``-inf`` in ``surface``. It misses the
+            exhaustive argmax when the cheap score ranks that peak below the ones it rescored and the doubling has
+            stopped (``data_tools/bench_search.py`` measures how often: rarely, at extreme noise).
         cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.
 
     Returns:
@@ -216,9 +218,8 @@ def localize(
             resample,
         )
         if search == "two_stage":
-            cheap_fn = _ScoreFunction(metric, cheap_bins, value_range, weights, None, {}, False, 0)
             exact = {"bins": bins, "value_range": value_range, "model_variance": model_variance}
-            surface = searcher.two_stage(min_overlap, cheap_fn, exact)
+            surface = searcher.two_stage(min_overlap, cheap_bins, exact)
         elif coarse_factor == 1:
             surface = searcher.exhaustive(min_overlap)
         else:
@@ -604,7 +605,7 @@ class _Search:
             surfaces.append(self._surface(sample, captured, variance, valid, window, window_valid, min_overlap))
         return torch.stack(surfaces)
 
-    def two_stage(self, min_overlap: float, cheap_fn: _ScoreFunction, exact: dict) -> Tensor:
+    def two_stage(self, min_overlap: float, cheap_bins: int, exact: dict) -> Tensor:
         """``(B, Y, 2 ry + 1, 2 rx + 1)``: a cheap surface over every shift and yaw, exact ECR around its peaks."""
         height, width = self.captured.shape[2:]
         rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
@@ -612,6 +613,7 @@ class _Search:
         for sample in range(self.captured.shape[0]):
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
             captured, variance, valid = self._rotations(sample, self.yaws)
+            cheap_fn = _ScoreFunction("ecr", cheap_bins, _spread(window, window_valid), "mass", None, {}, False, 0)
             cheap = self._surface(sample, captured, variance, valid, window, window_valid, min_overlap, cheap_fn)
             scorer = functools.partial(
                 _ecr_placements,
@@ -698,6 +700,15 @@ class _Search:
         full[(sample, yaw_indices, *region)] = fine
         evaluated[(sample, yaw_indices, *region)] = True
         return True
+
+
+def _spread(window: Tensor, window_valid: Tensor) -> tuple[float, float]:
+    """The 2nd to 98th percentile of the window's valid cells: the cheap stage's few bins split the map's values."""
+    values = window[window_valid].float()
+    if values.numel() == 0:
+        return (0.0, 1.0)
+    low, high = torch.quantile(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
+    return (low, high) if high > low else (low, low + 1.0)
 
 
 def _ecr_placements(
