@@ -112,14 +112,20 @@ def ecr_from_bin_sums(sums: BinSums) -> Tensor:
     return _ecr_from_sums(sums.count, sums.weight, sums.weighted_value, -1)
 
 
-def _ecr_from_sums(count: Tensor, weight: Tensor, weighted_value: Tensor, dim: int) -> Tensor:
-    """:func:`ecr_from_bin_sums` with the bins along ``dim`` (the score surfaces keep them first)."""
+def _ecr_from_sums(
+    count: Tensor, weight: Tensor, weighted_value: Tensor, dim: int, total_count: Tensor | None = None
+) -> Tensor:
+    """:func:`ecr_from_bin_sums` with the bins along ``dim`` (the score surfaces keep them first).
+
+    ``total_count``: the valid pixels, when ``count`` only marks the occupied bins (``count.sum(dim)`` otherwise).
+    """
     occupied = count > 0.5
     safe_weight = torch.where(occupied, weight, 1.0)
     between = torch.where(occupied, weighted_value.square() / safe_weight, 0.0).sum(dim)
     total_weight = weight.sum(dim)
     between = between - weighted_value.sum(dim).square() / total_weight.clamp_min(torch.finfo(between.dtype).tiny)
-    total_count = count.sum(dim)
+    if total_count is None:
+        total_count = count.sum(dim)
     penalty = (occupied.sum(dim) - 1).clamp_min(0).to(between.dtype)
     return torch.where(total_count > 0.5, 0.5 * (between - penalty) / total_count.clamp_min(1), 0.0)
 

@@ -10,8 +10,8 @@ from skimage import data
 from enmi_torch.localization.cli import _command, main
 from enmi_torch.localization.mixture_surface import _rescore_peaks
 from enmi_torch.localization.peak import Localization, _quadratic_peak
-from enmi_torch.localization.search import Localizer, _rotated, localize
-from enmi_torch.localization.surface import direct_surface
+from enmi_torch.localization.search import Localizer, _cheap_surface, _rotated, localize
+from enmi_torch.localization.surface import direct_surface, ecr_surface
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
 
@@ -572,3 +572,16 @@ def test_rescoring_over_yaws_doubles_its_peaks_and_completes_the_best_neighbourh
     without = _rescore_peaks(cheap, exact, 2, 64)
     assert not bool(torch.isfinite(without[2:4, 9:12, 1:4]).all())
     assert int(without.argmax()) == int(score.argmax())
+
+
+@pytest.mark.parametrize("reference_masked", [False, True])
+def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_masked):
+    # Occupied bins read from the weight sums agree with the exact counts once round-off is far below a pixel weight.
+    local, variance, options = _two_stage_case(gravel_map, 4)
+    window = gravel_map[..., 60:100, 50:90]
+    reference_mask = options["reference_mask"][60:100, 50:90] if reference_masked else None
+    masks = {"captured_mask": options["captured_mask"], "reference_mask": reference_mask}
+    cheap = _cheap_surface(local, window, variance, *masks.values(), sample=0, bins=6, value_range=(40.0, 200.0))
+    expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), **masks)
+    torch.testing.assert_close(cheap.score, expected.score, rtol=0, atol=1e-9)
+    torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)

@@ -39,10 +39,25 @@ from enmi_torch._checks import (
     check_value_range,
 )
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index
-from enmi_torch.correlation_ratio import RESPONSES, BinSums, check_model_variance, ecr_from_bin_sums
+from enmi_torch.correlation_ratio import (
+    RESPONSES,
+    BinSums,
+    check_model_variance,
+    default_model_variance,
+    ecr_from_bin_sums,
+)
 from enmi_torch.localization.mixture_surface import _rescore_peaks, mixture_surface
 from enmi_torch.localization.peak import Localization, _read_peak, _separated_peaks
-from enmi_torch.localization.surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.surface import (
+    METRICS,
+    Surface,
+    _check_inputs,
+    _ecr_surface,
+    ecr_surface,
+    enmi_surface,
+    ncc_surface,
+    nmi_surface,
+)
 from enmi_torch.variance.base import VarianceModel, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
@@ -613,7 +628,7 @@ class _Search:
         for sample in range(self.captured.shape[0]):
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
             captured, variance, valid = self._rotations(sample, self.yaws)
-            cheap_fn = _ScoreFunction("ecr", cheap_bins, _spread(window, window_valid), "mass", None, {}, False, 0)
+            cheap_fn = functools.partial(_cheap_surface, bins=cheap_bins, value_range=_spread(window, window_valid))
             cheap = self._surface(sample, captured, variance, valid, window, window_valid, min_overlap, cheap_fn)
             scorer = functools.partial(
                 _ecr_placements,
@@ -700,6 +715,14 @@ class _Search:
         full[(sample, yaw_indices, *region)] = fine
         evaluated[(sample, yaw_indices, *region)] = True
         return True
+
+
+def _cheap_surface(
+    captured, window, variance, captured_mask, reference_mask, *, sample: int, bins: int, value_range
+) -> Surface:
+    """The two-stage search's first stage: ECR with few bins, occupied bins read from the weight sums."""
+    inputs = _check_inputs(captured, window, captured_mask, reference_mask, value_range, variance)
+    return _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range, exact_counts=False)
 
 
 def _spread(window: Tensor, window_valid: Tensor) -> tuple[float, float]:

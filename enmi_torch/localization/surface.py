@@ -736,8 +736,15 @@ def _masked_mean(images: Tensor, valid: Tensor) -> Tensor:
     return ((images * valid).sum((-2, -1)) / valid.sum((-2, -1)).clamp_min(1)).reshape(-1, 1, 1)
 
 
-def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range: tuple[float, float]) -> Surface:
-    """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes."""
+def _ecr_surface(
+    inputs: _Inputs, model_variance: float, bins: int, value_range: tuple[float, float], *, exact_counts: bool = True
+) -> Surface:
+    """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes.
+
+    With ``exact_counts=False`` (the two-stage search's cheap stage) and a reference without masked cells the per-bin
+    counts are not correlated (two thirds of the correlations): a bin counts as occupied where its weight sum exceeds
+    half the smallest pixel weight (FFT round-off can flip a few), and the overlap is the captured pixel count.
+    """
     batch, height, width = inputs.captured.shape
     windows = inputs.reference.shape[0]
     correlator = _Correlator((height, width), tuple(inputs.reference.shape[1:]))
@@ -757,15 +764,22 @@ def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range:
                 correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, dtype
             )
         # The counts come from the valid plane's correlations, rounded (exact): cheaper than the box sums of the planes.
-        planes = torch.stack([weight[sample], weighted_value[sample], valid[sample]])
+        with_valid = exact_counts or not reference.complete
+        planes = torch.stack([weight[sample], weighted_value[sample]] + ([valid[sample]] if with_valid else []))
         captured = correlator.spectra(planes, captured=True)
         sums = inputs.captured.new_empty(len(planes), reference.spectra.shape[0], correlator.rows, correlator.cols)
         for index, start, block in correlator.blocks(captured, reference.spectra):
             sums[index, start : start + block.shape[0]] = block
         present = reference.bin_count
-        count = sums[2, :present].round()
-        scores.append(_ecr_from_sums(count, sums[0, :present], sums[1, :present], 0))
-        overlaps.append(count.sum(0))
+        if with_valid:
+            count = sums[2, :present].round()
+            overlap = count.sum(0)
+        else:
+            smallest = weight[sample][inputs.captured_valid[sample]].amin()
+            count = (sums[0, :present] > 0.5 * smallest).to(dtype)
+            overlap = valid[sample].sum().expand(count.shape[1:])  # every placement lies on valid cells
+        scores.append(_ecr_from_sums(count, sums[0, :present], sums[1, :present], 0, overlap))
+        overlaps.append(overlap)
     return Surface(torch.stack(scores), torch.stack(overlaps))
 
 
