@@ -40,7 +40,7 @@ def make_loss(method: str, bins: int):
         from enmi_torch import ENMILoss
 
         module = ENMILoss(bins=bins, value_range=(0.0, 256.0))
-        return lambda captured, reference, variance: module(captured, reference, variance)
+        return lambda captured, reference, variance: module(captured, reference, variance=variance)
     if method == "kornia.normalized_mutual_information_loss_2d":
         from kornia.losses import normalized_mutual_information_loss_2d
 

@@ -37,6 +37,22 @@ MODULES = {
     "variance/perspective": ["tests/variance/test_perspective.py"],
 }
 
+# Where a module lived before the localization package (commit 4f0c41e and earlier), for --root on older checkouts.
+LEGACY_FILES = {
+    "localization/surface": "score_surface",
+    "localization/search": "localize",
+    "localization/peak": "localize",
+}
+
+
+def module_file(root: Path, module: str) -> Path:
+    """The module's source file in the checkout ``root`` (its legacy name where the new one is absent)."""
+    path = root / "enmi_torch" / f"{module}.py"
+    if not path.is_file() and module in LEGACY_FILES:
+        path = root / "enmi_torch" / f"{LEGACY_FILES[module]}.py"
+    return path
+
+
 # (pattern, replacement): each match on a line gives one mutant.
 OPERATORS = [
     (r" \+ ", " - "),
@@ -83,7 +99,7 @@ def code_lines(text: str) -> list[int]:
 
 def candidates(root: Path, module: str) -> list[tuple[str, int, str, str]]:
     """Every ``(module, line index, original line, mutated line)`` of a module."""
-    text = (root / "enmi_torch" / f"{module}.py").read_text()
+    text = module_file(root, module).read_text()
     lines = text.splitlines()
     found = []
     for index in code_lines(text):
@@ -110,7 +126,7 @@ def run_mutant(root: Path, mutant: tuple[str, int, str, str], timeout: float) ->
         shutil.copy(root / "pyproject.toml", copy / "pyproject.toml")
         if (root / "configs").is_dir():
             shutil.copytree(root / "configs", copy / "configs")
-        path = copy / "enmi_torch" / f"{module}.py"
+        path = module_file(copy, module)
         if index >= 0:
             lines = path.read_text().splitlines()
             lines[index] = mutated
@@ -143,16 +159,19 @@ def main(argv=None) -> None:
     if not (args.root / "enmi_torch").is_dir():
         parser.error(f"--root: {args.root} holds no enmi_torch package")
     generator = random.Random(args.seed)
-    chosen = []
+    chosen, drawn = [], set()
     for module in args.modules:
-        if not (args.root / "enmi_torch" / f"{module}.py").is_file():
+        if not module_file(args.root, module).is_file():
             print(f"{module}: not in this checkout, skipped", file=sys.stderr)
             continue
         if run_mutant(args.root, (module, -1, "", ""), args.timeout):
             print(f"{module}: its tests fail without any mutant, skipped", file=sys.stderr)
             continue
-        found = candidates(args.root, module)
-        chosen += generator.sample(found, min(args.per_module, len(found)))
+        # On a legacy checkout two modules may share one file: a mutant is drawn once.
+        found = [mutant for mutant in candidates(args.root, module) if mutant[1:] not in drawn]
+        picked = generator.sample(found, min(args.per_module, len(found)))
+        drawn.update(mutant[1:] for mutant in picked)
+        chosen += picked
     start = time.perf_counter()
     results = {}
     with ThreadPoolExecutor(args.jobs) as pool:
@@ -173,7 +192,8 @@ def main(argv=None) -> None:
     if survivors:
         print("\nSurvivors (a missing test, or an equivalent mutant):")
         for module, index, line, mutated in survivors:
-            print(f"  enmi_torch/{module}.py:{index + 1}: {line.strip()}  ->  {mutated.strip()}")
+            path = module_file(args.root, module).relative_to(args.root)
+            print(f"  {path}:{index + 1}: {line.strip()}  ->  {mutated.strip()}")
     print(f"\n{len(total)} mutants in {time.perf_counter() - start:.0f} s (seed {args.seed})")
 
 

@@ -19,7 +19,8 @@ from enmi_torch.localization.mixture_surface import mixture_surface
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.localization.surface import Surface, direct_surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
-from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss
+from enmi_torch.localization.track import Calibration, Tracker
+from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ecr_loss, enmi_loss, mixture_loss, nmi_loss
 from enmi_torch.mixture import mixture_information
 from enmi_torch.variance import (
     ConstantVariance,
@@ -36,6 +37,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BinSums",
+    "Calibration",
     "ConstantVariance",
     "ECRLoss",
     "ENMILoss",
@@ -50,15 +52,18 @@ __all__ = [
     "PerspectiveVariance",
     "RoadCamera",
     "Surface",
+    "Tracker",
     "VarianceModel",
     "bin_centers",
     "bin_edges",
     "direct_surface",
     "ecr",
     "ecr_from_bin_sums",
+    "ecr_loss",
     "ecr_surface",
     "empirical_variance",
     "enmi",
+    "enmi_loss",
     "enmi_surface",
     "entropies",
     "gaussian_log_prior",
@@ -69,10 +74,12 @@ __all__ = [
     "localize",
     "memory_budget",
     "mixture_information",
+    "mixture_loss",
     "mixture_surface",
     "ncc_surface",
     "nmi",
     "nmi_from_joint_histogram",
+    "nmi_loss",
     "nmi_surface",
     "parzen_weights",
     "perspective_variance",

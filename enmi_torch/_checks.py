@@ -63,6 +63,14 @@ def check_tensor(name: str, value: Any) -> Tensor:
     return value
 
 
+def check_bool_mask(name: str, value: Any) -> Tensor:
+    """Raise ``TypeError`` unless ``value`` is a bool tensor (a mask); return it."""
+    check_tensor(name, value)
+    if value.dtype != torch.bool:
+        raise TypeError(f"{name} must be a bool tensor, got dtype {value.dtype}")
+    return value
+
+
 def check_floating(name: str, value: Any) -> Tensor:
     """Raise ``TypeError`` unless ``value`` is a floating-point tensor."""
     check_tensor(name, value)
@@ -126,6 +134,18 @@ def check_non_negative_int(name: str, value: Any) -> int:
     if value < 0:
         raise ValueError(f"{name} must be an int >= 0, got {value}")
     return value
+
+
+def check_shifts(shifts: Any) -> tuple[int, int]:
+    """Raise unless ``shifts`` is a search radius ``r >= 0`` or a pair ``(ry, rx)`` of them; returns the pair."""
+    pair = (shifts, shifts) if isinstance(shifts, int) and not isinstance(shifts, bool) else shifts
+    if (
+        not isinstance(pair, (tuple, list))
+        or len(pair) != 2
+        or not all(isinstance(value, int) and not isinstance(value, bool) and value >= 0 for value in pair)
+    ):
+        raise ValueError(f"shifts must be an int >= 0 or a pair (ry, rx) of them, got {shifts!r}")
+    return int(pair[0]), int(pair[1])
 
 
 def check_not_empty(name: str, images: Tensor) -> None:

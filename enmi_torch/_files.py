@@ -1,4 +1,4 @@
-"""Reading ``.npy`` arrays that users name: the header is checked against the file before any data is read.
+"""Reading files that users name: ``.npy`` arrays (header checked first), images, and plain torch files (no pickle).
 
 ``numpy.load`` allocates the array its header states before reading the data, so a 4 KiB file whose header states
 ``(100000, 100000)`` float64 asks for 74.5 GiB. :func:`read_npy` reads the header alone first and refuses a file that
@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import os
+import pickle
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -121,3 +123,17 @@ def read_image(path: str | Path, source: str) -> np.ndarray:
     if image.ndim != 2:
         raise ValueError(f"{named} must hold a single-channel (H, W) image, got shape {image.shape}")
     return image
+
+
+def load_plain_torch(path: str | Path, what: str) -> object:
+    """``torch.load(path, weights_only=True)`` on the CPU: tensors and primitives only, never a pickled object.
+
+    Anything else (a pickle of arbitrary objects, a damaged or foreign file) raises ``ValueError`` naming the file and
+    ``what`` it should have been (``"a plain checkpoint"``).
+    """
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
+        raise ValueError(f"{path} is refused: it is not {what} that loads with weights_only=True ({error})") from None

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from enmi_torch._checks import (
+    check_bool_mask,
     check_floating,
     check_mask_not_empty,
     check_not_empty,
@@ -71,16 +72,16 @@ def scalar_or_map(name: str, values: Tensor | float, like: Tensor) -> Tensor:
     return broadcast_map(name, values, like)
 
 
-def mask_map(name: str, mask: Any, like: Tensor, like_name: str = "captured") -> Tensor:
+def mask_map(name: str, mask: Any, like: Tensor, like_name: str = "captured", *, require_pixels: bool = True) -> Tensor:
     """A bool mask given as :func:`broadcast_map` accepts, as ``(B, N)`` for ``like``'s batch ``B`` (a view).
 
-    Raises ``TypeError`` unless it is a bool tensor and ``ValueError`` if a sample selects no pixel.
+    Raises ``TypeError`` unless it is a bool tensor and, with ``require_pixels``, ``ValueError`` if a sample selects
+    no pixel.
     """
-    check_tensor(name, mask)
-    if mask.dtype != torch.bool:
-        raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
+    check_bool_mask(name, mask)
     valid = broadcast_map(name, mask, like, like_name).to(like.device).expand(like.shape[0], -1)
-    check_mask_not_empty(name, valid)
+    if require_pixels:
+        check_mask_not_empty(name, valid)
     return valid
 
 

@@ -1,4 +1,11 @@
-"""Loss modules: ``2 - NMI``, ``2 - ENMI`` (0 when aligned), ``-ECR``, ``-M`` (lower as the reference explains more)."""
+"""Losses: ``2 - NMI``, ``2 - ENMI`` (0 when aligned), ``-ECR``, ``-M`` (lower as the reference explains more).
+
+Each loss is a function (``nmi_loss``, ``enmi_loss``, ``ecr_loss``, ``mixture_loss``: every setting per call) and a
+module (``NMILoss``, ...: settings and an optional variance model stored, ``forward(captured, reference, *,
+variance=None, valid_mask=None)``), as in kornia. The losses default to a differentiable captured kernel
+(``"triangular"`` for NMI); :func:`~enmi_torch.information.nmi`, a measurement, defaults to hard bins (scikit-image's
+NMI).
+"""
 
 from __future__ import annotations
 
@@ -30,6 +37,134 @@ def _reduce(loss: Tensor, reduction: str) -> Tensor:
     return loss
 
 
+def nmi_loss(
+    captured: Tensor,
+    reference: Tensor,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    kernel: str = "triangular",
+    reference_kernel: str = "hard",
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+) -> Tensor:
+    """``2 - nmi(captured, reference)`` reduced over the batch; arguments as :func:`~enmi_torch.information.nmi`.
+
+    The default ``kernel`` is ``"triangular"`` (a gradient); ``"hard"`` gives the measurement, without gradient.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> nmi_loss(image, image, bins=4, kernel="hard"), nmi_loss(image, image.mT, bins=4, kernel="hard")
+        (tensor(0.), tensor(1.))
+    """
+    check_option("reduction", reduction, REDUCTIONS)
+    score = nmi(
+        captured,
+        reference,
+        bins=bins,
+        value_range=value_range,
+        kernel=kernel,
+        reference_kernel=reference_kernel,
+        valid_mask=valid_mask,
+    )
+    return _reduce(2 - score, reduction)
+
+
+def enmi_loss(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    weights: str = "mass",
+    log_prior: Tensor | None = None,
+    reference_kernel: str = "hard",
+    valid_mask: Tensor | None = None,
+    reliability: bool = False,
+    reduction: str = "mean",
+) -> Tensor:
+    """``2 - enmi(captured, reference, variance)`` reduced; arguments as :func:`~enmi_torch.information.enmi`.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> enmi_loss(image, image, 1e-6, bins=4), enmi_loss(image, image.mT, 1e-6, bins=4)
+        (tensor(0.), tensor(1.))
+    """
+    check_option("reduction", reduction, REDUCTIONS)
+    score = enmi(
+        captured,
+        reference,
+        variance,
+        bins=bins,
+        value_range=value_range,
+        weights=weights,
+        log_prior=log_prior,
+        reference_kernel=reference_kernel,
+        valid_mask=valid_mask,
+        reliability=reliability,
+    )
+    return _reduce(2 - score, reduction)
+
+
+def ecr_loss(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    model_variance: float | None = None,
+    valid_mask: Tensor | None = None,
+    response: str = "binned",
+    reduction: str = "mean",
+) -> Tensor:
+    """``-ecr(captured, reference, variance)`` reduced; arguments as :func:`~enmi_torch.correlation_ratio.ecr`.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> ecr_loss(image, image, 1.0, bins=4), ecr_loss(image, image.mT, 1.0, bins=4)
+        (tensor(-7.3843), tensor(-0.3736))
+    """
+    check_option("reduction", reduction, REDUCTIONS)
+    score = ecr(
+        captured,
+        reference,
+        variance,
+        bins=bins,
+        value_range=value_range,
+        model_variance=model_variance,
+        valid_mask=valid_mask,
+        response=response,
+    )
+    return _reduce(-score, reduction)
+
+
+def mixture_loss(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    em_steps: int = 0,
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+) -> Tensor:
+    """``-mixture_information(captured, reference, variance)`` reduced; see :func:`~enmi_torch.mixture_information`.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> round(mixture_loss(image, image, 1.0, bins=4).item(), 4)
+        -1.3863
+    """
+    check_option("reduction", reduction, REDUCTIONS)
+    score = mixture_information(
+        captured, reference, variance, bins=bins, value_range=value_range, em_steps=em_steps, valid_mask=valid_mask
+    )
+    return _reduce(-score, reduction)
+
+
 class NMILoss(nn.Module):
     """``2 - NMI(captured, reference)``, in ``[0, 1]``; the module form of :func:`~enmi_torch.information.nmi`.
 
@@ -58,9 +193,9 @@ class NMILoss(nn.Module):
         _store_histogram_options(self, bins, value_range, reference_kernel, reduction)
         self.kernel = check_option("kernel", kernel, PARZEN_KERNELS)
 
-    def forward(self, captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None) -> Tensor:
+    def forward(self, captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None) -> Tensor:
         """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)`` (or ``(B, H, W)``, ``(B, N)``)."""
-        score = nmi(
+        return nmi_loss(
             captured,
             reference,
             bins=self.bins,
@@ -68,8 +203,8 @@ class NMILoss(nn.Module):
             kernel=self.kernel,
             reference_kernel=self.reference_kernel,
             valid_mask=valid_mask,
+            reduction=self.reduction,
         )
-        return _reduce(2 - score, self.reduction)
 
 
 class ENMILoss(nn.Module):
@@ -122,12 +257,13 @@ class ENMILoss(nn.Module):
         self,
         captured: Tensor,
         reference: Tensor,
+        *,
         variance: Tensor | float | None = None,
         valid_mask: Tensor | None = None,
     ) -> Tensor:
         """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`enmi`."""
         variance, valid_mask = _variance_and_mask(self, "ENMILoss", captured, variance, valid_mask)
-        score = enmi(
+        return enmi_loss(
             captured,
             reference,
             variance,
@@ -138,8 +274,8 @@ class ENMILoss(nn.Module):
             reference_kernel=self.reference_kernel,
             valid_mask=valid_mask,
             reliability=self.reliability,
+            reduction=self.reduction,
         )
-        return _reduce(2 - score, self.reduction)
 
 
 class ECRLoss(nn.Module):
@@ -184,12 +320,13 @@ class ECRLoss(nn.Module):
         self,
         captured: Tensor,
         reference: Tensor,
+        *,
         variance: Tensor | float | None = None,
         valid_mask: Tensor | None = None,
     ) -> Tensor:
         """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`ecr`."""
         variance, valid_mask = _variance_and_mask(self, "ECRLoss", captured, variance, valid_mask)
-        score = ecr(
+        return ecr_loss(
             captured,
             reference,
             variance,
@@ -198,8 +335,8 @@ class ECRLoss(nn.Module):
             model_variance=self.model_variance,
             valid_mask=valid_mask,
             response=self.response,
+            reduction=self.reduction,
         )
-        return _reduce(-score, self.reduction)
 
 
 class MixtureLoss(nn.Module):
@@ -241,12 +378,13 @@ class MixtureLoss(nn.Module):
         self,
         captured: Tensor,
         reference: Tensor,
+        *,
         variance: Tensor | float | None = None,
         valid_mask: Tensor | None = None,
     ) -> Tensor:
         """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)``; ``variance`` as in :func:`mixture_information`."""
         variance, valid_mask = _variance_and_mask(self, "MixtureLoss", captured, variance, valid_mask)
-        score = mixture_information(
+        return mixture_loss(
             captured,
             reference,
             variance,
@@ -254,8 +392,8 @@ class MixtureLoss(nn.Module):
             value_range=self.value_range,
             em_steps=self.em_steps,
             valid_mask=valid_mask,
+            reduction=self.reduction,
         )
-        return _reduce(-score, self.reduction)
 
 
 def _variance_and_mask(module: nn.Module, name: str, captured: Tensor, variance, valid_mask):

@@ -44,7 +44,7 @@ def _default_budget():
         lambda: nmi(CAPTURED, REFERENCE, bins=100000, kernel="triangular"),
         lambda: enmi(CAPTURED, REFERENCE, 4.0, bins=100000),
         lambda: enmi(CAPTURED, REFERENCE, torch.full((16, 16), 4.0), bins=100000),
-        lambda: ENMILoss(bins=100000)(CAPTURED, REFERENCE, 4.0),
+        lambda: ENMILoss(bins=100000)(CAPTURED, REFERENCE, variance=4.0),
         lambda: NMILoss(bins=100000)(CAPTURED, REFERENCE),
         lambda: joint_histogram(CAPTURED, REFERENCE, bins=100000),
         lambda: joint_histogram(CAPTURED, REFERENCE, bins=100000, captured_variance=4.0),

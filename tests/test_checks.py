@@ -23,7 +23,7 @@ WINDOW = torch.zeros(1, 1, 8, 8)
         ("captured", lambda: joint_histogram(EMPTY, EMPTY)),
         ("captured", lambda: hard_entropies(EMPTY, EMPTY)),
         ("captured", lambda: NMILoss()(EMPTY, EMPTY)),
-        ("captured", lambda: ENMILoss()(EMPTY, EMPTY, 1.0)),
+        ("captured", lambda: ENMILoss()(EMPTY, EMPTY, variance=1.0)),
         ("captured", lambda: nmi(torch.zeros(2, 1, 0, 4), torch.zeros(2, 1, 0, 4))),
         ("captured", lambda: enmi_surface(EMPTY, WINDOW, 1.0)),
         ("captured", lambda: nmi_surface(EMPTY, WINDOW)),
@@ -31,10 +31,10 @@ WINDOW = torch.zeros(1, 1, 8, 8)
         ("captured", lambda: direct_surface(EMPTY, WINDOW, metric="nmi")),
         ("captured", lambda: localize(EMPTY, WINDOW, 1.0, shifts=1)),
         ("residual", lambda: gaussian_nll(EMPTY, torch.zeros(4, 4))),
-        ("local", lambda: LearnedVariance((4, 4)).nll(EMPTY, EMPTY)),
-        ("local", lambda: empirical_variance(EMPTY, EMPTY)),
-        ("local", lambda: EmpiricalVariance((4, 4)).update(EMPTY, EMPTY)),
-        ("prior", lambda: match_intensity(EMPTY, EMPTY)),
+        ("captured", lambda: LearnedVariance((4, 4)).nll(EMPTY, EMPTY)),
+        ("captured", lambda: empirical_variance(EMPTY, EMPTY)),
+        ("captured", lambda: EmpiricalVariance((4, 4)).update(EMPTY, EMPTY)),
+        ("captured", lambda: match_intensity(EMPTY, EMPTY)),
     ],
 )
 def test_an_empty_batch_is_refused_the_same_way_everywhere(name, call):

@@ -147,19 +147,20 @@ def test_ecr_loss_agrees_with_function_and_its_variance_model():
     captured, reference, variance, valid = _case(torch.float32)
     loss = ECRLoss(bins=5, reduction="none")
     torch.testing.assert_close(
-        loss(captured, reference, variance, valid), -ecr(captured, reference, variance, bins=5, valid_mask=valid)
+        loss(captured, reference, variance=variance, valid_mask=valid),
+        -ecr(captured, reference, variance, bins=5, valid_mask=valid),
     )
     with_model = ECRLoss(bins=5, variance_model=ConstantVariance(100.0), reduction="sum")
-    torch.testing.assert_close(with_model(captured, reference), loss(captured, reference, 100.0).sum())
+    torch.testing.assert_close(with_model(captured, reference), loss(captured, reference, variance=100.0).sum())
     variance.requires_grad_()
-    loss(captured, reference, variance, valid).sum().backward()
+    loss(captured, reference, variance=variance, valid_mask=valid).sum().backward()
     assert torch.isfinite(variance.grad).all() and variance.grad[valid].abs().sum() > 0
     assert (variance.grad[~valid] == 0).all()
     with pytest.raises(ValueError, match="variance must be None when ECRLoss has a variance_model"):
-        with_model(captured, reference, 1.0)
+        with_model(captured, reference, variance=1.0)
     linear = ECRLoss(bins=5, reduction="none", response="linear")
     torch.testing.assert_close(
-        linear(captured, reference, variance.detach(), valid),
+        linear(captured, reference, variance=variance.detach(), valid_mask=valid),
         -ecr(captured, reference, variance.detach(), bins=5, valid_mask=valid, response="linear"),
     )
 

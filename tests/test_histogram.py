@@ -91,8 +91,12 @@ def test_counts_sum_to_valid_pixels(pair, dtype):
 
 @pytest.mark.parametrize("kernel", ["mass", "density"])
 @pytest.mark.parametrize("with_prior", [False, True])
-def test_chunked_custom_function_equals_dense_autograd(pair, kernel, with_prior, monkeypatch):
+@pytest.mark.parametrize("clamped", [False, True])
+def test_chunked_custom_function_equals_dense_autograd(pair, kernel, with_prior, clamped, monkeypatch):
     captured, reference, variance, valid = pair
+    if clamped:  # two columns far below min_variance: clamped to it, so no gradient reaches their variance
+        variance = variance.clone()
+        variance[..., :2] = 1e-9
     log_prior = gaussian_log_prior(8.0, 4.0, BINS, RANGE, dtype=torch.float64) if with_prior else None
     cell_weights = torch.arange(BINS * BINS, dtype=torch.float64).reshape(BINS, BINS)
     monkeypatch.setattr(histogram_module, "_CHUNK_ELEMENTS", 40)  # several chunks for 35 pixels
@@ -126,6 +130,8 @@ def test_chunked_custom_function_equals_dense_autograd(pair, kernel, with_prior,
     torch.testing.assert_close(chunked, dense, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(values.grad.flatten(1), dense_values.grad, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(noise.grad.flatten(1), dense_noise.grad, rtol=1e-9, atol=1e-12)
+    if clamped:
+        assert (noise.grad[..., :2] == 0).all() and (noise.grad[..., 2:][valid[..., 2:]] != 0).any()
 
 
 @pytest.mark.parametrize("kernel", ["mass", "density"])

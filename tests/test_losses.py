@@ -27,7 +27,7 @@ class _HalfMaskedVariance(VarianceModel):
 def test_enmi_loss_equals_two_minus_the_function(images, reduction, tolerance):
     captured, reference = images
     log_prior = gaussian_log_prior(128, 32, 32, (0, 256), dtype=captured.dtype)
-    loss = ENMILoss(weights="density", log_prior=log_prior, reduction=reduction)(captured, reference, 50.0)
+    loss = ENMILoss(weights="density", log_prior=log_prior, reduction=reduction)(captured, reference, variance=50.0)
     expected = 2 - enmi(captured, reference, 50.0, weights="density", log_prior=log_prior)
     expected = {"none": expected, "mean": expected.mean(), "sum": expected.sum()}[reduction]
     torch.testing.assert_close(loss, expected, **tolerance)
@@ -59,7 +59,9 @@ def test_variance_is_learned_through_the_loss(images):
 def test_loss_falls_as_alignment_improves(camera_image):
     image = torch.from_numpy(camera_image[100:228, 100:240].astype("float64"))
     reference = image[None, None, :, :128]
-    losses = [ENMILoss()(image[None, None, :, shift : shift + 128], reference, 100.0).item() for shift in range(5)]
+    losses = [
+        ENMILoss()(image[None, None, :, shift : shift + 128], reference, variance=100.0).item() for shift in range(5)
+    ]
     assert all(earlier < later for earlier, later in itertools.pairwise(losses)), losses
 
 
@@ -75,7 +77,7 @@ def test_loss_errors_name_the_argument(images):
     with pytest.raises(ValueError, match="variance must be given per call"):
         ENMILoss()(captured, reference)
     with pytest.raises(ValueError, match="variance must be None when ENMILoss has a variance_model"):
-        ENMILoss(variance_model=ConstantVariance(1.0))(captured, reference, 1.0)
+        ENMILoss(variance_model=ConstantVariance(1.0))(captured, reference, variance=1.0)
     with pytest.raises(TypeError, match=r"variance_model must be an enmi_torch\.variance\.VarianceModel"):
         ENMILoss(variance_model=torch.nn.Identity())
     with pytest.raises(ValueError, match=r"reduction must be one of \['none', 'mean', 'sum'\], got 'max'"):
@@ -93,11 +95,75 @@ def test_mixture_loss_agrees_with_the_function_and_trains():
     captured = (reference + torch.randn(reference.shape, generator=generator, dtype=torch.float64) * 9).requires_grad_()
     loss = MixtureLoss(bins=6, em_steps=1, reduction="none")
     expected = -mixture_information(captured, reference, 81.0, bins=6, em_steps=1)
-    torch.testing.assert_close(loss(captured, reference, 81.0), expected)
+    torch.testing.assert_close(loss(captured, reference, variance=81.0), expected)
     torch.testing.assert_close(
         MixtureLoss(bins=6, em_steps=1, variance_model=ConstantVariance(81.0))(captured, reference), expected.mean()
     )
-    loss(captured, reference, 81.0).sum().backward()
+    loss(captured, reference, variance=81.0).sum().backward()
     assert torch.isfinite(captured.grad).all() and captured.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="em_steps must be an int >= 0"):
         MixtureLoss(em_steps=-1)
+
+
+@pytest.mark.parametrize("reduction", ["none", "mean", "sum"])
+def test_functional_losses_equal_the_modules(images, reduction, tolerance):
+    from enmi_torch import ECRLoss, MixtureLoss, ecr_loss, enmi_loss, mixture_loss, nmi_loss
+
+    captured, reference = images
+    # Asymmetric settings, so that an argument passed to the wrong place shows.
+    valid = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+    valid[..., :5, :] = False
+    variance = torch.linspace(20.0, 90.0, 16, dtype=captured.dtype).reshape(1, 1, 16, 1).expand(1, 1, 16, 16)
+    pairs = [
+        (
+            NMILoss(bins=12, reduction=reduction)(captured, reference, valid_mask=valid),
+            nmi_loss(captured, reference, bins=12, valid_mask=valid, reduction=reduction),
+        ),
+        (
+            ENMILoss(bins=12, weights="density", reduction=reduction)(
+                captured, reference, variance=variance, valid_mask=valid
+            ),
+            enmi_loss(captured, reference, variance, bins=12, weights="density", valid_mask=valid, reduction=reduction),
+        ),
+        (
+            ECRLoss(bins=12, reduction=reduction)(captured, reference, variance=variance, valid_mask=valid),
+            ecr_loss(captured, reference, variance, bins=12, valid_mask=valid, reduction=reduction),
+        ),
+        (
+            MixtureLoss(bins=12, em_steps=1, reduction=reduction)(
+                captured, reference, variance=variance, valid_mask=valid
+            ),
+            mixture_loss(captured, reference, variance, bins=12, em_steps=1, valid_mask=valid, reduction=reduction),
+        ),
+    ]
+    for module_value, function_value in pairs:
+        torch.testing.assert_close(module_value, function_value, **tolerance)
+    # The losses are the scores turned around: NMI and ENMI as 2 - score, ECR as -score.
+    torch.testing.assert_close(
+        nmi_loss(captured, reference, kernel="hard", reduction="none"), 2 - nmi(captured, reference), **tolerance
+    )
+
+
+def test_loss_modules_take_variance_and_mask_by_keyword_only(images):
+    from enmi_torch import ECRLoss, MixtureLoss
+
+    captured, reference = images
+    for loss in (ENMILoss(), ECRLoss(), MixtureLoss()):
+        with pytest.raises(TypeError, match="positional"):
+            loss(captured, reference, 50.0)
+    with pytest.raises(TypeError, match="positional"):
+        NMILoss()(captured, reference, torch.ones_like(captured, dtype=torch.bool))
+
+
+def test_functional_losses_check_the_reduction(images):
+    from enmi_torch import ecr_loss, enmi_loss, mixture_loss, nmi_loss
+
+    captured, reference = images
+    for call in (
+        lambda: nmi_loss(captured, reference, reduction="avg"),
+        lambda: enmi_loss(captured, reference, 1.0, reduction="avg"),
+        lambda: ecr_loss(captured, reference, 1.0, reduction="avg"),
+        lambda: mixture_loss(captured, reference, 1.0, reduction="avg"),
+    ):
+        with pytest.raises(ValueError, match="reduction must be one of"):
+            call()

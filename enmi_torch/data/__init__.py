@@ -1,6 +1,11 @@
-"""Local/prior image pairs: the on-disk format, synthetic pairs with a known noise field, and a Lightning module."""
+"""Local/prior image pairs: the on-disk format, synthetic pairs with a known noise field, and a Lightning module.
 
-from enmi_torch.data.datamodule import PairDataModule, ShardSampler
+:class:`PairDataModule` and :class:`ShardSampler` need Lightning (the ``train`` extra) and are imported on first use,
+so that the rest of the package works with the core install.
+"""
+
+from typing import Any
+
 from enmi_torch.data.intensity import match_intensity
 from enmi_torch.data.pairs import PairDataset, write_pairs
 from enmi_torch.data.synthetic import SyntheticPairs, gravel_texture, road_patch
@@ -20,3 +25,12 @@ __all__ = [
     "road_patch",
     "write_pairs",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Import the Lightning data module only when it is asked for."""
+    if name in ("PairDataModule", "ShardSampler"):
+        from enmi_torch.data import datamodule
+
+        return getattr(datamodule, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_positive_number
+from enmi_torch._checks import check_image_shape, check_positive_number
 from enmi_torch._config import check_config_keys, load_yaml_section
 
 
@@ -70,14 +70,7 @@ class RoadCamera:
                 "tilt_deg must exceed half of vertical_fov_deg so that the whole view meets the road, got "
                 f"tilt_deg={self.tilt_deg}, vertical_fov_deg={self.vertical_fov_deg}"
             )
-        size = self.image_size
-        if (
-            not isinstance(size, (tuple, list))
-            or len(size) != 2
-            or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in size)
-        ):
-            raise ValueError(f"image_size must be (H, W) with two positive ints, got {size!r}")
-        object.__setattr__(self, "image_size", (int(size[0]), int(size[1])))
+        object.__setattr__(self, "image_size", check_image_shape("image_size", self.image_size))
 
     @classmethod
     def paper(cls, image_size: tuple[int, int] = (480, 640)) -> RoadCamera:

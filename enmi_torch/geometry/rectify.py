@@ -30,7 +30,14 @@ import torch.nn.functional as F
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_option, check_positive_number, check_value_range
+from enmi_torch._checks import (
+    check_floating,
+    check_image_shape,
+    check_option,
+    check_positive_int,
+    check_positive_number,
+    check_value_range,
+)
 from enmi_torch._config import check_config_keys, load_yaml_section
 from enmi_torch.geometry.camera import (
     RoadCamera,
@@ -105,8 +112,7 @@ class GroundGrid:
 
     def refine(self, factor: int) -> GroundGrid:
         """The same extent with cells ``factor`` times smaller on each side (``factor x factor`` per cell)."""
-        if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
-            raise ValueError(f"factor must be a positive int, got {factor!r}")
+        check_positive_int("factor", factor)
         return GroundGrid(self.lateral_range, self.distance_range, self.cell_size / factor)
 
     def lateral_edges(self, *, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
@@ -255,8 +261,7 @@ def rectify(
     """
     _check_images("image", image, camera.image_size, "camera.image_size")
     check_option("mode", mode, INTERPOLATIONS)
-    if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
-        raise ValueError(f"supersample must be a positive int, got {supersample!r}")
+    check_positive_int("supersample", supersample)
     fine = grid.refine(supersample)
     image_to_grid = torch.linalg.inv(ground_to_image_homography(camera, fine))
     samples = warp_perspective(
@@ -370,9 +375,7 @@ def projected_cell_areas(homography: Tensor, shape: tuple[int, int]) -> Tensor:
                 [6., 6.]])
     """
     _check_homography(homography)
-    if len(shape) != 2 or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in shape):
-        raise ValueError(f"shape must be (H, W) with two positive ints, got {shape!r}")
-    rows, cols = shape
+    rows, cols = check_image_shape("shape", shape)
     ys, xs = torch.meshgrid(
         torch.arange(rows + 1, dtype=homography.dtype, device=homography.device) - 0.5,
         torch.arange(cols + 1, dtype=homography.dtype, device=homography.device) - 0.5,

@@ -32,12 +32,15 @@ from enmi_torch._budget import check_search_memory
 from enmi_torch._checks import (
     check_bins,
     check_captured_in_reference,
-    check_floating,
     check_log_prior,
+    check_mask_not_empty,
+    check_non_negative_int,
     check_option,
-    check_tensor,
+    check_positive_int,
+    check_shifts,
     check_value_range,
 )
+from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index
 from enmi_torch.correlation_ratio import (
     RESPONSES,
@@ -167,16 +170,14 @@ def localize(
     check_option("metric", metric, METRICS)
     check_option("resample", resample, RESAMPLING)
     batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
-    radius = _check_shifts(shifts)
+    radius = check_shifts(shifts)
     centers = _check_center(center, batch, tuple(reference.shape[2:]), captured.device)
     yaw_list = _check_yaws(yaws)
     if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
         raise ValueError(f"min_overlap must be a fraction in (0, 1], got {min_overlap!r}")
-    if isinstance(exclusion_radius, bool) or not isinstance(exclusion_radius, int) or exclusion_radius < 0:
-        raise ValueError(f"exclusion_radius must be an int >= 0, got {exclusion_radius!r}")
-    for name, value in (("coarse_factor", coarse_factor), ("coarse_peaks", coarse_peaks)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    check_non_negative_int("exclusion_radius", exclusion_radius)
+    check_positive_int("coarse_factor", coarse_factor)
+    check_positive_int("coarse_peaks", coarse_peaks)
     if metric != "ncc":
         check_bins(bins)
         check_value_range(value_range)
@@ -215,14 +216,14 @@ def localize(
     check_search_memory(captured, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
-        captured_valid = _local_valid(captured, captured_mask, variance)
-        variance_map = _variance_map(captured, variance)
-        reference_valid = _map_valid(reference, reference_mask)
+        captured_valid = _captured_valid(captured, captured_mask, variance)
+        variance = _variance_map(captured, variance, captured_valid)
+        reference_valid = _reference_valid(reference, reference_mask)
         ecr_options = {"model_variance": model_variance, "response": response}
         score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps)
         searcher = _Search(
             captured,
-            variance_map,
+            variance,
             captured_valid,
             reference,
             reference_valid,
@@ -296,7 +297,7 @@ class Localizer(nn.Module):
         super().__init__()
         self.variance_model = check_variance_model(variance_model)
         self.metric = check_option("metric", metric, METRICS)
-        self.shifts = _check_shifts(shifts)
+        self.shifts = check_shifts(shifts)
         self.register_buffer("yaws", torch.tensor(_check_yaws(yaws), dtype=torch.float64), persistent=False)
         self.bins = check_bins(bins)
         self.value_range = check_value_range(value_range)
@@ -349,17 +350,6 @@ class Localizer(nn.Module):
         )
 
 
-def _check_shifts(shifts) -> tuple[int, int]:
-    pair = (shifts, shifts) if isinstance(shifts, int) and not isinstance(shifts, bool) else shifts
-    if (
-        not isinstance(pair, (tuple, list))
-        or len(pair) != 2
-        or not all(isinstance(value, int) and not isinstance(value, bool) and value >= 0 for value in pair)
-    ):
-        raise ValueError(f"shifts must be an int >= 0 or a pair (ry, rx) of them, got {shifts!r}")
-    return int(pair[0]), int(pair[1])
-
-
 def _check_yaws(yaws) -> list[float]:
     if yaws is None:
         return [0.0]
@@ -389,72 +379,33 @@ def _check_center(center, batch: int, map_shape: tuple[int, int], device: torch.
     return torch.tensor([list(center)], device=device).expand(batch, 2)
 
 
-def _local_valid(captured: Tensor, captured_mask: Tensor | None, variance) -> Tensor:
-    """``(B, 1, h, w)`` bool: the given mask and the variance model's."""
+def _captured_valid(captured: Tensor, captured_mask: Tensor | None, variance) -> Tensor:
+    """``(B, 1, h, w)`` bool: the given mask and the variance model's, each as :func:`~enmi_torch._layout.mask_map`."""
     valid = torch.ones_like(captured, dtype=torch.bool)
     masks = [("captured_mask", captured_mask)]
     if isinstance(variance, VarianceModel):
         masks.append(("variance.valid_mask", variance.valid_mask(captured)))
     for name, mask in masks:
-        if mask is None:
-            continue
-        check_tensor(name, mask)
-        if mask.dtype != torch.bool:
-            raise TypeError(f"{name} must be a bool tensor, got dtype {mask.dtype}")
-        valid = valid & _as_local_map(name, mask, captured)
-    empty = ~valid.flatten(1).any(1)
-    if bool(empty.any()):
-        raise ValueError(f"captured_mask selects no pixel in sample(s) {empty.nonzero()[:, 0].tolist()}")
+        if mask is not None:
+            valid = valid & mask_map(name, mask, captured).view_as(captured)
+    check_mask_not_empty("captured_mask", valid.flatten(1))
     return valid
 
 
-def _as_local_map(name: str, values: Tensor, captured: Tensor) -> Tensor:
-    """A per-pixel map given as ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``, as ``(B, 1, h, w)``."""
-    batch, _, height, width = captured.shape
-    if values.shape == (height, width):
-        values = values.reshape(1, 1, height, width)
-    if values.ndim != 4 or values.shape[1:] != (1, height, width) or values.shape[0] not in (1, batch):
-        raise ValueError(
-            f"{name} must have shape ({height}, {width}), (1, 1, {height}, {width}) or ({batch}, 1, {height}, "
-            f"{width}) to match captured, got {tuple(values.shape)}"
-        )
-    return values.to(captured.device).expand(batch, 1, height, width)
-
-
-def _variance_map(captured: Tensor, variance) -> Tensor | None:
-    """``(B, 1, h, w)`` variance in the captured dtype, or ``None`` for the metrics without one."""
+def _variance_map(captured: Tensor, variance, valid: Tensor) -> Tensor | None:
+    """``(B, 1, h, w)`` variance in the captured dtype (> 0 where ``valid``, 1 elsewhere); ``None`` without one."""
     if variance is None:
         return None
     if isinstance(variance, VarianceModel):
         variance = variance(captured)
-    if isinstance(variance, (int, float)) and not isinstance(variance, bool):
-        return torch.full_like(captured, float(variance))
-    check_floating("variance", variance)
-    if variance.ndim == 0:
-        return variance.to(captured).expand_as(captured)
-    return _as_local_map("variance", variance, captured).to(captured.dtype)
+    return variance_map("variance", variance, captured, captured.dtype, valid.flatten(1)).view_as(captured)
 
 
-def _map_valid(reference: Tensor, reference_mask: Tensor | None) -> Tensor:
-    """``(1 or B, 1, Hm, Wm)`` bool."""
+def _reference_valid(reference: Tensor, reference_mask: Tensor | None) -> Tensor:
+    """``(1 or B, 1, Hm, Wm)`` bool, one mask for all references or one per reference."""
     if reference_mask is None:
         return torch.ones_like(reference, dtype=torch.bool)
-    check_tensor("reference_mask", reference_mask)
-    if reference_mask.dtype != torch.bool:
-        raise TypeError(f"reference_mask must be a bool tensor, got dtype {reference_mask.dtype}")
-    shape = tuple(reference.shape[2:])
-    if reference_mask.shape == shape:
-        reference_mask = reference_mask.reshape(1, 1, *shape)
-    if reference_mask.ndim != 4 or tuple(reference_mask.shape[1:]) != (1, *shape):
-        raise ValueError(
-            f"reference_mask must have shape {shape}, (1, 1, *{shape}) or (B, 1, *{shape}) to match reference, "
-            f"got {tuple(reference_mask.shape)}"
-        )
-    if reference_mask.shape[0] not in (1, reference.shape[0]):
-        raise ValueError(f"reference_mask must hold 1 or {reference.shape[0]} masks, got {reference_mask.shape[0]}")
-    if not bool(reference_mask.any()):
-        raise ValueError("reference_mask selects no cell; the map needs at least one valid cell")
-    return reference_mask.to(reference.device)
+    return mask_map("reference_mask", reference_mask, reference, "reference").reshape(reference.shape)
 
 
 class _ScoreFunction:

@@ -10,10 +10,8 @@ import argparse
 import copy
 import json
 import logging
-import pickle
 import time
 import warnings
-import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,6 +20,7 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
+from enmi_torch._files import load_plain_torch
 from enmi_torch.cli._command import REPOSITORY, HelpFormatter, parser_error, plain_text
 from enmi_torch.data import PairDataModule
 from enmi_torch.training.mask_module import MaskFitModule
@@ -180,12 +179,7 @@ def check_checkpoint(path: str) -> None:
     """Refuse a checkpoint that does not load as plain tensors and primitives (``weights_only=True``)."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"ckpt_path must be a checkpoint file, got {path!r}")
-    try:
-        torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
-        raise ValueError(
-            f"{path} is refused: it is not a plain checkpoint that loads with weights_only=True ({error})"
-        ) from None
+    load_plain_torch(path, "a plain checkpoint")
 
 
 def check_output_dir(output_dir: Path, overwrite: bool) -> None:

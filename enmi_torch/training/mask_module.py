@@ -115,8 +115,8 @@ class MaskFitModule(LightningModule):
         form: ``"pixel"``, ``"radial"`` or ``"perspective"`` (see :class:`~enmi_torch.variance.LearnedVariance`).
         smoothness: precision of the smoothness prior, in units of the summed log-likelihood of all pairs.
         degree: polynomial degree of the ``"radial"`` form.
-        reference: ``.npy`` analytic variance map for the ``"perspective"`` form; ``None`` takes the data's known
-            field (synthetic camera-like pairs).
+        analytic_variance: ``.npy`` analytic variance map for the ``"perspective"`` form; ``None`` takes the data's
+            known field (synthetic camera-like pairs).
         match_intensity: fit a gain and offset per pair before taking residuals (for intensity changes).
         lr: Adam learning rate, annealed to 0 by a cosine over the run.
         localization_pairs: held-out pairs searched per validation (the first ones; 0 turns the search off).
@@ -132,7 +132,7 @@ class MaskFitModule(LightningModule):
         form: str = "pixel",
         smoothness: float = 0.0,
         degree: int = 4,
-        reference: str | None = None,
+        analytic_variance: str | None = None,
         match_intensity: bool = False,
         lr: float = 0.05,
         localization_pairs: int = 32,
@@ -165,36 +165,38 @@ class MaskFitModule(LightningModule):
         return getattr(datamodule, "truth", None)
 
     def configure_model(self) -> None:
-        """Build the mask (its perspective reference may come from the data)."""
+        """Build the mask (its analytic map may come from the data)."""
         if self.mask is not None:
             return
         hparams = self.hparams
-        reference = valid = None
+        analytic = valid = None
         if hparams.form == "perspective":
-            reference = self._reference_map()
-            valid = torch.isfinite(reference) & (reference > 0)
+            analytic = self._analytic_variance()
+            valid = torch.isfinite(analytic) & (analytic > 0)
         self.mask = LearnedVariance(
             self.shape,
             hparams.form,
             degree=hparams.degree,
-            reference=reference,
+            analytic_variance=analytic,
             valid=valid,
             smoothness=hparams.smoothness,
         )
 
-    def _reference_map(self) -> Tensor:
-        path = self.hparams.reference
+    def _analytic_variance(self) -> Tensor:
+        path = self.hparams.analytic_variance
         if path is not None:
-            reference = torch.from_numpy(read_npy(path, "reference (--model.reference)").astype(np.float64))
+            analytic = torch.from_numpy(
+                read_npy(path, "analytic_variance (--model.analytic_variance)").astype(np.float64)
+            )
         elif self.truth is not None:
-            reference = self.truth.variance
+            analytic = self.truth.variance
         else:
             raise ValueError(
-                "form='perspective' needs reference (an .npy analytic map) when the data has no known field"
+                "form='perspective' needs analytic_variance (an .npy analytic map) when the data has no known field"
             )
-        if tuple(reference.shape) != self.shape:
-            raise ValueError(f"reference must be an {self.shape} map, got shape {tuple(reference.shape)}")
-        return reference
+        if tuple(analytic.shape) != self.shape:
+            raise ValueError(f"analytic_variance must be an {self.shape} map, got shape {tuple(analytic.shape)}")
+        return analytic
 
     def configure_optimizers(self):
         """Adam on the mask, learning rate annealed to 0 by a cosine over the run's steps."""
@@ -231,7 +233,7 @@ class MaskFitModule(LightningModule):
         local, prior, valid = batch["local"].to(self.device), batch["prior"].to(self.device), batch["valid"]
         valid = valid.to(self.device)
         if self.hparams.match_intensity:
-            prior = match_intensity(prior, local, valid)
+            prior = match_intensity(local, prior, valid)
         return local, prior, valid
 
     # ----- steps --------------------------------------------------------------------------------------------------

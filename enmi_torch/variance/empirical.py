@@ -19,17 +19,17 @@ from enmi_torch._checks import (
     check_non_negative_int,
     check_not_empty,
 )
-from enmi_torch._layout import broadcast_map, spatial_shape
+from enmi_torch._layout import mask_map, spatial_shape
 
 
 def empirical_variance(
-    local: Tensor, prior: Tensor, valid_mask: Tensor | None = None, *, ddof: int = 1
+    captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None, *, ddof: int = 1
 ) -> tuple[Tensor, Tensor]:
     """The paper's per-pixel variance ``1 / (n - ddof) sum_k (local_k - prior_k)^2`` over a batch of pairs.
 
     Args:
-        local: local (captured) images ``(B, 1, H, W)`` or ``(B, H, W)``, floating point.
-        prior: matching prior-map sections, same shape.
+        captured: captured (local) images ``(B, 1, H, W)`` or ``(B, H, W)``, floating point.
+        reference: the matching prior-map sections, same shape.
         valid_mask: bool, ``(H, W)``, ``(1, 1, H, W)`` or one map per pair (``(B, 1, H, W)``, ``(B, H, W)``);
             ``False`` pixels of a pair are left out of that pixel's sum and count (they may hold NaN).
         ddof: ``n - ddof`` divides the sum; 1 (default) is the paper's estimator, 0 the maximum-likelihood one.
@@ -43,37 +43,36 @@ def empirical_variance(
         Sums are accumulated in float64 whatever the input dtype. No gradient.
 
     Example:
-        >>> local = torch.tensor([[[1.0, 2.0]], [[3.0, 2.0]]])
-        >>> prior = torch.zeros(2, 1, 2)
-        >>> variance, valid = empirical_variance(local, prior)
+        >>> captured = torch.tensor([[[1.0, 2.0]], [[3.0, 2.0]]])
+        >>> reference = torch.zeros(2, 1, 2)
+        >>> variance, valid = empirical_variance(captured, reference)
         >>> variance
         tensor([[10.,  8.]], dtype=torch.float64)
-        >>> empirical_variance(local, prior, torch.tensor([[[True, True]], [[False, True]]]))[1]
+        >>> empirical_variance(captured, reference, torch.tensor([[[True, True]], [[False, True]]]))[1]
         tensor([[False,  True]])
     """
-    count, sum_squares = _accumulate(local, prior, valid_mask)
+    count, sum_squares = _accumulate(captured, reference, valid_mask)
     return _compute(count, sum_squares, check_non_negative_int("ddof", ddof))
 
 
-def _accumulate(local: Tensor, prior: Tensor, valid_mask: Tensor | None) -> tuple[Tensor, Tensor]:
+def _accumulate(captured: Tensor, reference: Tensor, valid_mask: Tensor | None) -> tuple[Tensor, Tensor]:
     """Per-pixel number of valid pairs (int64) and sum of squared residuals (float64), both ``(H, W)``."""
-    check_floating("local", local)
-    check_floating("prior", prior)
-    if local.ndim not in (3, 4):
-        raise ValueError(f"local must have shape (B, 1, H, W) or (B, H, W), got {tuple(local.shape)}")
-    if prior.shape != local.shape:
-        raise ValueError(f"prior must have the shape of local {tuple(local.shape)}, got {tuple(prior.shape)}")
-    shape = spatial_shape("local", local)
-    check_not_empty("local", local)
-    residual = (local.to(torch.float64) - prior.to(torch.float64)).reshape(local.shape[0], -1)
+    check_floating("captured", captured)
+    check_floating("reference", reference)
+    if captured.ndim not in (3, 4):
+        raise ValueError(f"captured must have shape (B, 1, H, W) or (B, H, W), got {tuple(captured.shape)}")
+    if reference.shape != captured.shape:
+        raise ValueError(
+            f"reference must have the shape of captured {tuple(captured.shape)}, got {tuple(reference.shape)}"
+        )
+    shape = spatial_shape("captured", captured)
+    check_not_empty("captured", captured)
+    residual = (captured.to(torch.float64) - reference.to(torch.float64)).reshape(captured.shape[0], -1)
     if valid_mask is None:
         valid = torch.ones_like(residual, dtype=torch.bool)
     else:
-        if not isinstance(valid_mask, Tensor) or valid_mask.dtype != torch.bool:
-            kind = valid_mask.dtype if isinstance(valid_mask, Tensor) else type(valid_mask).__name__
-            raise TypeError(f"valid_mask must be a bool tensor, got {kind}")
-        valid = broadcast_map("valid_mask", valid_mask, local, "local").expand_as(residual)
-    check_finite_where("local - prior", residual, valid)
+        valid = mask_map("valid_mask", valid_mask, captured, "captured", require_pixels=False)
+    check_finite_where("captured - reference", residual, valid)
     squares = torch.where(valid, residual, 0.0).square()
     return valid.sum(dim=0).reshape(shape), squares.sum(dim=0).reshape(shape)
 
@@ -98,11 +97,11 @@ class EmpiricalVariance(nn.Module):
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
-        >>> local, prior = torch.randn(6, 1, 4, 4, generator=generator), torch.zeros(6, 1, 4, 4)
+        >>> captured, reference = torch.randn(6, 1, 4, 4, generator=generator), torch.zeros(6, 1, 4, 4)
         >>> stream = EmpiricalVariance((4, 4))
         >>> for start in range(0, 6, 2):
-        ...     stream.update(local[start : start + 2], prior[start : start + 2])
-        >>> torch.allclose(stream.compute()[0], empirical_variance(local, prior)[0])
+        ...     stream.update(captured[start : start + 2], reference[start : start + 2])
+        >>> torch.allclose(stream.compute()[0], empirical_variance(captured, reference)[0])
         True
     """
 
@@ -113,11 +112,11 @@ class EmpiricalVariance(nn.Module):
         self.register_buffer("count", torch.zeros(self.shape, dtype=torch.int64))
         self.register_buffer("sum_squares", torch.zeros(self.shape, dtype=torch.float64))
 
-    def update(self, local: Tensor, prior: Tensor, valid_mask: Tensor | None = None) -> None:
+    def update(self, captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None) -> None:
         """Add a batch of pairs (shapes as in :func:`empirical_variance`, images ``(H, W)``)."""
-        count, sum_squares = _accumulate(local, prior, valid_mask)
+        count, sum_squares = _accumulate(captured, reference, valid_mask)
         if tuple(count.shape) != self.shape:
-            raise ValueError(f"local must have images of shape {self.shape}, got {tuple(local.shape)}")
+            raise ValueError(f"captured must have images of shape {self.shape}, got {tuple(captured.shape)}")
         self.count += count.to(self.count.device)
         self.sum_squares += sum_squares.to(self.sum_squares.device)
 
@@ -149,9 +148,9 @@ class EmpiricalVariance(nn.Module):
         """``(variance, valid)``, both ``(H, W)``: float64 variance (NaN where undefined) and its bool valid map."""
         return _compute(self.count, self.sum_squares, self.ddof)
 
-    def forward(self, local: Tensor, prior: Tensor, valid_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def forward(self, captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Add a batch, then return :meth:`compute`."""
-        self.update(local, prior, valid_mask)
+        self.update(captured, reference, valid_mask)
         return self.compute()
 
     def extra_repr(self) -> str:

@@ -1,10 +1,11 @@
 """A variance mask learned from local/prior pairs by maximum likelihood, optionally smooth or of a parametric form.
 
-The residual ``r = local - prior`` of a matching pair is modelled as ``N(0, sigma^2[i, j])`` per pixel. The model
-holds ``s = log sigma^2`` — one value per pixel (``form="pixel"``), or ``s = sum_k c_k phi_k[i, j]`` over a fixed
-basis (``"radial"``: polynomials of the distance from the vehicle; ``"perspective"``: the log of an analytic map such as
-the camera's ``N0 / A~``) when few pairs are at hand — and is fitted by minimising the Gaussian negative
-log-likelihood :func:`gaussian_nll`, plus an optional Gaussian smoothness prior on neighbouring log-variances.
+The residual ``r = captured - reference`` of a matching (local, prior) pair is modelled as ``N(0, sigma^2[i, j])``
+per pixel. The model holds ``s = log sigma^2`` — one value per pixel (``form="pixel"``), or
+``s = sum_k c_k phi_k[i, j]`` over a fixed basis (``"radial"``: polynomials of the distance from the vehicle;
+``"perspective"``: the log of an analytic map such as the camera's ``N0 / A~``) when few pairs are at hand — and is
+fitted by minimising the Gaussian negative log-likelihood :func:`gaussian_nll`, plus an optional Gaussian smoothness
+prior on neighbouring log-variances.
 
 Convention:
     The per-pixel maximum-likelihood variance of zero-mean residuals is the mean of the squared residuals,
@@ -15,8 +16,6 @@ Convention:
 from __future__ import annotations
 
 import math
-import pickle
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +32,8 @@ from enmi_torch._checks import (
     check_positive_number,
     check_tensor,
 )
-from enmi_torch._files import read_npy
-from enmi_torch._layout import broadcast_map
+from enmi_torch._files import load_plain_torch, read_npy
+from enmi_torch._layout import broadcast_map, mask_map
 from enmi_torch.variance.base import VarianceModel
 
 FORMS = ("pixel", "radial", "perspective")
@@ -50,7 +49,7 @@ def gaussian_nll(
     """Negative log-likelihood ``(r^2 / sigma^2 + log sigma^2 + log 2 pi) / 2`` of residuals under ``N(0, sigma^2)``.
 
     Args:
-        residual: ``local - prior``, ``(B, 1, H, W)`` or ``(B, H, W)``, floating point.
+        residual: ``captured - reference``, ``(B, 1, H, W)`` or ``(B, H, W)``, floating point.
         log_variance: ``log sigma^2``, ``(H, W)``, ``(1, 1, H, W)`` or one map per sample.
         valid_mask: optional bool map, broadcast like ``log_variance``; ``False`` pixels are left out (they may hold
             NaN) and get no gradient.
@@ -77,10 +76,7 @@ def gaussian_nll(
     log_map = broadcast_map("log_variance", log_variance, residual, "residual").to(flat.dtype)
     valid = None
     if valid_mask is not None:
-        check_tensor("valid_mask", valid_mask)
-        if valid_mask.dtype != torch.bool:
-            raise TypeError(f"valid_mask must be a bool tensor, got dtype {valid_mask.dtype}")
-        valid = broadcast_map("valid_mask", valid_mask, residual, "residual").expand_as(flat)
+        valid = mask_map("valid_mask", valid_mask, residual, "residual", require_pixels=False)
     check_finite_where("residual", flat, valid)
     if valid is not None:
         # where() rather than a product: masked pixels may hold NaN and must pass no gradient. The map is masked
@@ -158,14 +154,15 @@ def radial_basis(shape: tuple[int, int], degree: int, center: tuple[float, float
     return torch.stack(polynomials)
 
 
-def perspective_basis(reference: Tensor, valid: Tensor) -> Tensor:
-    """``(2, H, W)`` float64: a constant and ``log reference`` centred over ``valid`` (0 outside ``valid``).
+def perspective_basis(analytic_variance: Tensor, valid: Tensor) -> Tensor:
+    """``(2, H, W)`` float64: a constant and ``log analytic_variance`` centred over ``valid`` (0 outside ``valid``).
 
-    With coefficients ``(c0, c1)`` the model is ``sigma^2 = exp(c0) (reference / g)^c1`` (``g`` the geometric mean
-    of ``reference`` over ``valid``): the analytic shape (``c1 = 1``) scaled by a learned noise power, or bent.
+    With coefficients ``(c0, c1)`` the model is ``sigma^2 = exp(c0) (analytic_variance / g)^c1`` (``g`` the geometric
+    mean of ``analytic_variance`` over ``valid``): the analytic shape (``c1 = 1``) scaled by a learned noise power, or
+    bent.
     """
-    log_reference = torch.where(valid, reference.to(torch.float64), 1.0).log()
-    centred = log_reference - log_reference[valid].mean()
+    log_analytic = torch.where(valid, analytic_variance.to(torch.float64), 1.0).log()
+    centred = log_analytic - log_analytic[valid].mean()
     return torch.stack([torch.ones_like(centred), torch.where(valid, centred, 0.0)])
 
 
@@ -192,14 +189,14 @@ class LearnedVariance(VarianceModel):
     Args:
         shape: ``(H, W)`` of the images.
         form: ``"pixel"`` (a free log-variance per pixel), ``"radial"`` (a polynomial of degree ``degree`` in the
-            distance from ``center``, in log space) or ``"perspective"`` (``exp(c0) (reference / g)^c1``, see
+            distance from ``center``, in log space) or ``"perspective"`` (``exp(c0) (analytic_variance / g)^c1``, see
             :func:`perspective_basis`).
         init_variance: the variance every valid pixel starts from (> 0).
         valid: bool ``(H, W)`` map of the pixels to learn; ``None`` for all. Others are never learned and are left
             out by :class:`~enmi_torch.losses.ENMILoss`.
         degree: degree of the radial polynomial (``form="radial"``).
         center: ``(row, column)`` of the vehicle for ``form="radial"``; default the image centre.
-        reference: positive ``(H, W)`` analytic map (``form="perspective"`` only), finite and > 0 where valid.
+        analytic_variance: positive ``(H, W)`` analytic map (``form="perspective"`` only), finite and > 0 where valid.
         smoothness: precision ``lambda >= 0`` of the smoothness prior
             ``lambda/2 sum (s_p - s_q)^2`` (:func:`smoothness_penalty`), in units of the summed log-likelihood of all
             pairs: its weight relative to the data falls as pairs are added.
@@ -226,7 +223,7 @@ class LearnedVariance(VarianceModel):
         valid: Tensor | None = None,
         degree: int = 4,
         center: tuple[float, float] | None = None,
-        reference: Tensor | None = None,
+        analytic_variance: Tensor | None = None,
         smoothness: float = 0.0,
     ) -> None:
         super().__init__()
@@ -241,10 +238,10 @@ class LearnedVariance(VarianceModel):
         self.smoothness = float(smoothness)
         self.register_buffer("valid", self._check_valid(valid))
         if form == "perspective":
-            self.register_buffer("reference", self._check_reference(reference))
-            basis = perspective_basis(self.reference, self.valid)
-        elif reference is not None:
-            raise ValueError(f"reference is only used by form='perspective', got form={form!r}")
+            self.register_buffer("analytic_variance", self._check_analytic_variance(analytic_variance))
+            basis = perspective_basis(self.analytic_variance, self.valid)
+        elif analytic_variance is not None:
+            raise ValueError(f"analytic_variance is only used by form='perspective', got form={form!r}")
         else:
             basis = radial_basis(self.shape, self.degree, self.center) if form == "radial" else None
         if basis is None:
@@ -264,23 +261,23 @@ class LearnedVariance(VarianceModel):
             raise ValueError("valid must select at least one pixel, got an all-False map")
         return valid.detach().clone().cpu()
 
-    def _check_reference(self, reference: Tensor | None) -> Tensor:
-        if reference is None:
-            raise ValueError("form='perspective' needs reference, a positive (H, W) analytic variance map, got None")
-        check_floating("reference", reference)
-        if tuple(reference.shape) != self.shape:
-            raise ValueError(f"reference must have shape {self.shape}, got {tuple(reference.shape)}")
-        reference = reference.detach().to(torch.float64).cpu()
-        bad = self.valid & ~(torch.isfinite(reference) & (reference > 0))
+    def _check_analytic_variance(self, analytic_variance: Tensor | None) -> Tensor:
+        if analytic_variance is None:
+            raise ValueError("form='perspective' needs analytic_variance, a positive (H, W) variance map, got None")
+        check_floating("analytic_variance", analytic_variance)
+        if tuple(analytic_variance.shape) != self.shape:
+            raise ValueError(f"analytic_variance must have shape {self.shape}, got {tuple(analytic_variance.shape)}")
+        analytic_variance = analytic_variance.detach().to(torch.float64).cpu()
+        bad = self.valid & ~(torch.isfinite(analytic_variance) & (analytic_variance > 0))
         if bool(bad.any()):
             raise ValueError(
-                f"reference must be finite and > 0 where valid, got {int(bad.sum())} pixel(s) outside that"
+                f"analytic_variance must be finite and > 0 where valid, got {int(bad.sum())} pixel(s) outside that"
             )
-        return torch.where(self.valid, reference, 1.0)
+        return torch.where(self.valid, analytic_variance, 1.0)
 
     @torch.no_grad()
     def reset_parameters(self, init_variance: float = 1.0) -> None:
-        """Start again from ``init_variance`` everywhere (``"perspective"``: the reference's shape at that level)."""
+        """Start again from ``init_variance`` everywhere (``"perspective"``: the analytic map's shape at that level)."""
         log_init = math.log(check_positive_number("init_variance", init_variance))
         if self.form == "pixel":
             self.log_variance.fill_(log_init)
@@ -294,14 +291,14 @@ class LearnedVariance(VarianceModel):
     def set_valid(self, valid: Tensor) -> None:
         """Replace the valid map, e.g. by the pixels observed often enough; call it before fitting.
 
-        For ``form="perspective"`` the new map must lie within the one the reference was given for, and the basis
+        For ``form="perspective"`` the new map must lie within the one the analytic map was given for, and the basis
         is centred again over it (which shifts the meaning of ``c0``).
         """
         valid = self._check_valid(valid).to(self.valid.device)
         if self.form == "perspective":
             if bool((valid & ~self.valid).any()):
-                raise ValueError("valid must lie within the pixels where the perspective reference is defined")
-            self.basis.copy_(perspective_basis(self.reference, valid).to(self.basis))
+                raise ValueError("valid must lie within the pixels where analytic_variance is defined")
+            self.basis.copy_(perspective_basis(self.analytic_variance, valid).to(self.basis))
         self.valid.copy_(valid)
 
     def log_variance_map(self) -> Tensor:
@@ -327,21 +324,23 @@ class LearnedVariance(VarianceModel):
         self._check_images("captured", captured)
         return self.valid.to(captured.device)[None, None]
 
-    def nll(self, local: Tensor, prior: Tensor, valid_mask: Tensor | None = None, *, reduction: str = "mean") -> Tensor:
-        """:func:`gaussian_nll` of ``local - prior`` (``(B, 1, H, W)``) on the pixels valid for both mask and model."""
-        check_floating("local", local)
-        check_floating("prior", prior)
-        if prior.shape != local.shape:
-            raise ValueError(f"prior must have the shape of local {tuple(local.shape)}, got {tuple(prior.shape)}")
-        self._check_images("local", local)
-        check_not_empty("local", local)
-        valid = self.valid_mask(local)
+    def nll(
+        self, captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None, *, reduction: str = "mean"
+    ) -> Tensor:
+        """:func:`gaussian_nll` of ``captured - reference`` ``(B, 1, H, W)`` on the pixels valid for mask and model."""
+        check_floating("captured", captured)
+        check_floating("reference", reference)
+        if reference.shape != captured.shape:
+            raise ValueError(
+                f"reference must have the shape of captured {tuple(captured.shape)}, got {tuple(reference.shape)}"
+            )
+        self._check_images("captured", captured)
+        check_not_empty("captured", captured)
+        valid = self.valid_mask(captured)
         if valid_mask is not None:
-            check_tensor("valid_mask", valid_mask)
-            if valid_mask.dtype != torch.bool:
-                raise TypeError(f"valid_mask must be a bool tensor, got dtype {valid_mask.dtype}")
-            valid = broadcast_map("valid_mask", valid_mask, local, "local").reshape(-1, 1, *self.shape) & valid
-        return gaussian_nll(local - prior, self.log_variance_map(), valid, reduction=reduction)
+            mask = mask_map("valid_mask", valid_mask, captured, "captured", require_pixels=False)
+            valid = mask.reshape(-1, 1, *self.shape) & valid
+        return gaussian_nll(captured - reference, self.log_variance_map(), valid, reduction=reduction)
 
     def penalty(self) -> Tensor:
         """``smoothness * smoothness_penalty(log sigma^2, valid)``: the negative log-prior, a scalar."""
@@ -392,13 +391,7 @@ class LearnedVariance(VarianceModel):
             raise FileNotFoundError(f"no variance mask file at {path}")
         if suffix == ".npy":
             return cls._load_npy(path)
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
-            raise ValueError(
-                f"{path} is refused: it is not a plain tensor file that loads with weights_only=True ({error})"
-            ) from None
-        return cls._from_payload(path, payload)
+        return cls._from_payload(path, load_plain_torch(path, "a plain tensor file"))
 
     @classmethod
     def _load_npy(cls, path: Path) -> LearnedVariance:
@@ -429,6 +422,8 @@ class LearnedVariance(VarianceModel):
             raise refuse("config must have keys shape, form, degree, center, smoothness")
         if not isinstance(state, dict) or not all(isinstance(value, Tensor) for value in state.values()):
             raise refuse("state must be a dict of tensors")
+        if "reference" in state:  # files written before the analytic map's buffer was renamed
+            state = {("analytic_variance" if name == "reference" else name): value for name, value in state.items()}
         valid = state.get("valid")
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
             raise refuse("state['valid'] must be a bool tensor")
@@ -439,7 +434,7 @@ class LearnedVariance(VarianceModel):
                 valid=valid,
                 degree=config["degree"],
                 center=tuple(config["center"]),
-                reference=state.get("reference"),
+                analytic_variance=state.get("analytic_variance"),
                 smoothness=config["smoothness"],
             )
         except (TypeError, ValueError) as error:

@@ -10,7 +10,7 @@ def test_equals_numpy_least_squares_per_pair(dtype, generator):
     local = 1.3 * prior - 12 + torch.randn(3, 1, 6, 7, generator=generator, dtype=dtype) * 5
     valid = torch.rand(3, 1, 6, 7, generator=generator) > 0.3
     local = torch.where(valid, local, torch.nan)  # masked pixels may hold NaN
-    fitted = match_intensity(prior, local, valid)
+    fitted = match_intensity(local, prior, valid)
     assert fitted.dtype == dtype and fitted.shape == prior.shape
     for pair in range(3):
         keep = valid[pair].numpy()
@@ -21,15 +21,20 @@ def test_equals_numpy_least_squares_per_pair(dtype, generator):
 def test_constant_prior_gets_the_mean_shift():
     prior = torch.full((1, 4), 10.0)
     local = torch.tensor([[11.0, 13.0, 12.0, 12.0]])
-    torch.testing.assert_close(match_intensity(prior, local), torch.full((1, 4), 12.0))
+    torch.testing.assert_close(match_intensity(local, prior), torch.full((1, 4), 12.0))
 
 
 @pytest.mark.parametrize(
     ("call", "error", "match"),
     [
-        (lambda: match_intensity(torch.zeros(2, 4), torch.zeros(2, 5)), ValueError, "local must have the shape"),
-        (lambda: match_intensity(torch.zeros(2, 4, dtype=torch.int64), torch.zeros(2, 4)), TypeError, "prior"),
-        (lambda: match_intensity(torch.zeros(2, 4), torch.zeros(2, 4), torch.ones(2, 4)), ValueError, "bool"),
+        (
+            lambda: match_intensity(torch.zeros(2, 4), torch.zeros(2, 5)),
+            ValueError,
+            r"reference must have the shape of captured \(2, 4\)",
+        ),
+        (lambda: match_intensity(torch.zeros(2, 4, dtype=torch.int64), torch.zeros(2, 4)), TypeError, "captured"),
+        (lambda: match_intensity(torch.zeros(2, 4), torch.zeros(2, 4, dtype=torch.int64)), TypeError, "reference"),
+        (lambda: match_intensity(torch.zeros(2, 4), torch.zeros(2, 4), torch.ones(2, 4)), TypeError, "bool"),
     ],
 )
 def test_invalid_inputs(call, error, match):

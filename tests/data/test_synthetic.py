@@ -55,7 +55,7 @@ def test_intensity_change_is_undone_by_matching():
     truth = lidar_truth((16, 16), 4.0, 8.0)
     local, prior, valid = stack(SyntheticPairs(truth, 300, seed=4, gain_std=0.2, offset_std=20.0), 300)
     raw, defined = empirical_variance(local, prior, valid)
-    matched, _ = empirical_variance(local, match_intensity(prior, local, valid), valid)
+    matched, _ = empirical_variance(local, match_intensity(local, prior, valid), valid)
     raw_error = float((raw[defined] / truth.variance[defined] - 1).abs().mean())
     matched_error = float((matched[defined] / truth.variance[defined] - 1).abs().mean())
     assert matched_error < 0.1 < 1.0 < raw_error

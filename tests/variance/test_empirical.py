@@ -59,7 +59,7 @@ def test_masked_pixels_may_hold_nan_and_are_left_out(pairs):
     torch.testing.assert_close(
         empirical_variance(poisoned, prior, valid)[0], empirical_variance(local, prior, valid)[0], equal_nan=True
     )
-    with pytest.raises(ValueError, match="local - prior must be finite"):
+    with pytest.raises(ValueError, match="captured - reference must be finite"):
         empirical_variance(poisoned, prior)
 
 
@@ -134,9 +134,13 @@ def test_module_follows_device_and_dtype_policy(pairs, device):
 @pytest.mark.parametrize(
     ("call", "error", "match"),
     [
-        (lambda: empirical_variance(torch.zeros(2, 3, 3, dtype=torch.int64), torch.zeros(2, 3, 3)), TypeError, "local"),
-        (lambda: empirical_variance(torch.zeros(2, 3, 3), torch.zeros(2, 3, 4)), ValueError, "prior must have"),
-        (lambda: empirical_variance(torch.zeros(6), torch.zeros(6)), ValueError, "local must have shape"),
+        (
+            lambda: empirical_variance(torch.zeros(2, 3, 3, dtype=torch.int64), torch.zeros(2, 3, 3)),
+            TypeError,
+            "captured",
+        ),
+        (lambda: empirical_variance(torch.zeros(2, 3, 3), torch.zeros(2, 3, 4)), ValueError, "reference must have"),
+        (lambda: empirical_variance(torch.zeros(6), torch.zeros(6)), ValueError, "captured must have shape"),
         (lambda: empirical_variance(torch.zeros(2, 3, 3), torch.zeros(2, 3, 3), torch.ones(3, 3)), TypeError, "bool"),
         (
             lambda: empirical_variance(torch.zeros(2, 3, 3), torch.zeros(2, 3, 3), torch.ones(4, 4, dtype=torch.bool)),

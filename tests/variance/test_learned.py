@@ -191,7 +191,7 @@ def test_perspective_form_recovers_the_noise_power():
     truth = camera_truth((20, 20), 3e-6)
     local, prior, valid = stack(SyntheticPairs(truth, 8, seed=5), 8)
     shape_only = camera_truth((20, 20), 1.0)  # the analytic shape, noise power unknown
-    model = LearnedVariance((20, 20), "perspective", valid=truth.valid, reference=shape_only.variance)
+    model = LearnedVariance((20, 20), "perspective", valid=truth.valid, analytic_variance=shape_only.variance)
     fit(model, local, prior, valid, steps=300, lr=0.1)
     assert relative_rms(model.variance_map(), truth.variance, truth.valid) < 0.05
     assert model.coefficients[1].item() == pytest.approx(1.0, abs=0.1)
@@ -199,19 +199,21 @@ def test_perspective_form_recovers_the_noise_power():
 
 def test_set_valid_recentres_the_perspective_basis():
     truth = camera_truth((12, 12), 1e-6)
-    model = LearnedVariance((12, 12), "perspective", valid=truth.valid, reference=truth.variance)
+    model = LearnedVariance((12, 12), "perspective", valid=truth.valid, analytic_variance=truth.variance)
     smaller = truth.valid.clone()
     smaller[:6] = False
     model.set_valid(smaller)
     assert model.basis[1][smaller].mean().abs() < 1e-5 and torch.equal(model.valid, smaller)
-    with pytest.raises(ValueError, match="within the pixels where the perspective reference"):
+    with pytest.raises(ValueError, match="within the pixels where analytic_variance is defined"):
         model.set_valid(torch.ones(12, 12, dtype=torch.bool))
 
 
 # ----- files -------------------------------------------------------------------------------------------------------
 def perspective_model():
     truth = camera_truth((6, 6), 1e-6)
-    return LearnedVariance((6, 6), "perspective", valid=truth.valid, reference=truth.variance, init_variance=5.0)
+    return LearnedVariance(
+        (6, 6), "perspective", valid=truth.valid, analytic_variance=truth.variance, init_variance=5.0
+    )
 
 
 @pytest.mark.parametrize(
@@ -328,10 +330,22 @@ def test_load_checks_path(tmp_path):
         (lambda: LearnedVariance((3, 3), "radial", center=(1.0, math.nan)), ValueError, "center"),
         (lambda: LearnedVariance((3, 3), valid=torch.ones(3, 3)), ValueError, "valid must be a bool map"),
         (lambda: LearnedVariance((3, 3), valid=torch.zeros(3, 3, dtype=torch.bool)), ValueError, "at least one"),
-        (lambda: LearnedVariance((3, 3), "perspective"), ValueError, "needs reference"),
-        (lambda: LearnedVariance((3, 3), reference=torch.ones(3, 3)), ValueError, "only used by form='perspective'"),
-        (lambda: LearnedVariance((3, 3), "perspective", reference=-torch.ones(3, 3)), ValueError, "finite and > 0"),
-        (lambda: LearnedVariance((3, 3), "perspective", reference=torch.ones(2, 3)), ValueError, "reference must have"),
+        (lambda: LearnedVariance((3, 3), "perspective"), ValueError, "needs analytic_variance"),
+        (
+            lambda: LearnedVariance((3, 3), analytic_variance=torch.ones(3, 3)),
+            ValueError,
+            "only used by form='perspective'",
+        ),
+        (
+            lambda: LearnedVariance((3, 3), "perspective", analytic_variance=-torch.ones(3, 3)),
+            ValueError,
+            "finite and > 0",
+        ),
+        (
+            lambda: LearnedVariance((3, 3), "perspective", analytic_variance=torch.ones(2, 3)),
+            ValueError,
+            "analytic_variance must have",
+        ),
         (lambda: LearnedVariance((3, 3))(torch.zeros(1, 1, 4, 4)), ValueError, r"\(H, W\) = \(3, 3\)"),
         (lambda: LearnedVariance((3, 3))(torch.zeros(1, 1, 3, 3, dtype=torch.int64)), TypeError, "captured"),
         (

@@ -1,0 +1,295 @@
+"""The histogram filter: motion step, update, pose read-out, tracking, relocalization, calibration, bad inputs."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from enmi_torch import Localization, value_checks
+from enmi_torch.localization.track import (
+    CHI2_95_2D,
+    Belief,
+    Calibration,
+    Tracker,
+    belief_pose,
+    calibrate_temperature,
+    initial_belief,
+    predict,
+    track_step,
+    update,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+FRAME = (24, 32)  # non-square frames: a swapped axis fails
+
+
+def _map_move(yaw: float, du: float, dv: float) -> tuple[float, float]:
+    """The map move of an image-axes increment at ``yaw``, from Localization.local_to_map's linear part."""
+    transform = Localization(torch.tensor([[0.0, 0.0, yaw]], dtype=torch.float64), *(torch.zeros(1),) * 5).local_to_map(
+        (0, 0), (5, 5)
+    )
+    move = transform[0, :2, :2].double() @ torch.tensor([du, dv], dtype=torch.float64)
+    return float(move[0]), float(move[1])
+
+
+def _texture(generator: torch.Generator, shape: tuple[int, int]) -> torch.Tensor:
+    """A smooth random texture in grey levels: peaks a few cells wide, like a road surface."""
+    noise = torch.rand(1, 1, *shape, generator=generator, dtype=torch.float64)
+    smooth = torch.nn.functional.avg_pool2d(noise, 3, 1, 1, count_include_pad=False)
+    return (smooth - smooth.min()) / (smooth.max() - smooth.min()) * 255
+
+
+def _cut(reference: torch.Tensor, x: int, y: int) -> torch.Tensor:
+    """The frame whose centre pixel ``(h // 2, w // 2)`` lies on map cell ``(y, x)`` at yaw 0."""
+    height, width = FRAME
+    return reference[..., y - height // 2 : y - height // 2 + height, x - width // 2 : x - width // 2 + width]
+
+
+@pytest.mark.parametrize("yaw", [0.0, 30.0, -75.0])
+def test_predict_conserves_probability_and_moves_by_the_odometry(yaw):
+    belief = initial_belief(torch.tensor([[40.0, 30.0, yaw]]), shifts=(6, 9), yaw_bins=1, std=(1.0, 0.7, 1.0))
+    before, _ = belief_pose(belief._replace(log_prob=belief.log_prob - 50))  # moments: no peak holds half the mass
+    odometry = torch.tensor([[2.3, -1.6, 0.0]], dtype=torch.float64)
+    moved = predict(belief, odometry, (0.4, 0.2, 0.0))
+    assert float(moved.log_prob.exp().sum()) == pytest.approx(1.0, abs=1e-9)
+    weights = moved.log_prob.exp()[0, 0]
+    rows, cols = torch.meshgrid(*(torch.arange(size, dtype=torch.float64) for size in weights.shape), indexing="ij")
+    mean_x = float((weights * (cols - 9 + moved.center[0, 1])).sum())
+    mean_y = float((weights * (rows - 6 + moved.center[0, 0])).sum())
+    step_x, step_y = _map_move(yaw, 2.3, -1.6)
+    assert mean_x == pytest.approx(float(before[0, 0]) + step_x, abs=1e-6)
+    assert mean_y == pytest.approx(float(before[0, 1]) + step_y, abs=1e-6)
+    # The window follows the belief: its middle cell is the rounded predicted mean.
+    assert moved.center[0].tolist() == [round(mean_y), round(mean_x)]
+
+
+def test_predict_moves_each_yaw_bin_by_its_own_heading_and_spreads_by_the_noise():
+    log_prob = torch.full((1, 3, 11, 15), -math.inf, dtype=torch.float64)
+    log_prob[0, 0, 5, 7] = log_prob[0, 2, 5, 7] = math.log(0.5)  # yaw 10 and 50 degrees, same cell
+    belief = Belief(log_prob, torch.tensor([[50, 60]]), torch.tensor([30.0], dtype=torch.float64), 20.0)
+    moved = predict(belief, torch.tensor([[0.0, -3.0, 0.0]], dtype=torch.float64), (0.0, 0.0, 0.0))
+    for source, yaw in ((0, 10.0), (2, 50.0)):
+        plane = moved.log_prob.exp()[0, source]
+        rows, cols = torch.meshgrid(*(torch.arange(size, dtype=torch.float64) for size in plane.shape), indexing="ij")
+        mass = float(plane.sum())
+        x = float((plane * (cols - 7 + moved.center[0, 1])).sum()) / mass
+        y = float((plane * (rows - 5 + moved.center[0, 0])).sum()) / mass
+        step_x, step_y = _map_move(yaw, 0.0, -3.0)
+        assert mass == pytest.approx(0.5, abs=1e-12)
+        assert (x, y) == pytest.approx((60 + step_x, 50 + step_y), abs=1e-9)
+    # Noise: the spread along the image's columns grows by du's variance (a yaw-0 belief on one cell).
+    log_prob = torch.full((1, 1, 21, 21), -math.inf, dtype=torch.float64)
+    log_prob[0, 0, 10, 10] = 0.0
+    still = Belief(log_prob, torch.tensor([[50, 60]]), torch.zeros(1, dtype=torch.float64), 1.0)
+    spread = predict(still, torch.zeros(1, 3, dtype=torch.float64), (2.0, 1.0, 0.0)).log_prob.exp()[0, 0]
+    offsets = torch.arange(-10.0, 11.0, dtype=torch.float64)
+    assert float((spread.sum(0) * offsets.square()).sum()) == pytest.approx(4.0, rel=0.02)
+    assert float((spread.sum(1) * offsets.square()).sum()) == pytest.approx(1.0, rel=0.02)
+
+
+def test_predict_moves_the_yaw_by_the_odometry():
+    belief = initial_belief(torch.tensor([[0.0, 0.0, 2.0]]), shifts=2, yaw_bins=7, yaw_step=2.0, std=(1.0, 1.0, 2.0))
+    weights = belief.log_prob.exp()
+    before = float((weights.sum((2, 3)) * belief.yaws()).sum())
+    moved = predict(belief, torch.tensor([[0.0, 0.0, 1.3]], dtype=torch.float64), (0.0, 0.0, 0.0))
+    weights = moved.log_prob.exp()
+    after = float((weights.sum((2, 3)) * moved.yaws()).sum()) / float(weights.sum())
+    assert float(weights.sum()) > 0.98  # a little mass leaves the seven bins
+    assert after == pytest.approx(before + 1.3, abs=0.05)
+
+
+def test_update_is_bayes_rule_and_ignores_left_out_candidates():
+    belief = initial_belief(torch.zeros(2, 3), shifts=(1, 2), yaw_bins=3, std=(1.0, 2.0, 1.0))
+    likelihood = torch.randn(2, 3, 3, 5, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    posterior = update(belief, likelihood).log_prob.exp()
+    expected = (belief.log_prob + likelihood).exp()
+    torch.testing.assert_close(posterior, expected / expected.sum((1, 2, 3), keepdim=True))
+    likelihood[0, 0, 0, 0] = -math.inf
+    assert bool(torch.isfinite(update(belief, likelihood).log_prob).all())
+
+
+def test_belief_pose_refines_below_a_cell_and_reports_a_laplace_covariance():
+    belief = initial_belief(torch.tensor([[20.0, 10.0, 0.0]]), shifts=(3, 4), yaw_bins=3)
+    x, y = torch.meshgrid(torch.arange(-4.0, 5.0), torch.arange(-3.0, 4.0), indexing="xy")
+    true_x, true_y, curvature = 0.3, -0.2, 8.0
+    log_prob = (
+        -0.5 * curvature * ((x - true_x) ** 2 + (y - true_y) ** 2) + torch.tensor([-9.0, 0.0, -9.0])[:, None, None]
+    )
+    pose, covariance = belief_pose(belief._replace(log_prob=log_prob[None].double()))
+    assert pose[0, :2].tolist() == pytest.approx([20.3, 9.8], abs=1e-6)
+    assert covariance[0, 0, 0] == pytest.approx(1 / curvature)
+    assert covariance[0, 1, 1] == pytest.approx(1 / curvature)
+
+
+def test_noiseless_drive_is_tracked_exactly(generator):
+    reference = _texture(generator, (96, 200))
+    tracker = Tracker(reference.float(), shifts=(4, 5), yaw_bins=3, bins=16, motion_noise=(0.5, 0.5, 0.3))
+    tracker.start(torch.tensor([[40.0, 50.0, 0.0]]))
+    x, y = 40, 50
+    for step in range(12):
+        du, dv = (3, 0) if step % 3 else (2, 1)  # unequal moves along columns and rows
+        x, y = x + du, y + dv
+        output = tracker(_cut(reference, x, y).float(), torch.tensor([[float(du), float(dv), 0.0]]), 1.0)
+        assert output.pose[0, :2].tolist() == pytest.approx([x, y], abs=1e-6)
+        assert float(output.pose[0, 2]) == pytest.approx(0.0, abs=1e-3)  # nearest-neighbour turns: not symmetric
+        assert bool(output.healthy[0])
+
+
+def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
+    reference = _texture(generator, (120, 240))
+    settings = {"shifts": 4, "yaw_bins": 1, "bins": 16, "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
+    tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
+    tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
+    x, y, recovered_after, relocalized = 40, 60, None, []
+    for step in range(16):
+        x += 3
+        if step == 5:
+            x, y = x + 25, y - 12  # the vehicle is carried away; odometry reports the usual move
+        output = tracker(_cut(reference, x, y).float(), torch.tensor([[3.0, 0.0, 0.0]]), 1.0)
+        error = (output.pose[0, :2] - torch.tensor([x, y], dtype=torch.float64)).abs().max()
+        if bool(output.relocalized[0]):
+            relocalized.append(step)
+            assert bool(output.healthy[0])  # a relocalized frame is a used match
+        if step >= 5 and recovered_after is None and float(error) < 1:
+            recovered_after = step - 5
+    assert len(relocalized) == 1 and relocalized[0] == 5 + recovered_after
+    assert recovered_after is not None and recovered_after <= 2
+    assert float(error) < 0.5
+
+
+def test_batched_vehicles_equal_one_at_a_time(generator):
+    reference = _texture(generator, (80, 120)).float()
+    starts = torch.tensor([[40.0, 30.0, 0.0], [70.0, 45.0, 0.0]])
+    odometry = torch.tensor([[2.0, 1.0, 0.0], [-1.0, 2.0, 0.0]])
+    frames = torch.cat([_cut(reference, 42, 31), _cut(reference, 69, 47)])
+    batched = Tracker(reference, shifts=3, yaw_bins=1, bins=16)
+    batched.start(starts)
+    together = batched(frames, odometry, 1.0)
+    for vehicle in range(2):
+        alone = Tracker(reference, shifts=3, yaw_bins=1, bins=16)
+        alone.start(starts[vehicle : vehicle + 1])
+        single = alone(frames[vehicle : vehicle + 1], odometry[vehicle : vehicle + 1], 1.0)
+        torch.testing.assert_close(together.pose[vehicle], single.pose[0])
+        torch.testing.assert_close(together.covariance[vehicle], single.covariance[0])
+
+
+def test_module_agrees_with_the_function(generator):
+    reference = _texture(generator, (80, 120)).float()
+    tracker = Tracker(reference, shifts=3, yaw_bins=3, bins=16, metric="nmi", temperature=0.01)
+    tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
+    start = tracker.belief
+    frame, odometry = _cut(reference, 62, 41), torch.tensor([[2.0, 1.0, 0.0]])
+    output = tracker(frame, odometry)
+    belief, expected, health = track_step(
+        start, frame, reference, odometry, None, metric="nmi", bins=16, temperature=0.01
+    )
+    torch.testing.assert_close(output.pose, expected.pose)
+    torch.testing.assert_close(tracker.belief.log_prob, belief.log_prob)
+    assert health.weak_frames.tolist() == tracker.health.weak_frames.tolist()
+
+
+def test_calibrate_temperature_recovers_the_scale_of_an_overconfident_likelihood():
+    generator = torch.Generator().manual_seed(3)
+    count, scale = 600, 8.0
+    truth = torch.randint(3, 8, (count, 2), generator=generator).double()
+    peaks = truth + torch.randn(count, 2, generator=generator, dtype=torch.float64)
+    rows, cols = torch.meshgrid(torch.arange(11.0), torch.arange(11.0), indexing="ij")
+    log_likelihood = -0.5 * scale * ((rows - peaks[:, :1, None]) ** 2 + (cols - peaks[:, 1:, None]) ** 2)
+    index = torch.cat([truth, torch.zeros(count, 1, dtype=torch.float64)], 1)
+    # The measured peaks scatter by 1 cell, the likelihood claims 1 / sqrt(8): the right temperature is near 8.
+    assert calibrate_temperature(log_likelihood[:, None].double(), index) == pytest.approx(scale, rel=0.3)
+
+
+def test_calibration_round_trips_through_json(tmp_path):
+    calibration = Calibration("ecr", 123.5, 2.5)
+    assert Calibration.load(calibration.save(tmp_path / "calibration.json")) == calibration
+    (tmp_path / "bad.json").write_text('{"metric": "ecr"}')
+    with pytest.raises(ValueError, match="needs keys"):
+        Calibration.load(tmp_path / "bad.json")
+
+
+def _bad_call(case: str):
+    belief = initial_belief(torch.zeros(1, 3), shifts=2, yaw_bins=1)
+    frame, reference = torch.rand(1, 1, 8, 8), torch.rand(1, 1, 32, 32)
+    odometry = torch.zeros(1, 3)
+    calls = {
+        "even yaw bins": lambda: initial_belief(torch.zeros(1, 3), yaw_bins=4),
+        "pose shape": lambda: initial_belief(torch.zeros(3)),
+        "pose dtype": lambda: initial_belief(torch.zeros(1, 3, dtype=torch.int64)),
+        "negative shifts": lambda: initial_belief(torch.zeros(1, 3), shifts=-1),
+        "yaw step": lambda: initial_belief(torch.zeros(1, 3), yaw_step=0.0),
+        "std": lambda: initial_belief(torch.zeros(1, 3), std=(1.0, 1.0)),
+        "odometry shape": lambda: predict(belief, torch.zeros(2, 3), (0.1, 0.1, 0.1)),
+        "odometry nan": lambda: predict(belief, torch.full((1, 3), math.nan), (0.1, 0.1, 0.1)),
+        "negative noise": lambda: predict(belief, odometry, (0.1, -0.1, 0.1)),
+        "not a belief": lambda: predict((1, 2), odometry, (0.1, 0.1, 0.1)),
+        "likelihood shape": lambda: update(belief, torch.zeros(1, 1, 5, 4)),
+        "captured batch": lambda: track_step(belief, torch.rand(2, 1, 8, 8), reference, odometry, 1.0),
+        "reference shape": lambda: track_step(belief, frame, torch.rand(32, 32), odometry, 1.0),
+        "metric": lambda: track_step(belief, frame, reference, odometry, 1.0, metric="ssd"),
+        "temperature": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature=0.0),
+        "patience": lambda: track_step(belief, frame, reference, odometry, 1.0, patience=0),
+        "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
+        "unknown setting": lambda: Tracker(reference, shift=3),
+        "no start": lambda: Tracker(reference)(frame, odometry, 1.0),
+    }
+    return calls[case]
+
+
+@pytest.mark.parametrize(
+    ("case", "error", "match"),
+    [
+        ("even yaw bins", ValueError, "yaw_bins must be odd"),
+        ("pose shape", ValueError, r"pose must have shape \(B, 3\)"),
+        ("pose dtype", TypeError, "pose must be a floating-point tensor"),
+        ("negative shifts", ValueError, "shifts must be an int >= 0"),
+        ("yaw step", ValueError, "yaw_step must be a finite number > 0"),
+        ("std", ValueError, "std must be three numbers"),
+        ("odometry shape", ValueError, r"odometry must have shape \(1, 3\)"),
+        ("odometry nan", ValueError, "odometry must be finite"),
+        ("negative noise", ValueError, "noise must be three standard deviations >= 0"),
+        ("not a belief", TypeError, "belief must be a Belief"),
+        ("likelihood shape", ValueError, "log_likelihood must have the belief's shape"),
+        ("captured batch", ValueError, r"captured must be \(B, 1, h, w\) with B = 1"),
+        ("reference shape", ValueError, r"reference must be one map \(1, 1, Hm, Wm\)"),
+        ("metric", ValueError, "metric must be one of"),
+        ("temperature", ValueError, "temperature must be a finite number > 0"),
+        ("patience", ValueError, "patience must be an int >= 1"),
+        ("truth shape", ValueError, r"truth \(N, 3\)"),
+        ("unknown setting", TypeError, r"unknown setting\(s\) \['shift'\]"),
+        ("no start", RuntimeError, "call start"),
+    ],
+)
+def test_bad_inputs_raise_naming_the_argument(case, error, match):
+    with pytest.raises(error, match=match):
+        _bad_call(case)()
+
+
+def _drive_module():
+    spec = importlib.util.spec_from_file_location("drive", REPO / "data_tools" / "drive.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_filter_ellipses_cover_the_truth_on_the_benchmark_drive():
+    drive_tools = _drive_module()
+    torch.set_num_threads(1)
+    drive = drive_tools.Drive(240, seed=0)  # the benchmark's default drive
+    with value_checks(False):  # the photograph's sky: featureless frames are weak matches, not errors
+        calibration = drive_tools.calibrate(drive, "ecr_analytic")
+        result = drive_tools.run_filter(drive, "ecr_analytic", calibration)
+        argmax = drive_tools.run_argmax(drive, "ecr_analytic")
+    covered = drive_tools.coverage(drive.truth, result)
+    assert 0.90 <= covered <= 0.98
+    difference = (result["pose"][1:, :2] - drive.truth[1:, :2])[..., None]
+    distance = (difference.transpose(1, 2) @ torch.linalg.solve(result["covariance"][1:, :2, :2], difference)).flatten()
+    assert float((distance <= CHI2_95_2D).double().mean()) == pytest.approx(covered)
+    filtered, searched = (drive_tools.summary(drive.truth, run["pose"]) for run in (result, argmax))
+    assert filtered["lateral_rms"] < searched["lateral_rms"]
+    assert filtered["longitudinal_rms"] < searched["longitudinal_rms"]
