@@ -109,14 +109,25 @@ def ecr_from_bin_sums(sums: BinSums) -> Tensor:
         >>> ecr_from_bin_sums(sums)  # (16 / 2 + 16 / 2 - 0) / 2 = 8 nats, minus 1 / 2 for 2 bins, over 4 pixels
         tensor([1.8750])
     """
-    occupied = sums.count > 0.5
-    safe_weight = torch.where(occupied, sums.weight, 1.0)
-    between = torch.where(occupied, sums.weighted_value.square() / safe_weight, 0.0).sum(-1)
-    total_weight = sums.weight.sum(-1)
-    between = between - sums.weighted_value.sum(-1).square() / total_weight.clamp_min(torch.finfo(between.dtype).tiny)
-    count = sums.count.sum(-1)
-    penalty = (occupied.sum(-1) - 1).clamp_min(0).to(between.dtype)
-    return torch.where(count > 0.5, 0.5 * (between - penalty) / count.clamp_min(1), 0.0)
+    return _ecr_from_sums(sums.count, sums.weight, sums.weighted_value, -1)
+
+
+def _ecr_from_sums(
+    count: Tensor, weight: Tensor, weighted_value: Tensor, dim: int, total_count: Tensor | None = None
+) -> Tensor:
+    """:func:`ecr_from_bin_sums` with the bins along ``dim`` (the score surfaces keep them first).
+
+    ``total_count``: the valid pixels, when ``count`` only marks the occupied bins (``count.sum(dim)`` otherwise).
+    """
+    occupied = count > 0.5
+    safe_weight = torch.where(occupied, weight, 1.0)
+    between = torch.where(occupied, weighted_value.square() / safe_weight, 0.0).sum(dim)
+    total_weight = weight.sum(dim)
+    between = between - weighted_value.sum(dim).square() / total_weight.clamp_min(torch.finfo(between.dtype).tiny)
+    if total_count is None:
+        total_count = count.sum(dim)
+    penalty = (occupied.sum(dim) - 1).clamp_min(0).to(between.dtype)
+    return torch.where(total_count > 0.5, 0.5 * (between - penalty) / total_count.clamp_min(1), 0.0)
 
 
 def ecr(

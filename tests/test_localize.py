@@ -8,9 +8,10 @@ from kornia.geometry.transform import rotate
 from skimage import data
 
 from enmi_torch.localization.cli import _command, main
+from enmi_torch.localization.mixture_surface import _rescore_peaks
 from enmi_torch.localization.peak import Localization, _quadratic_peak
-from enmi_torch.localization.search import Localizer, _rotated, localize
-from enmi_torch.localization.surface import direct_surface
+from enmi_torch.localization.search import Localizer, _cheap_surface, _rotated, localize
+from enmi_torch.localization.surface import direct_surface, ecr_surface
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
 
@@ -320,10 +321,16 @@ def _invalid_localize_cases(gravel_map):
         ({"bins": 1}, ValueError, "bins must be an int >= 2"),
         ({"weights": "gauss"}, ValueError, "weights must be one of"),
         ({"resample": "bicubic"}, ValueError, "resample must be one of"),
+        ({"search": "greedy"}, ValueError, "search must be one of"),
+        ({"search": "two_stage", "metric": "enmi"}, ValueError, "search='two_stage' needs metric='ecr'"),
+        ({"search": "two_stage", "response": "linear"}, ValueError, "search='two_stage' needs metric='ecr'"),
+        ({"search": "two_stage", "coarse_factor": 2}, ValueError, "search='two_stage' needs metric='ecr'"),
+        ({"search": "two_stage", "cheap_bins": 64}, ValueError, r"cheap_bins must be at most bins \(32\)"),
+        ({"search": "two_stage", "cheap_bins": 1}, ValueError, "bins must be an int >= 2"),
     ], local
 
 
-@pytest.mark.parametrize("index", range(30))
+@pytest.mark.parametrize("index", range(36))
 def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     cases, local = _invalid_localize_cases(gravel_map)
     change, error, message = cases[index]
@@ -478,3 +485,115 @@ def test_yaw_parabola_and_yaw_ranges_are_exact():
     assert _parabola_offset(values * 7 + 4).item() == pytest.approx(0.3)
     assert _parse_yaws("-6:6:2") == [-6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0]
     assert _parse_yaws("0:1:0.25") == [0.0, 0.25, 0.5, 0.75, 1.0]
+
+
+def _two_stage_case(gravel_map, seed):
+    """Two rotated, noisy crops (unequal sizes, a camera-like variance) with masks, two centres, five yaws."""
+    generator = torch.Generator().manual_seed(seed)
+    truths = torch.randint(-3, 4, (2, 2), generator=generator).tolist()
+    yaws = [-4.0, -2.0, 0.0, 2.0, 4.0]
+    picks = torch.randint(0, len(yaws), (2,), generator=generator).tolist()
+    crops = [
+        _cut(gravel_map, 80 + dy, 76 + dx, size=24, yaw=yaws[pick])
+        for (dx, dy), pick in zip(truths, picks, strict=True)
+    ]
+    local = torch.cat(crops)[..., :, :20]
+    variance = torch.logspace(1, 0, 24, dtype=torch.float64).reshape(24, 1).expand(24, 20) * 9
+    local = local + torch.randn(local.shape, generator=generator, dtype=local.dtype) * variance.sqrt()
+    captured_mask = torch.ones(24, 20, dtype=torch.bool)
+    captured_mask[:3, :4] = False
+    reference_mask = torch.ones(160, 160, dtype=torch.bool)
+    reference_mask[65:68, 60:95] = False  # crosses the top rows of the images near the truth: min_overlap bites
+    options = {
+        "shifts": (4, 5),
+        "center": torch.tensor([[80, 76], [80, 76]]),
+        "yaws": yaws,
+        "bins": 16,
+        "captured_mask": captured_mask,
+        "reference_mask": reference_mask,
+        "min_overlap": 0.97,
+    }
+    return local, variance, options
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_two_stage_search_equals_the_exhaustive_search_where_it_rescored_and_finds_its_argmax(gravel_map, seed):
+    local, variance, options = _two_stage_case(gravel_map, seed)
+    exhaustive = localize(local, gravel_map, variance, **options)
+    two_stage = localize(local, gravel_map, variance, search="two_stage", cheap_bins=4, **options)
+    rescored = torch.isfinite(two_stage.surface)
+    assert two_stage.surface.shape == exhaustive.surface.shape == (2, 5, 9, 11)
+    for sample in range(2):
+        assert 27 <= int(rescored[sample].sum()) < rescored[sample].numel() // 2
+    torch.testing.assert_close(two_stage.surface[rescored], exhaustive.surface[rescored], rtol=0, atol=1e-9)
+    assert torch.equal(two_stage.surface.flatten(1).argmax(1), exhaustive.surface.flatten(1).argmax(1))
+    torch.testing.assert_close(two_stage.pose, exhaustive.pose, rtol=0, atol=1e-9)
+    torch.testing.assert_close(two_stage.covariance, exhaustive.covariance, rtol=0, atol=1e-9)
+    # The best candidate's 3 x 3 shifts at its yaw and both neighbouring yaws were rescored (the sub-cell fits):
+    # finite, or excluded by min_overlap in the exhaustive search too.
+    known = rescored | torch.isinf(exhaustive.surface)
+    assert bool((~known).any())
+    for sample in range(2):
+        yaw, rest = divmod(int(two_stage.surface[sample].flatten().argmax()), 9 * 11)
+        row, col = divmod(rest, 11)
+        around = known[sample, max(yaw - 1, 0) : yaw + 2, max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2]
+        assert bool(around.all())
+
+
+def test_localizer_module_runs_the_two_stage_search_like_the_function(gravel_map):
+    local, variance, options = _two_stage_case(gravel_map, 1)
+    center = options.pop("center")
+    masks = {name: options.pop(name) for name in ("captured_mask", "reference_mask")}
+    options.update(search="two_stage", cheap_bins=8)
+    result = Localizer(**options)(local, gravel_map, variance, center=center, **masks)
+    expected = localize(local, gravel_map, variance, center=center, **options, **masks)
+    assert torch.equal(result.surface, expected.surface)
+    assert bool(torch.isinf(result.surface).any())
+
+
+def test_two_stage_search_in_float32_finds_the_exhaustive_pose(gravel_map):
+    local, variance, options = _two_stage_case(gravel_map, 3)
+    local, variance = local.float(), variance.float()
+    exhaustive = localize(local, gravel_map.float(), variance, **options)
+    two_stage = localize(local, gravel_map.float(), variance, search="two_stage", **options)
+    assert two_stage.surface.dtype == torch.float32
+    rescored = torch.isfinite(two_stage.surface)
+    torch.testing.assert_close(two_stage.surface[rescored], exhaustive.surface[rescored], rtol=1e-5, atol=1e-5)
+    assert torch.equal(two_stage.surface.flatten(1).argmax(1), exhaustive.surface.flatten(1).argmax(1))
+
+
+def test_rescoring_over_yaws_doubles_its_peaks_and_completes_the_best_neighbourhood():
+    # Cheap surface: peaks on a grid, ranked the farther from the target the better; exact score: the nearer the
+    # better, so the exact best always sits by the lowest-ranked peak and the number of peaks doubles up to the limit;
+    # the target lies on the rim of the last peak's neighbourhood.
+    target = (3, 10, 2)  # one yaw and one cell beyond the peak (2, 9, 1)
+    cheap = torch.full((4, 12, 12), -1.0, dtype=torch.float64)
+    peaks = [(yaw, row, col) for yaw in (0, 2) for row in (1, 5, 9) for col in (1, 6)]
+    peaks.sort(key=lambda peak: -sum(abs(a - b) for a, b in zip(peak, target, strict=True)))
+    for rank, peak in enumerate(peaks):
+        cheap[peak] = 100.0 - rank
+
+    def exact(placements):
+        distance = (placements - torch.tensor(target)).abs().sum(-1).to(torch.float64)
+        return 50.0 - distance
+
+    score = _rescore_peaks(cheap, exact, 2, 64, complete_best=True)
+    assert int(score.argmax()) == 3 * 144 + 10 * 12 + 2
+    assert all(bool(torch.isfinite(score[peak])) for peak in peaks)  # 2 -> 4 -> 8 -> 12 peaks
+    assert bool(torch.isfinite(score[2:4, 9:12, 1:4]).all())  # the best's own neighbourhood, completed
+    without = _rescore_peaks(cheap, exact, 2, 64)
+    assert not bool(torch.isfinite(without[2:4, 9:12, 1:4]).all())
+    assert int(without.argmax()) == int(score.argmax())
+
+
+@pytest.mark.parametrize("reference_masked", [False, True])
+def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_masked):
+    # Occupied bins read from the weight sums agree with the exact counts once round-off is far below a pixel weight.
+    local, variance, options = _two_stage_case(gravel_map, 4)
+    window = gravel_map[..., 60:100, 50:90]
+    reference_mask = options["reference_mask"][60:100, 50:90] if reference_masked else None
+    masks = {"captured_mask": options["captured_mask"], "reference_mask": reference_mask}
+    cheap = _cheap_surface(local, window, variance, *masks.values(), sample=0, bins=6, value_range=(40.0, 200.0))
+    expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), **masks)
+    torch.testing.assert_close(cheap.score, expected.score, rtol=0, atol=1e-9)
+    torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)

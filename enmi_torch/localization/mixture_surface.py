@@ -120,37 +120,64 @@ def _placement_scores(
     return _mixture_score(weights, reference_bins, valid.to(weights.dtype), bins, em_steps)[:, 0]
 
 
-def _rescore_peaks(cheap: Tensor, exact, candidates: int, max_candidates: int) -> Tensor:
-    """``(rows, cols)`` exact scores around the best peaks of ``cheap`` ``(rows, cols)``, ``-inf`` elsewhere.
+def _rescore_peaks(
+    cheap: Tensor, exact, candidates: int, max_candidates: int, *, complete_best: bool = False
+) -> Tensor:
+    """Exact scores around the best peaks of ``cheap`` (``(rows, cols)`` or ``(yaws, rows, cols)``), ``-inf`` elsewhere.
 
-    ``exact`` maps placements ``(P, 2)`` (row, column) to scores ``(P,)``. Peaks are ranked by cheap score; each
-    rescored placement belongs to the best-ranked peak it neighbours. The number of peaks doubles while the exact
-    best belongs to a peak in the lower half of those rescored (up to ``max_candidates`` or every peak).
+    ``exact`` maps placements ``(P, cheap.ndim)`` (indices) to scores ``(P,)``. Peaks are the finite maxima of their
+    3 x 3 (x 3) neighbourhood, ranked by cheap score; each rescored placement belongs to the best-ranked peak it
+    neighbours. The number of peaks doubles while the exact best belongs to a peak in the lower half of those rescored
+    (up to ``max_candidates`` or every peak). With ``complete_best`` the exact best's own neighbourhood is then
+    rescored too (and again while the best moves), for the sub-cell fit around it.
     """
-    rows, cols = cheap.shape
-    pooled = torch.nn.functional.max_pool2d(cheap[None, None], 3, stride=1, padding=1)[0, 0]
-    peaks = (cheap >= pooled).flatten().nonzero()[:, 0]
+    shape, device = cheap.shape, cheap.device
+    pooled = cheap
+    for axis in range(cheap.ndim):  # separable 3 x 3 (x 3) maximum: max_pool3d is slow on the CPU
+        padded = torch.nn.functional.pad(pooled.movedim(axis, -1), (1, 1), value=-torch.inf)
+        pooled = torch.maximum(torch.maximum(padded[..., :-2], padded[..., 1:-1]), padded[..., 2:]).movedim(-1, axis)
+    peaks = ((cheap >= pooled) & torch.isfinite(cheap)).flatten().nonzero()[:, 0]
     peaks = peaks[cheap.flatten()[peaks].argsort(descending=True, stable=True)]
     limit = min(max_candidates, peaks.numel())
-    offsets = torch.stack(torch.meshgrid(torch.arange(-1, 2), torch.arange(-1, 2), indexing="ij"), -1).reshape(9, 2)
-    offsets = offsets.to(cheap.device)
-    owner = torch.full((rows * cols,), limit, dtype=torch.long, device=cheap.device)
-    score = torch.full((rows * cols,), -torch.inf, dtype=cheap.dtype, device=cheap.device)
-    rescored = torch.zeros(rows * cols, dtype=torch.bool, device=cheap.device)
+    offsets = torch.cartesian_prod(*[torch.arange(-1, 2, device=device)] * cheap.ndim).reshape(-1, cheap.ndim)
+    sizes = torch.tensor(shape, device=device)
+    strides = torch.tensor(torch.empty(shape, device="meta").stride(), device=device)
+    owner = torch.full((cheap.numel(),), limit, dtype=torch.long, device=device)
+    score = torch.full((cheap.numel(),), -torch.inf, dtype=cheap.dtype, device=device)
+    rescored = torch.zeros(cheap.numel(), dtype=torch.bool, device=device)
+
+    def unravel(flat: Tensor) -> Tensor:
+        return torch.stack([flat // stride % size for stride, size in zip(strides, sizes, strict=True)], -1)
+
+    def neighbours(flat: Tensor) -> tuple[Tensor, Tensor]:
+        """Flat indices of the in-range neighbours of ``flat`` ``(n,)`` and whose neighbour each is."""
+        around = unravel(flat).unsqueeze(1) + offsets
+        inside = ((around >= 0) & (around < sizes)).all(-1)
+        source = torch.arange(flat.numel(), device=device).unsqueeze(1).expand_as(inside)
+        return (around[inside] * strides).sum(-1), source[inside]
+
+    def rescore(flat: Tensor) -> None:
+        score[flat] = exact(unravel(flat))
+        rescored[flat] = True
+
+    if limit == 0:
+        return score.view(shape)
     done, count = 0, min(candidates, limit)
     while True:
-        centres = torch.stack([peaks[done:count] // cols, peaks[done:count] % cols], -1)
-        around = (centres.unsqueeze(1) + offsets).reshape(-1, 2)
-        inside = (around[:, 0] >= 0) & (around[:, 0] < rows) & (around[:, 1] >= 0) & (around[:, 1] < cols)
-        ranks = torch.arange(done, count, device=cheap.device).repeat_interleave(9)[inside]
-        owner.scatter_reduce_(0, around[inside, 0] * cols + around[inside, 1], ranks, "amin")
-        new = ((owner < count) & ~rescored).nonzero()[:, 0]
-        score[new] = exact(torch.stack([new // cols, new % cols], -1))
-        rescored[new] = True
+        around, source = neighbours(peaks[done:count])
+        owner.scatter_reduce_(0, around, source + done, "amin")
+        rescore(((owner < count) & ~rescored).nonzero()[:, 0])
         best = int(score.argmax())
         if 2 * int(owner[best]) < count or count >= limit:
-            return score.view(rows, cols)
+            break
         done, count = count, min(2 * count, limit)
+    while complete_best:
+        around = neighbours(score.argmax().reshape(1))[0]
+        missing = around[~rescored[around]]
+        if missing.numel() == 0:
+            break
+        rescore(missing)
+    return score.view(shape)
 
 
 def direct_mixture_surface(

@@ -20,6 +20,7 @@ Convention:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -40,11 +41,26 @@ from enmi_torch._checks import (
     check_value_range,
 )
 from enmi_torch._layout import mask_map, variance_map
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS
-from enmi_torch.correlation_ratio import RESPONSES, check_model_variance
-from enmi_torch.localization.mixture_surface import mixture_surface
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index
+from enmi_torch.correlation_ratio import (
+    RESPONSES,
+    BinSums,
+    check_model_variance,
+    default_model_variance,
+    ecr_from_bin_sums,
+)
+from enmi_torch.localization.mixture_surface import _rescore_peaks, mixture_surface
 from enmi_torch.localization.peak import Localization, _read_peak, _separated_peaks
-from enmi_torch.localization.surface import METRICS, Surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.localization.surface import (
+    METRICS,
+    Surface,
+    _check_inputs,
+    _ecr_surface,
+    ecr_surface,
+    enmi_surface,
+    ncc_surface,
+    nmi_surface,
+)
 from enmi_torch.variance.base import VarianceModel, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
@@ -75,6 +91,8 @@ def localize(
     coarse_factor: int = 1,
     coarse_peaks: int = 3,
     resample: str = "nearest",
+    search: str = "exhaustive",
+    cheap_bins: int = 4,
 ) -> Localization:
     """Find the pose of each captured image in the prior map: the best of a window of shifts and a set of yaws.
 
@@ -118,6 +136,16 @@ def localize(
             pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
             geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
             noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
+        search: ``"exhaustive"`` (every shift and yaw scored) or ``"two_stage"`` (``metric="ecr"`` with the binned
+            response, ``coarse_factor=1``): ECR with ``cheap_bins`` bins (spanning the 2nd to 98th percentile of
+            the map window's valid cells, so that few bins still split the map's values) over every shift and yaw,
+            then the exact score at the 3 x 3 x 3 (shift, shift, yaw) neighbourhoods of its best 4 peaks; while the
+            exact best lies by a peak of the lower half of that cheap ranking, the number of peaks doubles (up to
+            64), then the exact best's own neighbourhood is completed for the sub-cell fit. Rescored candidates score
+            as in the exhaustive surface (up to round-off), the others are ``-inf`` in ``surface``. It misses the
+            exhaustive argmax when the cheap score ranks that peak below the ones it rescored and the doubling has
+            stopped (``data_tools/bench_search.py`` measures how often: rarely, at extreme noise).
+        cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.
 
     Returns:
         :class:`Localization`.
@@ -176,6 +204,15 @@ def localize(
         raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
     if em_steps != 0 and metric != "mixture":
         raise ValueError(f"em_steps is only used by metric='mixture', got metric={metric!r}")
+    check_option("search", search, SEARCHES)
+    if search == "two_stage":
+        if metric != "ecr" or response != "binned" or coarse_factor != 1:
+            raise ValueError(
+                "search='two_stage' needs metric='ecr', response='binned' and coarse_factor=1, got "
+                f"metric={metric!r}, response={response!r}, coarse_factor={coarse_factor!r}"
+            )
+        if check_bins(cheap_bins) > bins:
+            raise ValueError(f"cheap_bins must be at most bins ({bins}), got {cheap_bins}")
     check_search_memory(captured, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
 
     with torch.no_grad():
@@ -184,7 +221,7 @@ def localize(
         reference_valid = _reference_valid(reference, reference_mask)
         ecr_options = {"model_variance": model_variance, "response": response}
         score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps)
-        search = _Search(
+        searcher = _Search(
             captured,
             variance,
             captured_valid,
@@ -196,10 +233,13 @@ def localize(
             score_fn,
             resample,
         )
-        if coarse_factor == 1:
-            surface = search.exhaustive(min_overlap)
+        if search == "two_stage":
+            exact = {"bins": bins, "value_range": value_range, "model_variance": model_variance}
+            surface = searcher.two_stage(min_overlap, cheap_bins, exact)
+        elif coarse_factor == 1:
+            surface = searcher.exhaustive(min_overlap)
         else:
-            surface = search.coarse_to_fine(min_overlap, coarse_factor, coarse_peaks, exclusion_radius)
+            surface = searcher.coarse_to_fine(min_overlap, coarse_factor, coarse_peaks, exclusion_radius)
         return _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
 
 
@@ -222,6 +262,8 @@ class Localizer(nn.Module):
         coarse_factor: see :func:`localize`.
         coarse_peaks: see :func:`localize`.
         resample: see :func:`localize`.
+        search: see :func:`localize`.
+        cheap_bins: see :func:`localize`.
 
     Example:
         >>> from enmi_torch.variance import ConstantVariance
@@ -249,6 +291,8 @@ class Localizer(nn.Module):
         coarse_factor: int = 1,
         coarse_peaks: int = 3,
         resample: str = "nearest",
+        search: str = "exhaustive",
+        cheap_bins: int = 4,
     ) -> None:
         super().__init__()
         self.variance_model = check_variance_model(variance_model)
@@ -270,6 +314,8 @@ class Localizer(nn.Module):
             "coarse_factor": coarse_factor,
             "coarse_peaks": coarse_peaks,
             "resample": check_option("resample", resample, RESAMPLING),
+            "search": check_option("search", search, SEARCHES),
+            "cheap_bins": cheap_bins,
         }
 
     def forward(
@@ -411,6 +457,9 @@ class _ScoreFunction:
 
 
 RESAMPLING = ("nearest", "bilinear")
+SEARCHES = ("exhaustive", "two_stage")
+# Peaks of the two-stage search's cheap surface rescored first, and at most.
+_CANDIDATES, _MAX_CANDIDATES = 4, 64
 
 
 def _rotated(captured: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float], resample: str):
@@ -492,7 +541,7 @@ class _Search:
             self.captured[sample : sample + 1], variance, self.captured_valid[sample : sample + 1], yaws, self.resample
         )
 
-    def _surface(self, sample, captured, variance, valid, window, window_valid, min_overlap) -> Tensor:
+    def _surface(self, sample, captured, variance, valid, window, window_valid, min_overlap, score_fn=None) -> Tensor:
         """``(Y, Sy, Sx)`` scores of one sample's rotations.
 
         ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows.
@@ -503,7 +552,7 @@ class _Search:
         if not bool(window_valid.any()) or not bool(kept.any()):
             return result
         captured, valid = captured[kept], valid[kept]
-        surface = self.score_fn(
+        surface = (score_fn or self.score_fn)(
             captured, window, None if variance is None else variance[kept], valid, window_valid, sample=sample
         )
         needed = min_overlap * valid.flatten(1).sum(1).to(surface.overlap.dtype)
@@ -520,6 +569,26 @@ class _Search:
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
             captured, variance, valid = self._rotations(sample, self.yaws)
             surfaces.append(self._surface(sample, captured, variance, valid, window, window_valid, min_overlap))
+        return torch.stack(surfaces)
+
+    def two_stage(self, min_overlap: float, cheap_bins: int, exact: dict) -> Tensor:
+        """``(B, Y, 2 ry + 1, 2 rx + 1)``: a cheap surface over every shift and yaw, exact ECR around its peaks."""
+        height, width = self.captured.shape[2:]
+        rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
+        surfaces = []
+        for sample in range(self.captured.shape[0]):
+            window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
+            captured, variance, valid = self._rotations(sample, self.yaws)
+            cheap_fn = functools.partial(_cheap_surface, bins=cheap_bins, value_range=_spread(window, window_valid))
+            cheap = self._surface(sample, captured, variance, valid, window, window_valid, min_overlap, cheap_fn)
+            scorer = functools.partial(
+                _ecr_placements,
+                rotations=(captured, variance, valid),
+                window=(window, window_valid),
+                min_overlap=min_overlap,
+                **exact,
+            )
+            surfaces.append(_rescore_peaks(cheap, scorer, _CANDIDATES, _MAX_CANDIDATES, complete_best=True))
         return torch.stack(surfaces)
 
     def coarse_to_fine(self, min_overlap: float, factor: int, peaks: int, exclusion_radius: int) -> Tensor:
@@ -597,3 +666,61 @@ class _Search:
         full[(sample, yaw_indices, *region)] = fine
         evaluated[(sample, yaw_indices, *region)] = True
         return True
+
+
+def _cheap_surface(
+    captured, window, variance, captured_mask, reference_mask, *, sample: int, bins: int, value_range
+) -> Surface:
+    """The two-stage search's first stage: ECR with few bins, occupied bins read from the weight sums."""
+    inputs = _check_inputs(captured, window, captured_mask, reference_mask, value_range, variance)
+    return _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range, exact_counts=False)
+
+
+def _spread(window: Tensor, window_valid: Tensor) -> tuple[float, float]:
+    """The 2nd to 98th percentile of the window's valid cells: the cheap stage's few bins split the map's values."""
+    values = window[window_valid].float()
+    if values.numel() == 0:
+        return (0.0, 1.0)
+    low, high = torch.quantile(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
+    return (low, high) if high > low else (low, low + 1.0)
+
+
+def _ecr_placements(
+    placements: Tensor, *, rotations, window, min_overlap: float, bins: int, value_range, model_variance
+) -> Tensor:
+    """Exact ECR ``(P,)`` of the rotated captured images at placements ``(P, 3)`` (yaw index, row, column).
+
+    As :func:`~enmi_torch.localization.surface.ecr_surface` and :meth:`_Search._surface` score them: weights
+    ``1 / (variance + tau^2)`` over the captured valid pixels, values centred on each rotation's weighted mean, ``-inf``
+    below ``min_overlap`` or for a rotation without a valid pixel. Per shift, one matrix product of the rotations'
+    count, weight and weighted-value planes with the one-hot reference bins under the image (unmapped cells in a bin
+    left out) gives the per-bin sums: several times faster on the CPU than scattering every pixel.
+    """
+    captured, variance, valid = rotations
+    reference, reference_valid = window
+    dtype = torch.float64 if captured.dtype == torch.float64 else torch.float32
+    height, width = captured.shape[2:]
+    tau2 = check_model_variance(model_variance, bins, value_range)
+    yaws, yaw_index = torch.unique(placements[:, 0], return_inverse=True)  # only the rotations rescored
+    valid = valid[yaws, 0].flatten(1).to(dtype)
+    weight = valid / (variance[yaws, 0].to(dtype).flatten(1) + tau2)
+    values = captured[yaws, 0].to(dtype).flatten(1)
+    centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
+    planes = torch.stack([valid, weight, weight * (values - centre)], 1)  # (Y, 3, N)
+    reference_bins = torch.where(reference_valid, hard_bin_index(reference, bins, value_range), bins)[0, 0]
+    section_bins = reference_bins.unfold(0, height, 1).unfold(1, width, 1)
+    shifts, shift_index = torch.unique(placements[:, 1:], dim=0, return_inverse=True)
+    order = shift_index.argsort()
+    sums = planes.new_empty(placements.shape[0], 3, bins + 1)
+    one_hot = planes.new_zeros(height * width, bins + 1)
+    for (row, col), members in zip(
+        shifts.tolist(), order.split(torch.bincount(shift_index, minlength=len(shifts)).tolist()), strict=True
+    ):
+        cells = section_bins[row, col].reshape(-1, 1)
+        one_hot.scatter_(1, cells, 1.0)
+        sums[members] = planes[yaw_index[members]] @ one_hot
+        one_hot.scatter_(1, cells, 0.0)  # cheaper than clearing the whole matrix
+    score = ecr_from_bin_sums(BinSums(*sums[..., :bins].unbind(1)))
+    needed = min_overlap * valid.sum(1)[yaw_index]
+    count = sums[:, 0, :bins].sum(1)
+    return torch.where((count >= needed - 0.5) & (needed > 0), score, -math.inf)

@@ -45,10 +45,9 @@ from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights, reliability_weights
 from enmi_torch.correlation_ratio import (
     RESPONSES,
-    BinSums,
+    _ecr_from_sums,
     check_model_variance,
     ecr,
-    ecr_from_bin_sums,
     linear_llr,
 )
 from enmi_torch.histogram import joint_histogram
@@ -163,8 +162,8 @@ def ecr_surface(
 
     Per placement ECR needs, per reference bin ``j``, the count, the weight sum ``W_j`` and the weighted value sum
     ``S_j`` of the captured pixels over it: three correlations of captured planes (valid mask, weights, weighted values)
-    with each bin's indicator plane, ``3 K`` inverse FFTs instead of ENMI's ``K^2`` (two when ``captured`` has no mask:
-    the counts are then exact box sums).
+    with each bin's indicator plane, ``3 K`` inverse FFTs instead of ENMI's ``K^2`` (the
+    counts rounded to exact integers).
 
     Args:
         captured: noisy captured image ``(B, 1, h, w)``, floating point.
@@ -506,9 +505,8 @@ class _Correlator:
 
     def spectra(self, planes: Tensor, *, captured: bool) -> Tensor:
         """Transposed half spectra ``(K, Q, P)`` of planes ``(K, h, w)``, conjugated (captured) or scaled."""
-        # Columns first over the unpadded rows, then rows: no transform of the zero padding rows, no transposed copy.
-        half = torch.fft.rfft(planes, n=self.shape[1], dim=-1).transpose(-1, -2)
-        spectrum = torch.fft.fft(half, n=self.shape[0], dim=-1)
+        # One 2-D transform (faster than two 1-D passes with a transposed copy between), then one transposed copy.
+        spectrum = torch.fft.rfft2(planes, s=self.shape).transpose(-1, -2).contiguous()
         return spectrum.conj_physical_() if captured else spectrum.mul_(1.0 / (self.shape[0] * self.shape[1]))
 
     def blocks(self, captured: Tensor, reference: Tensor) -> Iterator[tuple[int, int, Tensor]]:
@@ -738,8 +736,15 @@ def _masked_mean(images: Tensor, valid: Tensor) -> Tensor:
     return ((images * valid).sum((-2, -1)) / valid.sum((-2, -1)).clamp_min(1)).reshape(-1, 1, 1)
 
 
-def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range: tuple[float, float]) -> Surface:
-    """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes."""
+def _ecr_surface(
+    inputs: _Inputs, model_variance: float, bins: int, value_range: tuple[float, float], *, exact_counts: bool = True
+) -> Surface:
+    """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes.
+
+    With ``exact_counts=False`` (the two-stage search's cheap stage) and a reference without masked cells the per-bin
+    counts are not correlated (two thirds of the correlations): a bin counts as occupied where its weight sum exceeds
+    half the smallest pixel weight (FFT round-off can flip a few), and the overlap is the captured pixel count.
+    """
     batch, height, width = inputs.captured.shape
     windows = inputs.reference.shape[0]
     correlator = _Correlator((height, width), tuple(inputs.reference.shape[1:]))
@@ -758,20 +763,23 @@ def _ecr_surface(inputs: _Inputs, model_variance: float, bins: int, value_range:
             reference = _ReferencePlanes(
                 correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, dtype
             )
-        local_complete = bool(inputs.captured_valid[sample].all())
-        planes = [weight[sample], weighted_value[sample]] + ([] if local_complete else [valid[sample]])
-        captured = correlator.spectra(torch.stack(planes), captured=True)
+        # The counts come from the valid plane's correlations, rounded (exact): cheaper than the box sums of the planes.
+        with_valid = exact_counts or not reference.complete
+        planes = torch.stack([weight[sample], weighted_value[sample]] + ([valid[sample]] if with_valid else []))
+        captured = correlator.spectra(planes, captured=True)
         sums = inputs.captured.new_empty(len(planes), reference.spectra.shape[0], correlator.rows, correlator.cols)
         for index, start, block in correlator.blocks(captured, reference.spectra):
             sums[index, start : start + block.shape[0]] = block
         present = reference.bin_count
-        if local_complete:
-            count = reference.counts(height, width, dtype)[:-1]
-        else:
+        if with_valid:
             count = sums[2, :present].round()
-        per_bin = BinSums(count.movedim(0, -1), sums[0, :present].movedim(0, -1), sums[1, :present].movedim(0, -1))
-        scores.append(ecr_from_bin_sums(per_bin))
-        overlaps.append(count.sum(0))
+            overlap = count.sum(0)
+        else:
+            smallest = weight[sample][inputs.captured_valid[sample]].amin()
+            count = (sums[0, :present] > 0.5 * smallest).to(dtype)
+            overlap = valid[sample].sum().expand(count.shape[1:])  # every placement lies on valid cells
+        scores.append(_ecr_from_sums(count, sums[0, :present], sums[1, :present], 0, overlap))
+        overlaps.append(overlap)
     return Surface(torch.stack(scores), torch.stack(overlaps))
 
 
