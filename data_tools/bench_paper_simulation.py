@@ -54,7 +54,7 @@ def separate_errors(captured, amplitudes, candidates, variance, score, log_prior
         if score == "nmi":
             return nmi_from_joint_histogram(joint_histogram(captured, reference))
         weights = "density" if score == "enmi_density" else "mass"
-        return enmi(captured, reference, variance.reshape(1, -1), weights=weights, log_prior=log_prior)
+        return enmi(captured, reference, variance.reshape(1, -1), kernel=weights, log_prior=log_prior)
 
     return score_against(candidates) >= score_against(amplitudes)
 

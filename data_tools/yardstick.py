@@ -26,7 +26,7 @@ Methods (32 bins for the binned scores):
 * ENMI (the paper's, mass weights) with the true variance and with the learned mask;
 * the other noise-aware scores, with the true variance: the mixture-likelihood score
   (:func:`enmi_torch.mixture_surface`: the ECR surface picks the peaks, rescored exactly), ENMI with truncated
-  likelihood weights (``weights="truncated"``) and with reliability-weighted counts (``reliability=True``);
+  likelihood weights (``kernel="truncated"``) and with reliability-weighted counts (``reliability=True``);
 * controls: ENMI with one uniform variance equal to the map's mean; ENMI with the *best* uniform variance of the grid
   mean x {1/16, 1/4, 1, 4, 16} picked per cell after the fact (an oracle no user has); hard NMI; NCC.
 
@@ -204,7 +204,7 @@ def _searches(local, window, true_variance, learned, mean, mask, options) -> dic
         "ECR uniform mean": lambda: ecr_surface(local, window, mean, **options),
         "ECR linear true": lambda: ecr_surface(local, window, true_variance, response="linear", **options),
         "Mixture true": lambda: mixture_surface(local, window, true_variance, **options),
-        "ENMI truncated true": lambda: enmi_surface(local, window, true_variance, weights="truncated", **options),
+        "ENMI truncated true": lambda: enmi_surface(local, window, true_variance, kernel="truncated", **options),
         "ENMI reliability true": lambda: enmi_surface(local, window, true_variance, reliability=True, **options),
         "ENMI true": lambda: enmi_surface(local, window, true_variance, **options),
         "ENMI learned": lambda: enmi_surface(local, window, learned, **options),

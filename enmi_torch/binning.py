@@ -104,7 +104,7 @@ def likelihood_weights(
     variance: Tensor,
     bins: int,
     value_range: tuple[float, float],
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
 ) -> Tensor:
     """Weights ``(..., bins)`` that a noisy value gives the bins under its Gaussian likelihood; rows sum to 1.
@@ -114,7 +114,7 @@ def likelihood_weights(
         variance: noise variance ``sigma^2`` of each value, broadcastable to ``values``, > 0.
         bins: number of bins.
         value_range: ``(low, high)``.
-        weights: ``"mass"``: the probability ``N(v, sigma^2)`` puts in each bin, the tails folded into the edge
+        kernel: ``"mass"``: the probability ``N(v, sigma^2)`` puts in each bin, the tails folded into the edge
             bins (the paper's ENMI); ``"density"``: the Gaussian density at the bin centres, normalised over the
             bins; ``"truncated"``: the masses inside the range only, renormalised (the bins' likelihoods, see
             :func:`truncated_likelihood_weights`; a noisy value near an edge no longer piles its tail there).
@@ -130,11 +130,11 @@ def likelihood_weights(
         >>> [round(x, 4) for x in w[0].tolist()]
         [0.1587, 0.6827, 0.1573, 0.0013]
     """
-    if weights == "truncated":
+    if kernel == "truncated":
         log_weights = _log_bin_masses(values, variance, bins, value_range)
         return torch.softmax(log_weights if log_prior is None else log_weights + log_prior, dim=-1)
     variance = variance.clamp_min(min_variance(bins, value_range))
-    if weights == "mass":
+    if kernel == "mass":
         interior = bin_edges(bins, value_range, dtype=values.dtype, device=values.device)[1:-1]
         std = variance.sqrt().unsqueeze(-1)
         cdf = 0.5 * (1 + torch.erf((interior - values.unsqueeze(-1)) / (std * math.sqrt(2))))
@@ -235,7 +235,7 @@ def likelihood_weights_vjp(
     upstream: Tensor,
     bins: int,
     value_range: tuple[float, float],
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Vector-Jacobian product of :func:`likelihood_weights`: ``upstream`` ``(..., bins)`` to (d values, d variance).
@@ -247,14 +247,14 @@ def likelihood_weights_vjp(
     floor = min_variance(bins, value_range)
     clamped = variance < floor
     variance = variance.clamp_min(floor)
-    if weights == "truncated" or (weights == "mass" and log_prior is not None):
+    if kernel == "truncated" or (kernel == "mass" and log_prior is not None):
         with torch.enable_grad():
             values = values.detach().requires_grad_()
             variance = variance.detach().requires_grad_()
-            result = likelihood_weights(values, variance, bins, value_range, weights, log_prior)
+            result = likelihood_weights(values, variance, bins, value_range, kernel, log_prior)
             grad_values, grad_variance = torch.autograd.grad(result, (values, variance), upstream)
         return grad_values, torch.where(clamped, 0.0, grad_variance)
-    if weights == "mass":
+    if kernel == "mass":
         # d weight_i / d cdf_k is +1 for i = k and -1 for i = k + 1.
         grad_values, grad_variance = _mass_weights_vjp(
             values, variance, upstream[..., :-1] - upstream[..., 1:], bins, value_range

@@ -135,7 +135,7 @@ def enmi(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
     reference_kernel: str = "hard",
     valid_mask: Tensor | None = None,
@@ -155,8 +155,10 @@ def enmi(
             ``(B, 1, H, W)``.
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``.
-        weights: ``"mass"`` (probability of each bin under ``N(v, sigma^2)``, tails in the edge bins) or
-            ``"density"`` (density at the bin centres, normalised over bins).
+        kernel: how a captured pixel's unit spreads over the bins (the name :func:`nmi` uses for its Parzen
+            windows): ``"mass"`` (probability of each bin under ``N(v, sigma^2)``, tails in the edge bins),
+            ``"density"`` (density at the bin centres, normalised over bins) or ``"truncated"`` (the masses inside the
+            range, renormalised).
         log_prior: optional log prior of the amplitude per bin, ``(bins,)`` or ``(B, bins)`` (e.g.
             :func:`~enmi_torch.binning.gaussian_log_prior`): weights become the MAP posterior.
         reference_kernel: ``"hard"`` (noiseless map, default) or ``"triangular"``/``"xu"`` for a reference gradient.
@@ -189,13 +191,13 @@ def enmi(
         tensor([[1.5003],
                 [1.0179]])
     """
-    check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+    check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
     if variance is None:
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
     if not isinstance(reliability, bool):
         raise TypeError(f"reliability must be True or False, got {reliability!r}")
     inputs = _prepare(
-        captured, reference, bins, value_range, variance, valid_mask, weights, reference_kernel, log_prior, "variance"
+        captured, reference, bins, value_range, variance, valid_mask, kernel, reference_kernel, log_prior, "variance"
     )
     if reliability:
         pixel_weight = reliability_weights(inputs.captured, inputs.variance, inputs.valid)

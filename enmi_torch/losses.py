@@ -77,7 +77,7 @@ def enmi_loss(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
     reference_kernel: str = "hard",
     valid_mask: Tensor | None = None,
@@ -98,7 +98,7 @@ def enmi_loss(
         variance,
         bins=bins,
         value_range=value_range,
-        weights=weights,
+        kernel=kernel,
         log_prior=log_prior,
         reference_kernel=reference_kernel,
         valid_mask=valid_mask,
@@ -218,7 +218,7 @@ class ENMILoss(nn.Module):
     Args:
         bins: number of bins.
         value_range: ``(low, high)`` of the bins.
-        weights: ``"mass"`` or ``"density"`` (see :func:`~enmi_torch.information.enmi`).
+        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` (see :func:`~enmi_torch.information.enmi`).
         log_prior: optional ``(bins,)`` log prior of the amplitudes (a non-persistent buffer).
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel`.
         reference_kernel: ``"hard"`` (default), ``"triangular"`` or ``"xu"``.
@@ -237,7 +237,7 @@ class ENMILoss(nn.Module):
         self,
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
-        weights: str = "mass",
+        kernel: str = "mass",
         log_prior: Tensor | None = None,
         variance_model: VarianceModel | None = None,
         reference_kernel: str = "hard",
@@ -246,7 +246,7 @@ class ENMILoss(nn.Module):
     ) -> None:
         super().__init__()
         _store_histogram_options(self, bins, value_range, reference_kernel, reduction)
-        self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        self.kernel = check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
         if not isinstance(reliability, bool):
             raise TypeError(f"reliability must be True or False, got {reliability!r}")
         self.reliability = reliability
@@ -269,7 +269,7 @@ class ENMILoss(nn.Module):
             variance,
             bins=self.bins,
             value_range=self.value_range,
-            weights=self.weights,
+            kernel=self.kernel,
             log_prior=self.log_prior,
             reference_kernel=self.reference_kernel,
             valid_mask=valid_mask,

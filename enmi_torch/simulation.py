@@ -193,10 +193,10 @@ def count_errors(
     if score == "nmi":
         values = nmi(captured, references, bins=bins, value_range=value_range)
     else:
-        weights = "density" if score == "enmi_density" else "mass"
+        kernel = "density" if score == "enmi_density" else "mass"
         variance = variance.reshape(1, -1)
         values = enmi(
-            captured, references, variance, bins=bins, value_range=value_range, weights=weights, log_prior=log_prior
+            captured, references, variance, bins=bins, value_range=value_range, kernel=kernel, log_prior=log_prior
         )
     return values[1] >= values[0]
 

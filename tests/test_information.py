@@ -60,11 +60,11 @@ def test_enmi_tends_to_hard_nmi_as_the_variance_vanishes(generator, dtype):
     hard = nmi(captured.to(dtype), reference.to(dtype))
     previous = None
     for variance in (1e-1, 1e-3, 1e-6, 1e-10):
-        gap = (enmi(captured.to(dtype), reference.to(dtype), variance, weights="mass") - hard).abs().max()
+        gap = (enmi(captured.to(dtype), reference.to(dtype), variance, kernel="mass") - hard).abs().max()
         assert previous is None or gap <= previous + 1e-7
         previous = gap
     assert previous < 1e-6
-    torch.testing.assert_close(enmi(captured.to(dtype), reference.to(dtype), 1e-8, weights="density"), hard)
+    torch.testing.assert_close(enmi(captured.to(dtype), reference.to(dtype), 1e-8, kernel="density"), hard)
 
 
 @pytest.mark.parametrize("score", ["nmi", "enmi"])
@@ -164,7 +164,7 @@ def test_gradcheck_enmi_captured_and_variance(generator, weights):
     variance = (torch.rand(1, 1, 6, 6, generator=generator, dtype=torch.float64) * 300 + 10).requires_grad_()
     valid = torch.rand(2, 1, 6, 6, generator=generator) > 0.2
     assert gradcheck(
-        lambda values, noise: enmi(values, reference, noise, bins=8, weights=weights, valid_mask=valid),
+        lambda values, noise: enmi(values, reference, noise, bins=8, kernel=weights, valid_mask=valid),
         (captured, variance),
     )
 
@@ -230,7 +230,7 @@ INVALID_INPUTS = [
     ({"value_range": (5.0, 5.0)}, ValueError, "value_range must be finite with low < high"),
     ({"value_range": (0.0, float("inf"))}, ValueError, "value_range must be finite"),
     ({"value_range": 3}, ValueError, "value_range must be a pair of finite numbers"),
-    ({"weights": "gaussian"}, ValueError, r"weights must be one of \['mass', 'density', 'truncated'\], got 'gaussian'"),
+    ({"kernel": "gaussian"}, ValueError, r"kernel must be one of \['mass', 'density', 'truncated'\], got 'gaussian'"),
     ({"reference_kernel": "soft"}, ValueError, "reference_kernel must be one of"),
     ({"log_prior": torch.zeros(5)}, ValueError, r"log_prior must have shape \(32,\)"),
 ]
@@ -344,12 +344,12 @@ def test_truncated_weights_keep_the_tails_out_of_the_edge_bins_and_tend_to_nmi(d
     captured = reference + torch.randn(reference.shape, generator=generator, dtype=dtype) * 3
     # Variance to 0: a unit count in the pixel's bin, the hard NMI (values kept away from bin edges).
     centred = (captured // 16) * 16 + 8
-    tiny = enmi(centred, reference, 1e-6, bins=16, weights="truncated")
+    tiny = enmi(centred, reference, 1e-6, bins=16, kernel="truncated")
     torch.testing.assert_close(tiny, nmi(centred, reference, bins=16), **tolerance)
     # Far from the range's ends the truncated and the folded masses agree; near them they do not.
-    inner = enmi(centred.clamp(40, 200), reference, 4.0, bins=16, weights="truncated")
+    inner = enmi(centred.clamp(40, 200), reference, 4.0, bins=16, kernel="truncated")
     torch.testing.assert_close(inner, enmi(centred.clamp(40, 200), reference, 4.0, bins=16), **tolerance)
     edge = 225 + reference / 10
-    folded = enmi(edge, reference, 400.0, bins=16, weights="mass")
-    truncated = enmi(edge, reference, 400.0, bins=16, weights="truncated")
+    folded = enmi(edge, reference, 400.0, bins=16, kernel="mass")
+    truncated = enmi(edge, reference, 400.0, bins=16, kernel="truncated")
     assert not torch.allclose(folded, truncated, rtol=1e-3)

@@ -319,7 +319,7 @@ def _invalid_localize_cases(gravel_map):
         ({"coarse_factor": 0}, ValueError, "coarse_factor must be an int >= 1"),
         ({"coarse_factor": 64}, ValueError, "coarse_factor must not exceed the captured image size"),
         ({"bins": 1}, ValueError, "bins must be an int >= 2"),
-        ({"weights": "gauss"}, ValueError, "weights must be one of"),
+        ({"kernel": "gauss"}, ValueError, "kernel must be one of"),
         ({"resample": "bicubic"}, ValueError, "resample must be one of"),
         ({"search": "greedy"}, ValueError, "search must be one of"),
         ({"search": "two_stage", "metric": "enmi"}, ValueError, "search='two_stage' needs metric='ecr'"),

@@ -27,8 +27,8 @@ class _HalfMaskedVariance(VarianceModel):
 def test_enmi_loss_equals_two_minus_the_function(images, reduction, tolerance):
     captured, reference = images
     log_prior = gaussian_log_prior(128, 32, 32, (0, 256), dtype=captured.dtype)
-    loss = ENMILoss(weights="density", log_prior=log_prior, reduction=reduction)(captured, reference, variance=50.0)
-    expected = 2 - enmi(captured, reference, 50.0, weights="density", log_prior=log_prior)
+    loss = ENMILoss(kernel="density", log_prior=log_prior, reduction=reduction)(captured, reference, variance=50.0)
+    expected = 2 - enmi(captured, reference, 50.0, kernel="density", log_prior=log_prior)
     expected = {"none": expected, "mean": expected.mean(), "sum": expected.sum()}[reduction]
     torch.testing.assert_close(loss, expected, **tolerance)
 
@@ -120,10 +120,10 @@ def test_functional_losses_equal_the_modules(images, reduction, tolerance):
             nmi_loss(captured, reference, bins=12, valid_mask=valid, reduction=reduction),
         ),
         (
-            ENMILoss(bins=12, weights="density", reduction=reduction)(
+            ENMILoss(bins=12, kernel="density", reduction=reduction)(
                 captured, reference, variance=variance, valid_mask=valid
             ),
-            enmi_loss(captured, reference, variance, bins=12, weights="density", valid_mask=valid, reduction=reduction),
+            enmi_loss(captured, reference, variance, bins=12, kernel="density", valid_mask=valid, reduction=reduction),
         ),
         (
             ECRLoss(bins=12, reduction=reduction)(captured, reference, variance=variance, valid_mask=valid),

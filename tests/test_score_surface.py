@@ -39,10 +39,10 @@ def _case(dtype, *, batch=2, local_shape=(9, 7), window_shape=(16, 15), seed=0):
 @pytest.mark.parametrize(
     ("metric", "options"),
     [
-        ("enmi", {"weights": "mass"}),
-        ("enmi", {"weights": "density"}),
-        ("enmi", {"weights": "truncated"}),
-        ("enmi", {"weights": "mass", "log_prior": "prior"}),
+        ("enmi", {"kernel": "mass"}),
+        ("enmi", {"kernel": "density"}),
+        ("enmi", {"kernel": "truncated"}),
+        ("enmi", {"kernel": "mass", "log_prior": "prior"}),
         ("nmi", {}),
         ("ncc", {}),
     ],
@@ -260,7 +260,7 @@ def _invalid_cases():
         ({"captured": local.masked_fill(captured_mask, math.nan)}, ValueError, "captured must be finite"),
         ({"bins": 1}, ValueError, "bins must be an int >= 2"),
         ({"value_range": (5.0, 1.0)}, ValueError, "value_range must be finite with low < high"),
-        ({"weights": "gauss"}, ValueError, "weights must be one of"),
+        ({"kernel": "gauss"}, ValueError, "kernel must be one of"),
         ({"log_prior": torch.zeros(3)}, ValueError, r"log_prior must have shape \(32,\)"),
     ], (local, window, variance, captured_mask, reference_mask)
 

@@ -145,7 +145,7 @@ def test_count_errors_scores_each_reference_like_a_separate_call(paper_tiles, sc
         if score == "nmi":
             return nmi(captured, reference)
         weights = "density" if score == "enmi_density" else "mass"
-        return enmi(captured, reference, variance.reshape(1, -1), weights=weights, log_prior=log_prior)
+        return enmi(captured, reference, variance.reshape(1, -1), kernel=weights, log_prior=log_prior)
 
     assert wrong.tolist() == (separate(trials.candidates) >= separate(trials.amplitudes)).tolist()
 
@@ -188,7 +188,7 @@ def test_trusted_scores_are_the_public_scores_bit_for_bit(paper_tiles, score, dt
         else:
             weights = "density" if score == "enmi_density" else "mass"
             prior = log_prior if score == "enmi_mass_prior" else None
-            expected = enmi(captured, references[:, part], variance.reshape(1, -1), weights=weights, log_prior=prior)
+            expected = enmi(captured, references[:, part], variance.reshape(1, -1), kernel=weights, log_prior=prior)
         assert torch.equal(scorer.scores(captured, part, variance, score), expected)
 
 

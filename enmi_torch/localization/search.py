@@ -78,7 +78,7 @@ def localize(
     metric: str = "ecr",
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
     model_variance: float | None = None,
     response: str = "binned",
@@ -113,7 +113,7 @@ def localize(
             information, :func:`~enmi_torch.mixture.mixture_information`), ``"nmi"`` (hard bins) or ``"ncc"``.
         bins: number of equal-width bins over ``value_range`` (ECR: reference bins; ENMI, NMI).
         value_range: ``(low, high)`` of the bins.
-        weights: ``"mass"``, ``"density"`` or ``"truncated"`` likelihood weights (ENMI).
+        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` likelihood weights (ENMI).
         log_prior: optional log prior of the amplitudes per bin (ENMI): ``(bins,)`` for every sample or
             ``(B, bins)``, one per sample (applied to all of that sample's yaws).
         model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
@@ -182,7 +182,7 @@ def localize(
         check_bins(bins)
         check_value_range(value_range)
     if metric in ("ecr", "enmi", "mixture"):
-        check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
         if variance is None:
             raise ValueError(f"variance must be given for metric={metric!r} (a number, a tensor or a VarianceModel)")
     elif variance is not None:
@@ -220,7 +220,7 @@ def localize(
         variance = _variance_map(captured, variance, captured_valid)
         reference_valid = _reference_valid(reference, reference_mask)
         ecr_options = {"model_variance": model_variance, "response": response}
-        score_fn = _ScoreFunction(metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps)
+        score_fn = _ScoreFunction(metric, bins, value_range, kernel, log_prior, ecr_options, reliability, em_steps)
         searcher = _Search(
             captured,
             variance,
@@ -254,7 +254,7 @@ class Localizer(nn.Module):
         metric: ``"ecr"``, ``"enmi"``, ``"nmi"`` or ``"ncc"``.
         bins: number of bins.
         value_range: ``(low, high)`` of the bins.
-        weights: ``"mass"``, ``"density"`` or ``"truncated"`` (ENMI).
+        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` (ENMI).
         log_prior: optional ``(bins,)`` log prior of the amplitudes (ENMI), a non-persistent buffer.
         model_variance: ``tau^2`` of ECR (see :func:`localize`).
         min_overlap: see :func:`localize`.
@@ -283,7 +283,7 @@ class Localizer(nn.Module):
         metric: str = "ecr",
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
-        weights: str = "mass",
+        kernel: str = "mass",
         log_prior: Tensor | None = None,
         model_variance: float | None = None,
         min_overlap: float = 0.5,
@@ -301,7 +301,7 @@ class Localizer(nn.Module):
         self.register_buffer("yaws", torch.tensor(_check_yaws(yaws), dtype=torch.float64), persistent=False)
         self.bins = check_bins(bins)
         self.value_range = check_value_range(value_range)
-        self.weights = check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+        self.kernel = check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
         self.model_variance = (
             None if model_variance is None else check_model_variance(model_variance, bins, value_range)
         )
@@ -341,7 +341,7 @@ class Localizer(nn.Module):
             metric=self.metric,
             bins=self.bins,
             value_range=self.value_range,
-            weights=self.weights,
+            kernel=self.kernel,
             log_prior=self.log_prior,
             model_variance=self.model_variance,
             captured_mask=captured_mask,
@@ -411,9 +411,9 @@ def _reference_valid(reference: Tensor, reference_mask: Tensor | None) -> Tensor
 class _ScoreFunction:
     """The chosen surface function with its settings."""
 
-    def __init__(self, metric, bins, value_range, weights, log_prior, ecr_options, reliability, em_steps) -> None:
+    def __init__(self, metric, bins, value_range, kernel, log_prior, ecr_options, reliability, em_steps) -> None:
         self.metric, self.bins, self.value_range = metric, bins, value_range
-        self.weights, self.log_prior, self.ecr_options = weights, log_prior, ecr_options
+        self.kernel, self.log_prior, self.ecr_options = kernel, log_prior, ecr_options
         self.reliability, self.em_steps = reliability, em_steps
 
     def __call__(self, captured, window, variance, captured_mask, reference_mask, *, sample: int = 0) -> Surface:
@@ -448,7 +448,7 @@ class _ScoreFunction:
             variance,
             bins=self.bins,
             value_range=self.value_range,
-            weights=self.weights,
+            kernel=self.kernel,
             # One prior per sample: every rotation of the sample takes that sample's row.
             log_prior=None if self.log_prior is None else self.log_prior[min(sample, self.log_prior.shape[0] - 1)],
             reliability=self.reliability,

@@ -88,7 +88,7 @@ def enmi_surface(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
@@ -103,7 +103,7 @@ def enmi_surface(
             or ``(B, 1, h, w)``.
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``; values outside are clipped into the edge bins.
-        weights: ``"mass"`` or ``"density"`` (see :func:`~enmi_torch.information.enmi`).
+        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` (see :func:`~enmi_torch.information.enmi`).
         log_prior: optional log prior of the amplitudes per bin, ``(bins,)``, ``(1, bins)`` or ``(B, bins)``.
         captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
         reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
@@ -124,7 +124,7 @@ def enmi_surface(
         >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
         (torch.Size([1, 7, 7]), (3, 2))
     """
-    check_option("weights", weights, LIKELIHOOD_WEIGHTS)
+    check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
     if variance is None:
         raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
     bins = check_bins(bins)
@@ -137,7 +137,7 @@ def enmi_surface(
     if not isinstance(reliability, bool):
         raise TypeError(f"reliability must be True or False, got {reliability!r}")
     with torch.no_grad():
-        plane_weights = likelihood_weights(inputs.captured, inputs.variance, bins, value_range, weights, log_prior)
+        plane_weights = likelihood_weights(inputs.captured, inputs.variance, bins, value_range, kernel, log_prior)
         pixel_weight = None
         if reliability:
             pixel_weight = reliability_weights(
@@ -280,7 +280,7 @@ def direct_surface(
     metric: str = "enmi",
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    weights: str = "mass",
+    kernel: str = "mass",
     log_prior: Tensor | None = None,
     model_variance: float | None = None,
     captured_mask: Tensor | None = None,
@@ -302,7 +302,7 @@ def direct_surface(
         metric: ``"ecr"``, ``"enmi"``, ``"mixture"``, ``"nmi"`` or ``"ncc"``.
         bins: number of bins (ECR, ENMI, NMI).
         value_range: ``(low, high)`` of the bins (ECR, ENMI, NMI).
-        weights: ``"mass"`` or ``"density"`` (ENMI).
+        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` (ENMI).
         log_prior: optional log prior per bin (ENMI).
         model_variance: ``tau^2`` (ECR).
         response: ``"binned"`` or ``"linear"`` (ECR).
@@ -397,7 +397,7 @@ def direct_surface(
                         value_range=value_range,
                         captured_variance=None if metric == "nmi" else inputs.variance[sample][None, None],
                         valid_mask=valid[None, None],
-                        kernel="hard" if metric == "nmi" else weights,
+                        kernel="hard" if metric == "nmi" else kernel,
                         log_prior=None if log_prior is None else log_prior[min(sample, log_prior.shape[0] - 1)],
                         pixel_weight=None if pixel_weight is None else pixel_weight[sample][None, None],
                     )
