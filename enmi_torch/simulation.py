@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_bins, check_option, check_positive_number, check_value_range
+from enmi_torch._checks import check_bins, check_option, check_positive_int, check_positive_number, check_value_range
 from enmi_torch.binning import gaussian_log_prior, hard_bin_index
 from enmi_torch.geometry.camera import RoadCamera, projected_area
 from enmi_torch.histogram import _likelihood_counts, _mean_surprisal
@@ -135,10 +135,8 @@ def draw_trials(
         >>> tuple(trials.amplitudes.shape), trials.candidates.dtype
         ((3, 66), torch.float32)
     """
-    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
-        raise ValueError(f"trials must be an int >= 1, got {trials!r}")
-    if isinstance(tiles, bool) or not isinstance(tiles, int) or tiles < 1:
-        raise ValueError(f"tiles must be an int >= 1, got {tiles!r}")
+    check_positive_int("trials", trials)
+    check_positive_int("tiles", tiles)
     if not isinstance(generator, torch.Generator):
         raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
     std = check_positive_number("amplitude_std", amplitude_std)
@@ -324,10 +322,8 @@ def error_rates(
         raise ValueError(f"noise_powers must be a non-empty sequence of finite numbers > 0, got {noise_powers!r}")
     for score in scores:
         check_option("score", score, SCORES)
-    if isinstance(chunk_trials, bool) or not isinstance(chunk_trials, int) or chunk_trials < 1:
-        raise ValueError(f"chunk_trials must be an int >= 1, got {chunk_trials!r}")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an int >= 1, got {workers!r}")
+    check_positive_int("chunk_trials", chunk_trials)
+    check_positive_int("workers", workers)
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     bins = check_bins(bins)
