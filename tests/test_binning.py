@@ -152,3 +152,28 @@ def test_truncated_weights_put_values_far_outside_the_range_in_the_nearest_edge_
     expected[:2, 0] = 1
     expected[2:, -1] = 1
     torch.testing.assert_close(weights, expected, rtol=0, atol=1e-12)
+
+
+def test_hard_bins_of_a_range_that_does_not_start_at_zero():
+    values = torch.tensor([-3.5, -3.0, -2.01, 0.0, 4.99, 5.0, 12.99, 13.0, 40.0], dtype=torch.float64)
+    edges = np.linspace(-3.0, 13.0, 9)[1:-1]  # 8 bins of width 2 over [-3, 13)
+    expected = np.digitize(values.numpy(), edges)
+    np.testing.assert_array_equal(hard_bin_index(values, 8, (-3.0, 13.0)).numpy(), expected)
+
+
+def test_truncated_weights_mix_their_near_and_tail_forms_consistently():
+    import mpmath
+
+    from enmi_torch.binning import truncated_likelihood_weights
+
+    # A value near the bottom of the range with a standard deviation of one bin: the near bins come from the erf
+    # form, the far ones (many standard deviations away) from the log_ndtr form; both must be on one scale.
+    values = torch.tensor([3.0, 13.0], dtype=torch.float64)
+    variance = torch.full_like(values, 16.0)
+    weights = truncated_likelihood_weights(values, variance, 12, (0.0, 48.0))
+    mpmath.mp.dps = 60
+    for row, value in enumerate(values.tolist()):
+        masses = [mpmath.ncdf((4 * (k + 1) - value) / 4) - mpmath.ncdf((4 * k - value) / 4) for k in range(12)]
+        total = sum(masses)
+        expected = torch.tensor([float(mpmath.log(mass / total)) for mass in masses], dtype=torch.float64)
+        torch.testing.assert_close(weights[row].log(), expected, rtol=1e-9, atol=1e-9)

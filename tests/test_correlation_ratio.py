@@ -219,3 +219,8 @@ def test_linear_response_equals_weighted_least_squares_and_ignores_inverted_cont
     assert uniform.item() == pytest.approx(closed_form.item(), rel=1e-4)
     with pytest.raises(ValueError, match="response must be one of"):
         ecr(linear, reference, variance, response="cubic")
+
+
+def test_default_model_variance_is_the_bin_quantisation_variance():
+    assert default_model_variance(32, (0.0, 256.0)) == pytest.approx(64 / 12)
+    assert default_model_variance(16, (-8.0, 8.0)) == pytest.approx(1 / 12)

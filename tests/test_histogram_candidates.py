@@ -192,3 +192,23 @@ def test_nmi_reads_hard_entropies_at_the_pixels_only_for_small_images(images, bi
     assert bool(calls) == pixel_wise  # 35 pixels: fewer than 32^2 / 4, more than 8^2 / 4
     counts = joint_histogram(captured, candidates, bins=bins, value_range=RANGE, valid_mask=valid)
     torch.testing.assert_close(score, nmi_from_joint_histogram(counts), rtol=0, atol=1e-12)
+
+
+def test_hard_entropies_by_sorted_runs_equal_the_counting_table(images, monkeypatch):
+    # Small images and 32 bins: the table path by default; with no table allowed, the sorted-run path.
+    captured, candidates, _, mask = images
+    table = hard_entropies(captured, candidates, bins=BINS, value_range=RANGE, valid_mask=mask)
+    monkeypatch.setattr(histogram_module, "_TABLE_CELLS", 0)
+    monkeypatch.setattr(histogram_module, "_cell_weights", _sorted_only(histogram_module._cell_weights))
+    runs = hard_entropies(captured, candidates, bins=BINS, value_range=RANGE, valid_mask=mask)
+    for expected, actual in zip(table, runs, strict=True):
+        torch.testing.assert_close(actual, expected, rtol=1e-12, atol=1e-12)
+
+
+def _sorted_only(cell_weights):
+    """``_cell_weights`` forced onto its sorted-run branch (as for large images with many bins)."""
+
+    def forced(cells, cell_count, weight):
+        return cell_weights(cells, max(cell_count, 16 * cells.shape[-1] + 1), weight)
+
+    return forced

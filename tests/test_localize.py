@@ -597,3 +597,56 @@ def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_mas
     expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), **masks)
     torch.testing.assert_close(cheap.score, expected.score, rtol=0, atol=1e-9)
     torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)
+
+
+def test_parabola_offset_is_clamped_on_both_sides_and_zero_without_curvature():
+    from enmi_torch.localization.peak import _parabola_offset
+
+    assert _parabola_offset(torch.tensor([1.0, 1.0, 0.0])).item() == -0.5
+    assert _parabola_offset(torch.tensor([0.0, 1.0, 1.0])).item() == 0.5
+    assert _parabola_offset(torch.tensor([3.0, 2.0, 0.0])).item() == -0.5  # the vertex lies 1.5 steps left
+    assert _parabola_offset(torch.tensor([0.0, 2.0, 3.0])).item() == 0.5
+    assert _parabola_offset(torch.tensor([1.0, 1.0, 1.0])).item() == 0.0  # flat: no vertex
+
+
+def test_separated_peaks_exclude_the_same_reach_on_every_side():
+    from enmi_torch.localization.peak import _separated_peaks
+
+    surface = torch.zeros(1, 9, 11, dtype=torch.float64)
+    surface[0, 4, 5] = 10.0
+    # Each just outside a radius of 2 around the best one: left, right, up, down.
+    for (row, col), value in {(4, 2): 6.0, (4, 8): 7.0, (1, 5): 8.0, (7, 5): 9.0}.items():
+        surface[0, row, col] = value
+    peaks = _separated_peaks(surface, 5, 2)
+    assert peaks == [(0, 4, 5), (0, 7, 5), (0, 1, 5), (0, 4, 8), (0, 4, 2)]
+
+
+@pytest.mark.parametrize(("row", "col"), [(4, 8), (4, 2), (1, 5), (7, 5)])
+def test_margin_looks_just_outside_the_exclusion_radius_on_every_side(row, col):
+    from enmi_torch.localization.peak import _read_peak
+
+    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
+    surface = (-((rows - 4) ** 2) - (cols - 5) ** 2).double()[None, None] * 0.1 + 10.0  # one smooth peak
+    surface[0, 0, row, col] = 9.9  # the runner-up, 3 cells away along one axis
+    result = _read_peak(surface, torch.zeros(1, dtype=torch.float64), (4, 5), exclusion_radius=2)
+    assert result.margin.item() == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("col", [0, 10])
+def test_a_peak_on_the_left_or_right_edge_has_no_fit(col):
+    from enmi_torch.localization.peak import _quadratic_peak
+
+    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
+    plane = -((rows - 4) ** 2) - (cols - col) ** 2
+    offset, covariance = _quadratic_peak(plane, 4, col)
+    assert offset.tolist() == [0.0, 0.0] and torch.isinf(covariance.diagonal()).all()
+
+
+def test_two_stage_search_keeps_candidates_with_exactly_the_required_overlap(gravel_map):
+    local = _cut(gravel_map, 82, 77)
+    # With min_overlap 1 every candidate inside the map needs all its pixels: the overlap equals the requirement.
+    options = {"shifts": (4, 6), "center": (80, 80), "min_overlap": 1.0}
+    exhaustive = localize(local, gravel_map, 25.0, **options)
+    two_stage = localize(local, gravel_map, 25.0, search="two_stage", **options)
+    torch.testing.assert_close(two_stage.pose, exhaustive.pose)
+    assert two_stage.pose.round().tolist() == [[-3.0, 2.0, 0.0]]

@@ -357,3 +357,32 @@ def test_ecr_linear_fft_surface_equals_direct_loop(masks, dtype):
     tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-3}
     torch.testing.assert_close(fast.score.double(), slow.score, **tolerance)
     torch.testing.assert_close(fast.overlap.double(), slow.overlap, rtol=0, atol=0)
+
+
+def test_float32_surfaces_score_a_constant_overlap_in_a_textured_window_as_one():
+    # FFT round-off from the texture around a constant region must not make its placements look informative.
+    generator = torch.Generator().manual_seed(0)
+    window = torch.rand(1, 1, 90, 90, generator=generator) * 256
+    window[..., 10:80, 10:80] = 100.0
+    local = torch.full((1, 1, 60, 60), 100.0)
+    inside = (0, slice(10, 21), slice(10, 21))  # placements whose footprint lies in the constant region
+    assert (nmi_surface(local, window).score[inside] == 1.0).all()
+    assert (enmi_surface(local, window, 1e-4).score[inside] == 1.0).all()
+
+
+@pytest.mark.parametrize("surface", ["ncc", "ecr_linear"])
+def test_moment_surfaces_of_a_batch_against_one_shared_reference_equal_per_sample_calls(surface, dtype):
+    generator = torch.Generator().manual_seed(4)
+    reference = (torch.rand(1, 1, 19, 23, generator=generator, dtype=torch.float64) * 256).to(dtype)
+    local = torch.stack([reference[0, :, 2:12, 3:16], reference[0, :, 6:16, 8:21]]) + 3
+    variance = torch.linspace(4.0, 40.0, 13, dtype=dtype).expand(1, 1, 10, 13)
+
+    def call(captured):
+        if surface == "ncc":
+            return ncc_surface(captured, reference).score
+        return score_surface.ecr_surface(captured, reference, variance, response="linear").score
+
+    batched = call(local)
+    for sample in range(2):
+        torch.testing.assert_close(batched[sample], call(local[sample : sample + 1])[0])
+    assert [divmod(int(batched[sample].flatten().argmax()), 11) for sample in range(2)] == [(2, 3), (6, 8)]

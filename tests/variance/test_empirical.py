@@ -161,3 +161,14 @@ def test_module_follows_device_and_dtype_policy(pairs, device):
 def test_invalid_inputs(call, error, match):
     with pytest.raises(error, match=match):
         call()
+
+
+def test_a_fully_masked_pair_adds_nothing(generator):
+    captured = torch.randn(3, 1, 4, 5, generator=generator, dtype=torch.float64) * 9
+    reference = torch.randn(3, 1, 4, 5, generator=generator, dtype=torch.float64)
+    valid = torch.ones(3, 1, 4, 5, dtype=torch.bool)
+    valid[1] = False  # a pair the sensor saw nothing of
+    variance, defined = empirical_variance(captured, reference, valid)
+    expected, expected_defined = empirical_variance(captured[[0, 2]], reference[[0, 2]])
+    torch.testing.assert_close(variance, expected)
+    assert torch.equal(defined, expected_defined)

@@ -164,3 +164,14 @@ def test_runs_on_the_device_of_its_input(device, camera):
     assert model(captured).device.type == device.type and model.valid_mask(captured).device.type == device.type
     noise_power = torch.tensor(0.01, dtype=torch.float64, device=device)
     torch.testing.assert_close(perspective_variance(camera, TILES, noise_power).cpu(), model(captured.double()).cpu())
+
+
+def test_noise_power_is_a_fixed_positive_buffer_unless_learnable(camera):
+    fixed = PerspectiveVariance(camera, TILES, 0.01)
+    assert list(fixed.parameters()) == []
+    assert len(list(PerspectiveVariance(camera, TILES, 0.01, learnable=True).parameters())) == 1
+    for bad in (0.0, -1.0):
+        with pytest.raises(ValueError, match="noise_power must be a finite number > 0"):
+            PerspectiveVariance(camera, TILES, bad)
+        with pytest.raises(ValueError, match=rf"noise_power must be > 0, got {bad}"):
+            perspective_variance(camera, TILES, torch.tensor(bad))
