@@ -71,6 +71,12 @@ def check_bool_mask(name: str, value: Any) -> Tensor:
     return value
 
 
+def check_variance_given(variance: Any) -> None:
+    """Raise ``ValueError`` if a score that weighs pixels by their noise got no ``variance``."""
+    if variance is None:
+        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+
+
 def check_floating(name: str, value: Any) -> Tensor:
     """Raise ``TypeError`` unless ``value`` is a floating-point tensor."""
     check_tensor(name, value)

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_option
+from enmi_torch._checks import check_floating, check_option, check_variance_given
 from enmi_torch.binning import bin_width, hard_bin_index
 from enmi_torch.histogram import _prepare
 
@@ -174,8 +174,7 @@ def ecr(
         tensor([[17.4752],
                 [ 0.4031]])
     """
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     check_floating("captured", captured)
     inputs = _prepare(
         captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False

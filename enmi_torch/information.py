@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_option
+from enmi_torch._checks import check_floating, check_option, check_variance_given
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, reliability_weights
 from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
 
@@ -192,8 +192,7 @@ def enmi(
                 [1.0179]])
     """
     check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     if not isinstance(reliability, bool):
         raise TypeError(f"reliability must be True or False, got {reliability!r}")
     inputs = _prepare(

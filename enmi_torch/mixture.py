@@ -36,6 +36,7 @@ from torch import Tensor
 from enmi_torch._checks import (
     check_floating,
     check_non_negative_int,
+    check_variance_given,
 )
 from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
 from enmi_torch.histogram import _prepare
@@ -84,8 +85,7 @@ def mixture_information(
         tensor([[1.5302],
                 [0.0894]])
     """
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     check_floating("captured", captured)
     em_steps = check_non_negative_int("em_steps", em_steps)
     inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance")

@@ -7,7 +7,13 @@ import functools
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_bins, check_non_negative_int, check_positive_int, check_value_range
+from enmi_torch._checks import (
+    check_bins,
+    check_non_negative_int,
+    check_positive_int,
+    check_value_range,
+    check_variance_given,
+)
 from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
 from enmi_torch.correlation_ratio import default_model_variance
 from enmi_torch.localization.surface import Surface, _check_inputs, _ecr_surface
@@ -66,8 +72,7 @@ def mixture_surface(
         >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
         (torch.Size([1, 7, 7]), (3, 2))
     """
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     em_steps = check_non_negative_int("em_steps", em_steps)
@@ -201,8 +206,7 @@ def direct_mixture_surface(
         >>> round(surface.score[0, 2, 1].item(), 4)  # log 16: 16 pixels, each its own bin
         2.7726
     """
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     em_steps = check_non_negative_int("em_steps", em_steps)

@@ -40,6 +40,7 @@ from enmi_torch._checks import (
     check_option,
     check_resolved_by_bins,
     check_value_range,
+    check_variance_given,
 )
 from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index, likelihood_weights, reliability_weights
@@ -125,8 +126,7 @@ def enmi_surface(
         (torch.Size([1, 7, 7]), (3, 2))
     """
     check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     inputs = _check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance, bins)
@@ -192,8 +192,7 @@ def ecr_surface(
         >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
         (torch.Size([1, 7, 7]), (3, 2))
     """
-    if variance is None:
-        raise ValueError("variance must be a number or a tensor of per-pixel variances, got None")
+    check_variance_given(variance)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     model_variance = check_model_variance(model_variance, bins, value_range)
