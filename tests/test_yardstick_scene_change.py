@@ -1,0 +1,87 @@
+import csv
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def yardstick():
+    path = REPO / "data_tools" / "yardstick" / "scene_change.py"
+    spec = importlib.util.spec_from_file_location("scene_change_yardstick", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _crop(trials, index, size):
+    row, col = trials.truth[index].tolist()
+    return trials.window[index, 0, row : row + size, col : col + size]
+
+
+def test_noise_only_trials_cut_the_captured_image_at_the_truth(yardstick):
+    trials = yardstick.make_trials("same", 5, 3)
+    again = yardstick.make_trials("same", 5, 3)
+    assert torch.equal(trials.clean, again.clean) and torch.equal(trials.draws, again.draws)
+    assert trials.window.shape == (5, 1, 88, 88) and trials.clean.shape == (5, 1, 64, 64)
+    for index in range(5):
+        assert torch.equal(trials.clean[index, 0], _crop(trials, index, 64))
+    shifts = trials.truth - yardstick.RADIUS
+    assert bool((shifts.abs() < yardstick.RADIUS).all()) and len({tuple(s) for s in shifts.tolist()}) > 1
+
+
+def test_changed_trials_share_poses_and_differ_from_the_map(yardstick):
+    same, changed = yardstick.make_trials("same", 4, 3), yardstick.make_trials("occluders@0.5", 4, 3)
+    assert torch.equal(same.truth, changed.truth) and torch.equal(same.window, changed.window)
+    for index in range(4):
+        difference = (changed.clean[index, 0] - _crop(changed, index, 64)).abs()
+        assert 0.05 < float((difference > 1).double().mean()) < 0.9
+
+
+def test_real_pairs_are_read_from_their_folders(yardstick, tmp_path):
+    folder = tmp_path / "another-date" / "place-1"
+    folder.mkdir(parents=True)
+    generator = np.random.default_rng(0)
+    reference = generator.uniform(0, 255, (100, 120)).astype(np.float32)
+    np.save(folder / "reference.npy", reference)
+    np.save(folder / "captured.npy", 255 - reference)
+    assert yardstick.real_cases(tmp_path) == ["real:another-date"]
+    trials = yardstick.make_trials("real:another-date", 3, 1, tmp_path)
+    for index in range(3):
+        torch.testing.assert_close(trials.clean[index, 0], 255 - _crop(trials, index, 64))
+
+
+@pytest.mark.parametrize("case", ["fog@0.5", "tone@2", "tone", "tone@0"])
+def test_bad_cases_are_refused(yardstick, case):
+    with pytest.raises(ValueError, match="case"):
+        yardstick.parse_case(case)
+
+
+def test_a_tiny_run_writes_its_tables(yardstick, tmp_path, capsys):
+    methods = ["ECR true", "ECR uniform x1", "ECR uniform x4", "NMI", "ECR est cheap"]
+    output = tmp_path / "run"
+    argv = ["--trials", "2", "--cases", "same", "tone@0.5", "--sensors", "camera-like", "--levels", "60"]
+    argv += ["--same-levels", "--methods", *methods, "--output", str(output), "--data", str(tmp_path / "none")]
+    yardstick.main(argv)
+    with (output / "results.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 2 * len(methods)
+    assert all(len(row["outcomes"]) == 2 and set(row["outcomes"]) <= {"0", "1"} for row in rows)
+    assert all(len(row["tau2"].split()) == (2 if row["method"] == "ECR est cheap" else 0) for row in rows)
+    report = (output / "report.md").read_text()
+    assert "| tone@0.5 | camera-like | 60 |" in report and "ECR best uniform" in report
+    capsys.readouterr()
+    yardstick.main(["--report", "--output", str(output)])
+    assert capsys.readouterr().out.strip() == report.strip()
+
+
+def test_command_line_mistakes_exit_with_2(yardstick, tmp_path, capsys):
+    for argv in (["--cases", "fog@1"], ["--trials", "1"], ["--cases", "real:nowhere", "--data", str(tmp_path)]):
+        with pytest.raises(SystemExit) as exit_info:
+            yardstick.main([*argv, "--output", str(tmp_path / "out")])
+        assert exit_info.value.code == 2
+    assert "case" in capsys.readouterr().err
