@@ -89,6 +89,50 @@ def model_variance_log_likelihood(
     return likelihood
 
 
+def score_model_variance(
+    captured: Tensor,
+    cells: Tensor,
+    variance: Tensor,
+    valid: Tensor,
+    bins: int,
+    *,
+    restricted: bool = True,
+    steps: int = 8,
+) -> Tensor:
+    """The (restricted) maximum-likelihood ``tau^2`` ``(B,)`` by Fisher scoring (:func:`estimate_model_variance`, fast).
+
+    From the moment estimate (unweighted bin means: mean squared residual less the mean noise variance, at least 0),
+    ``steps`` updates ``tau^2 += U / I`` (clamped at 0) with the score ``U = 1/2 sum w^2 r^2 - 1/2 sum w
+    [+ 1/2 sum_j sum_{n in j} w_n^2 / W_j]`` and the expected information ``I = 1/2 sum w^2``, ``w = 1 / (s + tau^2)``,
+    ``r`` the residuals about the weighted bin means. Each step is three per-bin sums over the pixels.
+    """
+    with torch.no_grad():
+        dtype = torch.float64
+        captured, variance = captured.to(dtype), variance.to(dtype)
+        mask = valid.to(dtype)
+        count = mask.sum(-1).clamp_min(1)
+        values = captured - (captured * mask).sum(-1, keepdim=True) / count[:, None]
+        counts = _bin_sums(mask, cells, bins)
+        means = _bin_sums(mask * values, cells, bins) / counts.clamp_min(1)
+        residual = values - means.gather(1, cells)
+        occupied = (counts > 0.5).sum(-1)
+        moment = (mask * residual.square()).sum(-1) / (count - occupied).clamp_min(1) - (mask * variance).sum(
+            -1
+        ) / count
+        tau2 = moment.clamp_min(0)
+        for _ in range(steps):
+            weight = mask / (variance + tau2[:, None])
+            weight_sums = _bin_sums(weight, cells, bins)
+            means = _bin_sums(weight * values, cells, bins) / weight_sums.clamp_min(1e-300)
+            residual = values - means.gather(1, cells)
+            squared = weight.square()
+            score = 0.5 * ((squared * residual.square()).sum(-1) - weight.sum(-1))
+            if restricted:
+                score = score + 0.5 * (_bin_sums(squared, cells, bins) / weight_sums.clamp_min(1e-300)).sum(-1)
+            tau2 = (tau2 + score / (0.5 * squared.sum(-1))).clamp_min(0)
+        return tau2
+
+
 def estimate_model_variance(
     captured: Tensor,
     cells: Tensor,
@@ -177,7 +221,7 @@ def estimate_at(inputs, placements: Tensor, bins: int, value_range, *, restricte
     """``tau^2`` ``(B,)`` estimated from the residuals of each captured image at its placement ``(B, 2)``."""
     captured, variance, valid = _flat_inputs(inputs)
     cells = _sections_cells(inputs, placements, bins, value_range)
-    return estimate_model_variance(captured, cells, variance, valid, bins, restricted=restricted)
+    return score_model_variance(captured, cells, variance, valid, bins, restricted=restricted)
 
 
 def _spread(window: Tensor) -> tuple[float, float]:
@@ -455,3 +499,161 @@ def _per_bin_variances(captured, cells, variance, valid, pooled, present, prior_
         weight = count / (count + prior_pixels)
         estimates.append(torch.exp(weight * single.clamp_min(1e-3).log() + (1 - weight) * pooled.clamp_min(1e-3).log()))
     return torch.stack(estimates)
+
+
+def _residuals(inputs, placements: Tensor, total: Tensor, bins: int, value_range) -> Tensor:
+    """Residuals ``(B, h, w)`` of each captured image about its bins' means weighted by ``1 / total`` ``(B, h, w)``."""
+    captured, _, valid = _flat_inputs(inputs)
+    cells = _sections_cells(inputs, placements, bins, value_range)
+    weight = valid.to(captured.dtype) / total.reshape(captured.shape)
+    means = _bin_sums(weight * captured, cells, bins) / _bin_sums(weight, cells, bins).clamp_min(1e-30)
+    return (captured - means.gather(1, cells)).where(valid, 0.0).view_as(inputs.captured)
+
+
+def _gaussian_smooth(planes: Tensor, sigma: float) -> Tensor:
+    """Gaussian blur of ``(B, h, w)`` planes with zero padding (divide by the blurred mask to normalise)."""
+    radius = max(1, math.ceil(3 * sigma))
+    taps = torch.arange(-radius, radius + 1, dtype=planes.dtype)
+    kernel = torch.exp(-0.5 * (taps / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    out = torch.nn.functional.conv2d(planes[:, None], kernel.view(1, 1, 1, -1), padding=(0, radius))
+    return torch.nn.functional.conv2d(out, kernel.view(1, 1, -1, 1), padding=(radius, 0))[:, 0]
+
+
+def local_model_variance(
+    inputs, placements: Tensor, bins: int, value_range, *, kind: str = "fisher", scale: float = 3.0, iterations: int = 1
+) -> tuple[Tensor, Tensor]:
+    """Model variance per captured pixel ``tau_n^2`` ``(B, h, w)`` from residuals at ``placements``; pooled ``(B,)``.
+
+    The pooled ``tau^2`` (REML) and the per-bin weighted means at the placement give residuals ``r_n``. ``kind``:
+
+    * ``"smooth"``: ``tau_n^2 = max(0, G * (r^2 - s) / G * 1)`` over the valid pixels, ``G`` a Gaussian of standard
+      deviation ``scale`` pixels (the misfit varies in space: occluders, shadows, changed ground);
+    * ``"fisher"``: the same with each pixel weighted by its Fisher information about ``tau^2``, ``1 / (s + tau^2)^2``
+      (one Fisher-scoring step of the local likelihood from the pooled ``tau^2``): noisy pixels lend little;
+    * ``"eb"``: ``"fisher"`` shrunk towards the pooled ``tau^2`` by empirical Bayes: ``tau^2 + l_n (local - tau^2)``,
+      ``l_n = V / (V + e_n)`` with ``e_n`` the local estimate's sampling variance (Gaussian residuals) and ``V`` the
+      spread of the local estimates over the image less their mean sampling variance (0: one ``tau^2`` for all);
+    * ``"student"``: the weight of a Student-t with ``scale`` degrees of freedom, ``w_n = (nu + 1) / (nu + r_n^2 /
+      (s_n + tau^2)) / (s_n + tau^2)``, as a total variance ``1 / w_n`` less ``s_n``.
+
+    ``iterations`` > 1 recomputes the bin means with the new weights and the local variances from their residuals.
+    """
+    pooled = estimate_at(inputs, placements, bins, value_range)
+    valid = inputs.captured_valid.to(inputs.captured.dtype)
+    noise = inputs.variance
+    total = noise + pooled.to(noise.dtype)[:, None, None]
+    base = total
+    for _ in range(iterations):
+        residual = _residuals(inputs, placements, total, bins, value_range)
+        if kind == "smooth":
+            excess = _gaussian_smooth(valid * (residual.square() - noise), scale)
+            local = (excess / _gaussian_smooth(valid, scale).clamp_min(1e-12)).clamp_min(0)
+        elif kind == "fisher":
+            information = valid / base.square()
+            excess = _gaussian_smooth(information * (residual.square() - noise), scale)
+            local = (excess / _gaussian_smooth(information, scale).clamp_min(1e-300)).clamp_min(0)
+        elif kind == "eb":
+            local = _shrunk_local(residual, noise, valid, base, pooled.to(noise.dtype), scale)
+        elif kind == "student":
+            local = (base * (scale + residual.square() / base) / (scale + 1) - noise).clamp_min(0)
+        else:
+            raise ValueError(f"kind must be 'smooth', 'fisher' or 'student', got {kind!r}")
+        total = noise + local
+    return torch.where(inputs.captured_valid, total - noise, 0.0), pooled
+
+
+def _shrunk_local(residual, noise, valid, base, pooled, scale) -> Tensor:
+    """Empirical-Bayes local ``tau_n^2``: Fisher-weighted local moments shrunk towards ``pooled`` ``(B,)``."""
+    information = valid / base.square()
+    weight_sum = _gaussian_smooth(information, scale).clamp_min(1e-300)
+    local = _gaussian_smooth(information * (residual.square() - noise), scale) / weight_sum
+    # Var(r^2) = 2 (s + tau^2)^2 per pixel: the local estimate's variance is 2 sum g^2 w^2 / (sum g w^2)^2.
+    squared_kernel_sum = _gaussian_smooth(information * base.square() * information, scale / math.sqrt(2))
+    norm = 1 / (2 * math.sqrt(math.pi) * scale)  # sum of g^2 relative to a Gaussian of sigma / sqrt(2), per axis
+    sampling = 2 * squared_kernel_sum * norm**2 / weight_sum.square()
+    count = valid.sum((-2, -1)).clamp_min(1)
+    mean = (valid * local).sum((-2, -1)) / count
+    spread = (valid * (local - mean[:, None, None]).square()).sum((-2, -1)) / count
+    between = (spread - (valid * sampling).sum((-2, -1)) / count).clamp_min(0)[:, None, None]
+    share = between / (between + sampling).clamp_min(1e-300)
+    return (pooled[:, None, None] + share * (local - pooled[:, None, None])).clamp_min(0)
+
+
+def separated_peaks(score: Tensor, count: int, radius: int = 2) -> Tensor:
+    """The ``count`` best placements ``(count, B, 2)`` of ``score`` ``(B, Sy, Sx)``, each ``radius`` cells apart."""
+    score = score.clone()
+    peaks = []
+    for _ in range(count):
+        peak = _argmax_placements(score)
+        peaks.append(peak)
+        for sample, (row, col) in enumerate(peak.tolist()):
+            score[sample, max(0, row - radius) : row + radius + 1, max(0, col - radius) : col + radius + 1] = -math.inf
+    return torch.stack(peaks)
+
+
+def field_log_likelihood(inputs, placements: Tensor, total: Tensor, bins: int, value_range) -> Tensor:
+    """Gaussian log-likelihood ``(B,)`` of the captured images at ``placements`` with variances ``total`` (h, w).
+
+    ``-1/2 sum_n (log total_n + r_n^2 / total_n)`` over the valid pixels, ``r_n`` the residuals about the bins'
+    weighted means (profiled).
+    """
+    residual = _residuals(inputs, placements, total, bins, value_range)
+    valid = inputs.captured_valid.to(residual.dtype)
+    return -0.5 * (valid * (total.log() + residual.square() / total)).sum((-2, -1))
+
+
+def ecr_local_surface(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    captured_mask: Tensor | None = None,
+    first: str = "cheap",
+    kind: str = "fisher",
+    scale: float = 3.0,
+    iterations: int = 1,
+    rounds: int = 1,
+    placements: Tensor | None = None,
+    candidates: int = 1,
+    select: str = "field",
+) -> tuple[Surface, Tensor]:
+    """ECR with a model variance per captured pixel (:func:`local_model_variance`) at a first pass's best placement.
+
+    The ECR surface with ``variance = s + tau_n^2`` (model variance 0); ``rounds`` > 1 re-estimates at the new best
+    placement and rescores. With ``candidates`` > 1, the field is fitted at each of the first pass's best separated
+    placements and the one of highest likelihood (:func:`field_log_likelihood`) is kept (joint maximum likelihood
+    over placement and field among the candidates; ``select="pooled"``: with one ``tau^2`` per candidate, the profile
+    likelihood over placement and ``tau^2``). Returns the surface and the pooled ``tau^2`` ``(B,)``.
+    """
+    with torch.no_grad():
+        inputs = _check_inputs(captured, reference, captured_mask, None, value_range, variance)
+        if placements is not None:
+            best = placements
+        elif candidates == 1:
+            best = _argmax_placements(first_pass(inputs, bins, value_range, first))
+        else:
+            peaks = separated_peaks(first_pass(inputs, bins, value_range, first), candidates)
+            likelihoods = []
+            for peak in peaks:
+                if select == "pooled":
+                    pooled = estimate_at(inputs, peak, bins, value_range).to(inputs.variance.dtype)
+                    total = inputs.variance + pooled[:, None, None]
+                else:
+                    local, _ = local_model_variance(
+                        inputs, peak, bins, value_range, kind=kind, scale=scale, iterations=iterations
+                    )
+                    total = torch.where(inputs.captured_valid, inputs.variance + local, 1.0)
+                likelihoods.append(field_log_likelihood(inputs, peak, total, bins, value_range))
+            choice = torch.stack(likelihoods).argmax(0)
+            best = peaks[choice, torch.arange(peaks.shape[1])]
+        for _ in range(rounds):
+            local, pooled = local_model_variance(
+                inputs, best, bins, value_range, kind=kind, scale=scale, iterations=iterations
+            )
+            total = torch.where(inputs.captured_valid, inputs.variance + local, 1.0)
+            surface = _ecr_surface(inputs._replace(variance=total), 0.0, bins, value_range)
+            best = _argmax_placements(surface.score)
+        return surface, pooled

@@ -44,13 +44,17 @@ def test_changed_trials_share_poses_and_differ_from_the_map(yardstick):
 
 def test_real_pairs_are_read_from_their_folders(yardstick, tmp_path):
     folder = tmp_path / "another-date" / "place-1"
+    (tmp_path / "another-date" / "other-1").mkdir(parents=True)  # no arrays: not a pair
     folder.mkdir(parents=True)
     generator = np.random.default_rng(0)
     reference = generator.uniform(0, 255, (100, 120)).astype(np.float32)
     np.save(folder / "reference.npy", reference)
     np.save(folder / "captured.npy", 255 - reference)
-    assert yardstick.real_cases(tmp_path) == ["real:another-date"]
-    trials = yardstick.make_trials("real:another-date", 3, 1, tmp_path)
+    assert yardstick.real_cases(tmp_path) == ["real:another-date/place"]
+    (folder / "meta.json").write_text('{"dataset": "survey"}')
+    assert yardstick.real_cases(tmp_path) == ["real:another-date/survey"]
+    assert yardstick.pair_folders(tmp_path, "another-date") == [folder]
+    trials = yardstick.make_trials("real:another-date/survey", 3, 1, tmp_path)
     for index in range(3):
         torch.testing.assert_close(trials.clean[index, 0], 255 - _crop(trials, index, 64))
 

@@ -49,6 +49,9 @@ def _surfaces(local, window, variance) -> dict:
         ),
         "profile 6": lambda: model_variance.ecr_profile_surface(local, window, variance),
         "per-bin": lambda: model_variance.ecr_bin_variance_surface(local, window, variance),
+        "local fisher": lambda: model_variance.ecr_local_surface(local, window, variance),
+        "local fisher default": lambda: model_variance.ecr_local_surface(local, window, variance, first="default"),
+        "local fisher c8": lambda: model_variance.ecr_local_surface(local, window, variance, candidates=8),
     }
 
 

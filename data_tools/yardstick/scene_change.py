@@ -11,8 +11,9 @@ Cases:
 * ``<change>@<strength>``: the map window changed by :mod:`enmi_torch.data.scene_change` (``illumination``,
   ``shadows``, ``occluders``, ``tone``, ``resample_blur``, ``warp``, or ``mixed``: all of them) before the captured
   image is cut from it; maps are scikit-image's photographs of ``data_tools/yardstick.py`` (one drawn per trial);
-* ``real:<case>``: real pairs from ``--data DIR`` (``DIR/<case>/<pair>/reference.npy`` and ``captured.npy``, grey
-  levels in [0, 255], co-registered; one pair drawn per trial), when the folder is there.
+* ``real:<case>/<dataset>``: real pairs from ``--data DIR`` (``DIR/<case>/<dataset>-<id>/reference.npy`` and
+  ``captured.npy``, grey levels in [0, 255], co-registered; one pair of the dataset drawn per trial; ``real:<case>``:
+  all its datasets), when the folder is there; ``data.json`` lists the pair folders each case drew from.
 
 Sensors: ``camera-like`` (far rows ~100x noisier) and ``lidar-like`` (~100x at the corners), the profiles of
 ``data_tools/yardstick.py``, scaled so that the mean noise standard deviation is the level. Levels per case and sensor:
@@ -144,6 +145,17 @@ def _per_bin(context: Context):
     return surface.score, tau2
 
 
+def _local(oracle: bool = False, **options):
+    def method(context: Context):
+        placements = context.truth if oracle else None
+        surface, tau2 = model_variance.ecr_local_surface(
+            context.local, context.window, context.variance, bins=BINS, placements=placements, **options
+        )
+        return surface.score, tau2
+
+    return method
+
+
 def _factor_name(factor: float) -> str:
     return f"x{factor:g}"
 
@@ -166,6 +178,27 @@ METHODS: dict[str, Callable[[Context], tuple[torch.Tensor, torch.Tensor | None]]
     "ECR profile 6": _profile((1.0, 1 / 4, 1 / 16, 1 / 64, 1 / 256, 1 / 1024)),
     "ECR profile 3": _profile((1.0, 1 / 16, 1 / 256)),
     "ECR per-bin": _per_bin,
+    "ECR local smooth": _local(kind="smooth", scale=3.0),
+    "ECR local smooth r2": _local(kind="smooth", scale=3.0, rounds=2),
+    "ECR local student": _local(kind="student", scale=4.0),
+    "ECR local fisher": _local(kind="fisher", scale=3.0),
+    "ECR local fisher i2": _local(kind="fisher", scale=3.0, iterations=2),
+    "ECR local fisher s2": _local(kind="fisher", scale=2.0),
+    "ECR local fisher s5": _local(kind="fisher", scale=5.0),
+    "ECR local smooth i2": _local(kind="smooth", scale=3.0, iterations=2),
+    "ECR local eb": _local(kind="eb", scale=3.0),
+    "ECR local fisher c3": _local(kind="fisher", scale=3.0, candidates=3),
+    "ECR local fisher c8 pooled": _local(kind="fisher", scale=3.0, candidates=8, select="pooled"),
+    "ECR local fisher default": _local(kind="fisher", scale=3.0, first="default"),
+    "ECR local fisher uniform": _local(kind="fisher", scale=3.0, first="uniform"),
+    "ECR local fisher c8": _local(kind="fisher", scale=3.0, candidates=8),
+    "ECR local fisher i2 c8": _local(kind="fisher", scale=3.0, iterations=2, candidates=8),
+    "ECR local fisher c8 default": _local(kind="fisher", scale=3.0, candidates=8, first="default"),
+    "ECR local fisher oracle": _local(oracle=True, kind="fisher", scale=3.0),
+    "ECR local fisher i2 oracle": _local(oracle=True, kind="fisher", scale=3.0, iterations=2),
+    "ECR local eb i2": _local(kind="eb", scale=3.0, iterations=2),
+    "ECR local eb s5": _local(kind="eb", scale=5.0),
+    "ECR local eb s2": _local(kind="eb", scale=2.0),
 }
 # Columns of the report: the grids collapse into their mean and their best (picked per cell after the fact).
 DERIVED = {"ECR uniform mean": "ECR uniform x1", "ENMI uniform mean": "ENMI uniform x1"}
@@ -195,14 +228,39 @@ def parse_case(case: str) -> tuple[str, float]:
     return kind, value
 
 
-def real_pairs(data: Path, case: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The ``(reference, captured)`` grey arrays of ``data/<case>/*/``, those at least the window's size."""
+def dataset_of(folder: Path) -> str:
+    """A pair folder's dataset: ``meta.json``'s ``"dataset"``, else the folder name less its last ``-<id>``."""
+    meta = folder / "meta.json"
+    if meta.exists():
+        try:
+            return str(json.loads(meta.read_text())["dataset"])
+        except (ValueError, KeyError):
+            pass
+    return folder.name.rsplit("-", 1)[0]
+
+
+def pair_folders(data: Path, name: str) -> list[Path]:
+    """The pair folders of ``name``: ``<case>`` (all of ``data/<case>/``) or ``<case>/<dataset>``."""
+    case, _, dataset = name.partition("/")
     if not (data / case).is_dir():
-        raise ValueError(f"--data: no folder {data / case} for case 'real:{case}'")
+        raise ValueError(f"--data: no folder {data / case} for case 'real:{name}'")
+    folders = [
+        path
+        for path in sorted((data / case).iterdir())
+        if path.is_dir()
+        and (path / "reference.npy").exists()
+        and (path / "captured.npy").exists()
+        and (not dataset or dataset_of(path) == dataset)
+    ]
+    if not folders:
+        raise ValueError(f"--data: no pair folder for case 'real:{name}' under {data / case}")
+    return folders
+
+
+def real_pairs(data: Path, name: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ``(reference, captured)`` grey arrays of :func:`pair_folders`, those at least the window's size."""
     pairs = []
-    for folder in sorted(path for path in (data / case).iterdir() if path.is_dir()):
-        if not (folder / "reference.npy").exists() or not (folder / "captured.npy").exists():
-            continue
+    for folder in pair_folders(data, name):
         reference = read_npy(folder / "reference.npy", "--data").astype(np.float64)
         captured = read_npy(folder / "captured.npy", "--data").astype(np.float64)
         if reference.ndim == 3:
@@ -212,14 +270,19 @@ def real_pairs(data: Path, case: str) -> list[tuple[np.ndarray, np.ndarray]]:
         if min(reference.shape) >= SPAN:
             pairs.append((reference, captured))
     if not pairs:
-        raise ValueError(f"--data: no pair of at least {SPAN} x {SPAN} under {data / case}")
+        raise ValueError(f"--data: no pair of at least {SPAN} x {SPAN} for case 'real:{name}'")
     return pairs
 
 
 def real_cases(data: Path | None) -> list[str]:
+    """One case per case folder and dataset (:func:`dataset_of`): ``real:another-date/oscd``, ..."""
     if data is None or not data.is_dir():
         return []
-    return [f"real:{path.name}" for path in sorted(data.iterdir()) if path.is_dir() and any(path.iterdir())]
+    names = []
+    for case in sorted(path for path in data.iterdir() if path.is_dir()):
+        datasets = sorted({dataset_of(folder) for folder in case.iterdir() if (folder / "captured.npy").exists()})
+        names += [f"real:{case.name}/{dataset}" for dataset in datasets]
+    return names
 
 
 def make_trials(case: str, trials: int, seed: int, data: Path | None = None) -> Trials:
@@ -512,7 +575,9 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.trials < 2 or args.jobs < 1 or args.calibration_trials < 2:
         parser.error(f"--trials, --calibration-trials >= 2 and --jobs >= 1, got {args.trials}, {args.jobs}")
-    candidates = [method for method in METHODS if method.startswith(("ECR est", "ECR profile", "ECR per-bin"))]
+    candidates = [
+        method for method in METHODS if method.startswith(("ECR est", "ECR profile", "ECR per-bin", "ECR local"))
+    ]
     results, tau_path = args.output / "results.csv", args.output / "tau.csv"
     calibration_path, report_path = args.output / "calibration.json", args.output / "report.md"
     if args.report:
@@ -529,11 +594,16 @@ def main(argv=None) -> None:
             if case.startswith("real:"):
                 if data is None:
                     raise ValueError(f"case {case!r} needs --data, and {args.data} is not a folder")
-                real_pairs(data, case[5:])
+                pair_folders(data, case[5:])
         except ValueError as error:
             parser.error(f"--cases: {error}")
-    _check_untracked([results, tau_path, calibration_path, report_path])
+    data_path = args.output / "data.json"
+    _check_untracked([results, tau_path, calibration_path, report_path, data_path])
     args.output.mkdir(parents=True, exist_ok=True)
+    used = {
+        case: [str(folder) for folder in pair_folders(data, case[5:])] for case in cases if case.startswith("real:")
+    }
+    data_path.write_text(json.dumps(used, indent=1))
     start = time.perf_counter()
     units = [(case, sensor) for case in cases for sensor in args.sensors]
     case_seed = {case: args.seed * 1000 + index for index, case in enumerate(cases)}
