@@ -77,7 +77,7 @@ LOCAL, RADIUS, BINS = NOISE_ONLY.LOCAL, NOISE_ONLY.RADIUS, NOISE_ONLY.BINS
 SPAN = LOCAL + 2 * RADIUS
 SENSORS = ("camera-like", "lidar-like")
 KINDS = (*CHANGES, "mixed")
-CASES = ("same", *(f"{kind}@{strength}" for kind in CHANGES for strength in (0.5, 1)), "mixed@0.25", "mixed@0.5")
+CASES = ("same", *(f"{kind}@{strength}" for kind in CHANGES for strength in (0.5, 1)), "mixed@0.25", "mixed@0.35")
 GRID = (1 / 16, 1 / 4, 1.0, 4.0, 16.0)
 CALIBRATION_LEVELS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 2048.0)
 CALIBRATION_METHODS = ("ECR true", "ECR uniform x1", "ENMI uniform x1", "NMI")
@@ -190,6 +190,7 @@ METHODS: dict[str, Callable[[Context], tuple[torch.Tensor, torch.Tensor | None]]
     "ECR local fisher c3": _local(kind="fisher", scale=3.0, candidates=3),
     "ECR local fisher c8 pooled": _local(kind="fisher", scale=3.0, candidates=8, select="pooled"),
     "ECR local fisher default": _local(kind="fisher", scale=3.0, first="default"),
+    "ECR local fisher cheap8": _local(kind="fisher", scale=3.0, first="cheap8"),
     "ECR local fisher uniform": _local(kind="fisher", scale=3.0, first="uniform"),
     "ECR local fisher c8": _local(kind="fisher", scale=3.0, candidates=8),
     "ECR local fisher i2 c8": _local(kind="fisher", scale=3.0, iterations=2, candidates=8),
