@@ -173,3 +173,99 @@ def test_bin_variance_surface_matches_a_direct_likelihood(generator):
         null = -0.5 * (null_total.log().sum() + ((values - null_mean) ** 2 / null_total).sum())
         expected = (alternative - null - 0.5 * (occupied - 1)) / 360
         torch.testing.assert_close(surface.score[sample, row, col], expected, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("tau2", [0.0, 50.0, 3000.0])
+def test_scoring_reaches_the_grid_maximum(tau2, generator):
+    captured, cells, noise, valid = _aligned(tau2, generator, batch=4)
+    grid = model_variance.estimate_model_variance(captured, cells, noise, valid, 64)
+    scored = model_variance.score_model_variance(captured, cells, noise, valid, 64, steps=12)
+    torch.testing.assert_close(scored, grid, rtol=1e-4, atol=1e-2)
+    fast = model_variance.score_model_variance(captured, cells, noise, valid, 64)  # the default 4 steps
+    torch.testing.assert_close(fast, grid, rtol=1e-2, atol=0.5)
+
+
+def test_gaussian_smooth_matches_scipy(generator):
+    ndimage = pytest.importorskip("scipy.ndimage")
+    planes = torch.rand(2, 17, 23, generator=generator, dtype=torch.float64)
+    smoothed = model_variance._gaussian_smooth(planes, 2.5)
+    for plane, got in zip(planes, smoothed, strict=True):
+        expected = ndimage.gaussian_filter(plane.numpy(), 2.5, mode="constant", cval=0.0, truncate=3.2)
+        torch.testing.assert_close(got, torch.from_numpy(expected), rtol=1e-12, atol=1e-12)
+
+
+def _field_case(generator, dtype=torch.float64):
+    """A captured image whose misfit variance is 3000 in a disc and 100 elsewhere, at placement (5, 7)."""
+    reference = torch.rand(1, 1, 80, 90, generator=generator, dtype=torch.float64) * 256
+    rows, cols = torch.meshgrid(torch.arange(64.0), torch.arange(70.0), indexing="ij")
+    disc = (rows - 30) ** 2 + (cols - 40) ** 2 < 18**2
+    misfit = torch.where(disc, 3000.0, 100.0).double()
+    noise = (20 + 400 * rows / 63).double()[None, None]
+    section = reference[..., 5:69, 7:77]
+    captured = (
+        60
+        + 0.5 * section
+        + torch.randn(section.shape, generator=generator, dtype=torch.float64) * (noise + misfit).sqrt()
+    )
+    return captured.to(dtype), reference.to(dtype), noise.to(dtype), misfit, disc
+
+
+def test_local_field_recovers_a_known_misfit_map(generator):
+    captured, reference, noise, misfit, disc = _field_case(generator)
+    inputs = _check_inputs(captured, reference, None, None, (0.0, 256.0), noise)
+    local, pooled = model_variance.local_model_variance(inputs, torch.tensor([[5, 7]]), 32, (0.0, 256.0))
+    rows, cols = torch.meshgrid(torch.arange(64.0), torch.arange(70.0), indexing="ij")
+    inner = (rows - 30) ** 2 + (cols - 40) ** 2 < 12**2
+    outer = ~((rows - 30) ** 2 + (cols - 40) ** 2 < 24**2) & (rows > 5) & (rows < 58) & (cols > 5) & (cols < 64)
+    # The map's spread within a bin (0.5^2 8^2 / 12 = 5) adds to the misfit.
+    assert abs(float(local[0][inner].median()) / 3005 - 1) < 0.2
+    assert abs(float(local[0][outer].median()) / 105 - 1) < 0.5
+    assert float(misfit[disc].mean()) > float(pooled[0]) > float(misfit[~disc].mean())
+
+
+def test_local_surface_is_ecr_with_the_field(generator, dtype):
+    captured, reference, noise, _, _ = _field_case(generator, dtype)
+    placements = torch.tensor([[5, 7]])
+    surface, _ = model_variance.ecr_local_surface(captured, reference, noise, placements=placements)
+    inputs = _check_inputs(captured, reference, None, None, (0.0, 256.0), noise)
+    local, _ = model_variance.local_model_variance(inputs, placements, 32, (0.0, 256.0))
+    expected = ecr_surface(captured, reference, noise + local[:, None], model_variance=0.0)
+    torch.testing.assert_close(surface.score, expected.score)
+    assert divmod(int(surface.score.flatten().argmax()), surface.score.shape[-1]) == (5, 7)
+
+
+def test_separated_peaks_are_apart_and_ranked(generator):
+    score = torch.rand(2, 9, 11, generator=generator)
+    peaks = model_variance.separated_peaks(score, 4, radius=2)
+    for sample in range(2):
+        values = [float(score[sample, row, col]) for row, col in peaks[:, sample].tolist()]
+        assert values == sorted(values, reverse=True) and values[0] == float(score[sample].max())
+        for first in range(4):
+            for second in range(first):
+                assert (peaks[first, sample] - peaks[second, sample]).abs().max() > 2
+
+
+def test_local_field_is_the_fisher_weighted_local_moment(generator):
+    captured, reference, noise, _, _ = _field_case(generator)
+    inputs = _check_inputs(captured, reference, None, None, (0.0, 256.0), noise)
+    local, pooled = model_variance.local_model_variance(inputs, torch.tensor([[5, 7]]), 32, (0.0, 256.0))
+    values = captured[0, 0]
+    total = noise[0, 0].expand(64, 70) + pooled[0]
+    cells = hard_bin_index(reference[0, 0, 5:69, 7:77], 32, (0.0, 256.0))
+    residual = torch.empty_like(values)
+    for label in cells.unique().tolist():
+        members = cells == label
+        weight = 1 / total[members]
+        residual[members] = values[members] - (weight * values[members]).sum() / weight.sum()
+    taps = torch.arange(-9, 10, dtype=torch.float64)
+    kernel = torch.exp(-0.5 * (taps / 3) ** 2)
+    kernel = kernel / kernel.sum()
+    information = 1 / total.square()
+    for row, col in [(0, 0), (30, 40), (63, 12), (17, 69)]:
+        near_rows = torch.arange(max(0, row - 9), min(64, row + 10))
+        near_cols = torch.arange(max(0, col - 9), min(70, col + 10))
+        window = kernel[near_rows - row + 9][:, None] * kernel[near_cols - col + 9][None]
+        info = information[near_rows][:, near_cols]
+        excess = residual[near_rows][:, near_cols].square() - noise[0, 0][near_rows][:, near_cols]
+        expected = ((window * info * excess).sum() / (window * info).sum()).clamp_min(0)
+        torch.testing.assert_close(local[0, row, col], expected, rtol=1e-9, atol=1e-9)
