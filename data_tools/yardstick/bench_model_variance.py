@@ -6,7 +6,7 @@ turn; the ratio to today's ECR surface (``ecr_surface``, ``tau^2 = bin_width^2 /
 per-round ratios (robust to the load bursts of a shared machine). One torch thread unless told.
 
     python data_tools/yardstick/bench_model_variance.py              # a minute or two on a quiet 2-core CPU
-    python data_tools/yardstick/bench_model_variance.py --rounds 21
+    python data_tools/yardstick/bench_model_variance.py --rounds 41 --surfaces "est cheap" "local fisher"
 """
 
 from __future__ import annotations
@@ -63,6 +63,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--rounds", type=int, default=11, help="interleaved rounds (default 11)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--surfaces", nargs="+", default=None, help="a subset of the surfaces (ECR today always)")
     args = parser.parse_args(argv)
     if args.rounds < 1 or args.threads < 1:
         parser.error(f"--rounds and --threads must be >= 1, got {args.rounds} and {args.threads}")
@@ -71,6 +72,11 @@ def main(argv=None) -> None:
     print("|---|---|---|---|")
     for case, (size, radius) in CASES.items():
         surfaces = _surfaces(*_case(size, radius))
+        if args.surfaces is not None:
+            unknown = set(args.surfaces) - set(surfaces)
+            if unknown:
+                parser.error(f"--surfaces: unknown {sorted(unknown)}; choose from {list(surfaces)}")
+            surfaces = {name: surface for name, surface in surfaces.items() if name in {"ECR today", *args.surfaces}}
         for surface in surfaces.values():
             surface()  # warm-up: first-call allocations, FFT plans
         times = {name: [] for name in surfaces}
