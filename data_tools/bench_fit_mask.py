@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from enmi_torch.data import gravel_texture, synthetic
+from enmi_torch.scores import ECR, ENMI, NCC, NMI
 from enmi_torch.training.fit_mask import fit_mask
 from enmi_torch.training.mask_module import MaskFitModule, localization_trials
 from enmi_torch.variance import LearnedVariance
@@ -70,6 +71,8 @@ def localize_every_method(self, local, prior, valid, index) -> None:
         return
     take = min(local.shape[0], -(-room // self.trainer.world_size))
     local, prior, valid = local[:take], prior[:take], valid[:take]
+    bins, value_range = self.hparams.bins, tuple(self.hparams.value_range)
+    variance_scores = (ECR(bins=bins, value_range=value_range), ENMI(bins=bins, value_range=value_range))
     with torch.no_grad():
         learned = self.mask.variance_map().to(local.device)
         usable = valid & self.mask.valid_mask(local)
@@ -85,9 +88,9 @@ def localize_every_method(self, local, prior, valid, index) -> None:
             usable,
             variances,
             max_shift=self.hparams.localization_shift,
-            bins=self.hparams.bins,
-            value_range=tuple(self.hparams.value_range),
+            scores=(*variance_scores, NMI(bins=bins, value_range=value_range), NCC()),
             uniform_grid=tuple(self.hparams.localization_grid),
+            grid_score=variance_scores[1],
         )
     for name, (hits, z_sum) in results.items():
         self._hits[name] = self._hits.get(name, 0) + hits

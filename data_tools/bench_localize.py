@@ -9,8 +9,7 @@ one process each (medians of repeated runs, best run in brackets):
   joint histogram per candidate (timed on a few rows of candidates and scaled to all; equal scores checked);
 * the FFT core alone: the products and inverse transforms of the ENMI surface's bin pairs, nothing else; no FFT
   method that correlates bin planes can beat it, so ``loop / core`` bounds the ratio any such surface can reach;
-* the library's reference :func:`~enmi_torch.localization.surface.direct_surface` (one ``joint_histogram`` per
-  candidate);
+* the library's reference :func:`~enmi_torch.direct_surface` (one score of an aligned pair per candidate);
 * the other fast path considered: ``conv2d`` with the 32 captured weight planes as kernels over the 32 reference
   indicator planes (timed on a few output rows and scaled).
 
@@ -41,7 +40,8 @@ from tqdm import tqdm
 from enmi_torch.binning import hard_bin_index, likelihood_weights
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.localization.search import localize
-from enmi_torch.localization.surface import direct_surface, enmi_surface, fft_size, ncc_surface, nmi_surface
+from enmi_torch.placement import fft_size
+from enmi_torch.scores import ENMI, NCC, NMI, direct_surface
 
 LOCAL, RADIUS, BINS, VALUE_RANGE = 128, 50, 32, (0.0, 256.0)
 MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(1 << 30), "MALLOC_TRIM_THRESHOLD_": str(1 << 30)}
@@ -128,13 +128,14 @@ def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
     times = {key: [] for key in ("enmi", "nmi", "ncc", "enmi_float64", "fft_core", "best_direct_loop")}
     double = (local.double(), window.double(), variance.double())
     core, pairs = _fft_core(local, window, variance)
+    enmi = ENMI(bins=BINS, value_range=VALUE_RANGE)
     for _ in range(rounds):
         # Interleaved rounds: a burst of load from other processes hits every method of the round alike.
-        seconds, fast = _timed(lambda: enmi_surface(local, window, variance, bins=BINS))
+        seconds, fast = _timed(lambda: enmi.surface(local, window, variance))
         times["enmi"].append(seconds)
-        times["nmi"].append(_timed(lambda: nmi_surface(local, window, bins=BINS))[0])
-        times["ncc"].append(_timed(lambda: ncc_surface(local, window))[0])
-        seconds, exact = _timed(lambda: enmi_surface(*double, bins=BINS))
+        times["nmi"].append(_timed(lambda: NMI(bins=BINS).surface(local, window))[0])
+        times["ncc"].append(_timed(lambda: NCC().surface(local, window))[0])
+        seconds, exact = _timed(lambda: enmi.surface(*double))
         times["enmi_float64"].append(seconds)
         times["fft_core"].append(_timed(core)[0])
         seconds, looped = _timed(lambda: _best_direct_loop(local, window, variance, loop_rows))
@@ -146,7 +147,7 @@ def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
         "best_direct_loop_vs_fft_max_abs": float((looped - fast.score[0, :loop_rows]).abs().max()),
     }
     few = window[..., : LOCAL + 1, : LOCAL + 2]
-    seconds, reference = _timed(lambda: direct_surface(local, few, variance, bins=BINS))
+    seconds, reference = _timed(lambda: direct_surface(enmi, local, few, variance))
     times["direct_surface"] = [seconds * candidates / 6]
     checks["direct_surface_vs_fft_max_abs"] = float((reference.score[0] - fast.score[0, :2, :3]).abs().max())
     conv_rows = 2
@@ -157,9 +158,7 @@ def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
     times["localize_36_yaws"] = []
     for _ in range(yaw_rounds):
         seconds, located = _timed(
-            lambda: localize(
-                local, prior_map, variance, shifts=RADIUS, center=center, yaws=yaws, bins=BINS, metric="enmi"
-            )
+            lambda: localize(local, prior_map, variance, score=enmi, shifts=RADIUS, center=center, yaws=yaws)
         )
         times["localize_36_yaws"].append(seconds)
     checks["localize_pose"] = [round(value, 2) for value in located.pose[0].tolist()]

@@ -20,8 +20,7 @@ import numpy as np
 import torch
 from skimage import data
 
-from enmi_torch.localization.mixture_surface import direct_mixture_surface, mixture_surface
-from enmi_torch.localization.surface import ecr_surface, enmi_surface
+from enmi_torch.scores import ECR, ENMI, Mixture, direct_surface
 
 LOCAL, WINDOW, BINS = 64, 88, 32
 
@@ -44,12 +43,17 @@ def main() -> None:
     arguments = parser.parse_args()
     torch.set_num_threads(1)
     local, window, variance, truth = _case()
-    runs = {
-        "mixture_surface": lambda: mixture_surface(local, window, variance, bins=BINS),
-        "mixture_surface em_steps=2": lambda: mixture_surface(local, window, variance, bins=BINS, em_steps=2),
-        "ecr_surface": lambda: ecr_surface(local, window, variance, bins=BINS),
-        "enmi_surface": lambda: enmi_surface(local, window, variance, bins=BINS),
+    scores = {
+        "mixture_surface": Mixture(bins=BINS),
+        "mixture_surface em_steps=2": Mixture(bins=BINS, em_steps=2),
+        "ecr_surface": ECR(bins=BINS),
+        "enmi_surface": ENMI(bins=BINS),
     }
+
+    def surface(score):
+        return lambda: score.surface(local, window, variance)
+
+    runs = {name: surface(score) for name, score in scores.items()}
     for run in runs.values():  # warm-up
         run()
     times = {name: [] for name in runs}
@@ -64,9 +68,9 @@ def main() -> None:
         median, low, high = (1e3 * statistic(values) for statistic in (statistics.median, min, max))
         print(f"  {name:28s} {median:8.1f} ms  [{low:.1f}, {high:.1f}]")
 
-    two_stage = mixture_surface(local, window, variance, bins=BINS).score[0]
+    two_stage = Mixture(bins=BINS).surface(local, window, variance).score[0]
     start = time.perf_counter()
-    direct = direct_mixture_surface(local, window, variance, bins=BINS).score[0]
+    direct = direct_surface(Mixture(bins=BINS), local, window, variance).score[0]
     direct_time = time.perf_counter() - start
     columns = two_stage.shape[1]
     rescored = int(torch.isfinite(two_stage).sum())

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from skimage import data
 
-from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.scores import ECR, ENMI, NCC, NMI
 
 CASES = {"128x128 local, 101x101 shifts": (128, 50), "64x64 local, 25x25 shifts": (64, 12)}
 
@@ -37,13 +37,12 @@ def _case(size: int, radius: int):
 
 
 def _surfaces(local, window, variance) -> dict:
-    return {
-        "ENMI (mass)": lambda: enmi_surface(local, window, variance),
-        "ECR": lambda: ecr_surface(local, window, variance),
-        "ECR linear": lambda: ecr_surface(local, window, variance, response="linear"),
-        "NMI": lambda: nmi_surface(local, window),
-        "NCC": lambda: ncc_surface(local, window),
-    }
+    scores = {"ENMI (mass)": ENMI(), "ECR": ECR(), "ECR linear": ECR(response="linear"), "NMI": NMI(), "NCC": NCC()}
+
+    def surface(score):
+        return lambda: score.surface(local, window, variance if score.uses_variance else None)
+
+    return {name: surface(score) for name, score in scores.items()}
 
 
 def main(argv=None) -> None:

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from enmi_torch.binning import hard_bin_index
 from enmi_torch.localization.search import _rotated, localize
+from enmi_torch.scores import ECR
 
 LOCAL, RADIUS, BINS, VALUE_RANGE = 128, 50, 32, (0.0, 256.0)
 YAWS = [float(angle) for angle in range(-35, 36, 2)]
@@ -136,7 +137,7 @@ def miss_rate(trials: int, cheap_bins: int) -> None:
         misses = found = rescored = 0
         for _ in range(trials):
             reference, captured, variance, center, radius, truth = _miss_case(texture, response, noise, generator)
-            options = {"shifts": radius, "center": center, "yaws": MISS_YAWS, "bins": BINS}
+            options = {"shifts": radius, "center": center, "yaws": MISS_YAWS, "score": ECR(bins=BINS)}
             exhaustive = localize(captured, reference, variance, **options)
             two_stage = localize(captured, reference, variance, search="two_stage", cheap_bins=cheap_bins, **options)
             misses += int(exhaustive.surface.flatten().argmax()) != int(two_stage.surface.flatten().argmax())
@@ -177,7 +178,7 @@ def main(argv=None) -> None:
     top, left = center[0] - LOCAL // 2 - RADIUS, center[1] - LOCAL // 2 - RADIUS
     window = reference[0, 0, top : top + LOCAL + 2 * RADIUS, left : left + LOCAL + 2 * RADIUS]
     anchor = GlobalignAngle(window, BINS)
-    options = {"shifts": RADIUS, "center": center, "bins": BINS}
+    options = {"shifts": RADIUS, "center": center, "score": ECR(bins=BINS)}
     methods = {
         "globalign, one angle": lambda: anchor(captured[0, 0]),
         "localize, ECR, 1 yaw": lambda: localize(captured, reference, variance, **options),

@@ -37,8 +37,7 @@ def make_calls() -> dict:
     """The calls to time, each a function of no arguments, on fixed seeded inputs."""
     import torch
 
-    from enmi_torch import ENMILoss
-    from enmi_torch.localization.surface import ecr_surface, enmi_surface
+    from enmi_torch import ECR, ENMI, ENMILoss
     from enmi_torch.variance import LearnedVariance
 
     generator = torch.Generator().manual_seed(0)
@@ -69,8 +68,8 @@ def make_calls() -> dict:
 
     return {
         "ENMILoss fwd+bwd": enmi_loss,
-        "enmi_surface": lambda: enmi_surface(local, window, surface_variance),
-        "ecr_surface": lambda: ecr_surface(local, window, surface_variance),
+        "enmi_surface": lambda: ENMI().surface(local, window, surface_variance),
+        "ecr_surface": lambda: ECR().surface(local, window, surface_variance),
         "fit_mask step": fit_step,
     }
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from enmi_torch.localization.track import initial_belief, track_step
+from enmi_torch.scores import ECR
 
 
 def _drive():
@@ -56,9 +57,10 @@ def main(argv=None) -> None:
     belief = initial_belief(truth, shifts=8, yaw_bins=5, yaw_step=1.0, std=(0.5, 0.5, 0.5))
     center = torch.stack([truth[:, 1], truth[:, 0]], 1).round().long()
     yaws = (truth[0, 2].round() + torch.arange(-2.0, 3.0)).tolist()
+    score = ECR(bins=args.bins)
 
     def search():
-        drive_tools.search(frame, reference, variance, drive.valid, center, yaws, "ecr", args.bins)
+        drive_tools.search(frame, reference, variance, drive.valid, center, yaws, score)
 
     def step():
         track_step(
@@ -68,7 +70,7 @@ def main(argv=None) -> None:
             odometry,
             variance,
             drive.valid,
-            bins=args.bins,
+            score=score,
             motion_noise=drive.motion_noise,
         )
 

@@ -31,7 +31,7 @@ import torch  # noqa: E402
 
 from data_tools.yardstick import LOCAL, MAPS, RADIUS, map_image, variance_profile  # noqa: E402
 from enmi_torch.binning import hard_bin_index  # noqa: E402
-from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface  # noqa: E402
+from enmi_torch.scores import ECR, ENMI, NCC, NMI  # noqa: E402
 
 BINS = 32
 
@@ -60,14 +60,14 @@ def _correlation(first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
 
 
 def surfaces(local, windows, variance, mean):
-    options = {"bins": BINS}
+    enmi, ecr = ENMI(bins=BINS), ECR(bins=BINS)
     return {
-        "ENMI true": enmi_surface(local, windows, variance, **options).score,
-        "ENMI uniform mean": enmi_surface(local, windows, mean, **options).score,
-        "ECR true": ecr_surface(local, windows, variance, **options).score,
-        "ECR uniform mean": ecr_surface(local, windows, mean, **options).score,
-        "NMI": nmi_surface(local, windows, **options).score,
-        "NCC": ncc_surface(local, windows).score,
+        "ENMI true": enmi.surface(local, windows, variance).score,
+        "ENMI uniform mean": enmi.surface(local, windows, mean).score,
+        "ECR true": ecr.surface(local, windows, variance).score,
+        "ECR uniform mean": ecr.surface(local, windows, mean).score,
+        "NMI": NMI(bins=BINS).surface(local, windows).score,
+        "NCC": NCC().surface(local, windows).score,
     }
 
 

@@ -48,6 +48,7 @@ from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify,
 from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization.search import localize
 from enmi_torch.localization.track import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
+from enmi_torch.scores import ECR, NCC, NMI, Score
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
 
@@ -65,12 +66,13 @@ YAW_STEP = 1.0
 BINS = 16
 NOISY = (150, 180)
 CHANGED = (60, 90)
+# Each method's score and the variance it is given (None: a score without one).
 METHODS = {
-    "ecr_analytic": ("ecr", "analytic"),
-    "ecr_learned": ("ecr", "learned"),
-    "ecr_uniform": ("ecr", "uniform"),
-    "nmi": ("nmi", None),
-    "ncc": ("ncc", None),
+    "ecr_analytic": (ECR(bins=BINS), "analytic"),
+    "ecr_learned": (ECR(bins=BINS), "learned"),
+    "ecr_uniform": (ECR(bins=BINS), "uniform"),
+    "nmi": (NMI(bins=BINS), None),
+    "ncc": (NCC(), None),
 }
 LABELS = {
     "ecr_analytic": "ECR, analytic variance",
@@ -223,7 +225,7 @@ class Drive:
 
 def calibrate(drive: Drive, method: str) -> Calibration:
     """Temperature and peak z threshold of one method from the held-out frames."""
-    metric, kind = METHODS[method]
+    score, kind = METHODS[method]
     variance = drive.variance(kind, drive.held_out_noise)
     generator = torch.Generator().manual_seed(1)
     offsets = torch.randint(-4, 5, (len(drive.held_out_poses), 2), generator=generator)
@@ -236,7 +238,7 @@ def calibrate(drive: Drive, method: str) -> Calibration:
         frame_variance = None if variance is None else variance[index : index + 1]
         frame = drive.held_out_frames[index : index + 1].float()
         yaws = (yaw_centers[index] + torch.arange(-2.0, 3.0) * YAW_STEP).tolist()
-        surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, metric)
+        surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, score)
         surfaces.append(surface.surface[0].double())
         aligned_z.append(_peak_z(surface.surface[0]))
     grid_truth = torch.stack(
@@ -250,7 +252,7 @@ def calibrate(drive: Drive, method: str) -> Calibration:
     temperature = calibrate_temperature(torch.stack(surfaces) * count, grid_truth)
     # Aligned frames pass 95 % of the time; wrong windows are caught by the prediction (surprise) instead.
     threshold = float(torch.tensor(aligned_z).quantile(0.05))
-    return Calibration(metric, temperature, threshold)
+    return Calibration(score.name, temperature, threshold)
 
 
 def _peak_z(surface: torch.Tensor) -> float:
@@ -260,35 +262,25 @@ def _peak_z(surface: torch.Tensor) -> float:
     return float((values.max() - median) / (1.4826 * (values - median).abs().median()).clamp_min(1e-12))
 
 
-def search(frame, reference, variance, valid, center, yaws, metric: str, bins: int = BINS) -> Localization:
+def search(frame, reference, variance, valid, center, yaws, score: Score) -> Localization:
     """The benchmark's one ``localize`` call (+-8 cells): ``frame`` ``(1, 1, 64, 64)`` around map cell ``center``."""
-    options = {"bins": bins} if metric != "ncc" else {}
     return localize(
-        frame,
-        reference,
-        variance,
-        shifts=SHIFTS,
-        center=center,
-        yaws=yaws,
-        metric=metric,
-        captured_mask=valid,
-        **options,
+        frame, reference, variance, score=score, shifts=SHIFTS, center=center, yaws=yaws, captured_mask=valid
     )
 
 
 def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter."""
-    metric, kind = METHODS[method]
+    score, kind = METHODS[method]
     variance = drive.variance(kind, drive.pixel_noise)
-    settings = {"bins": BINS} if metric != "ncc" else {}
     tracker = Tracker(
         drive.map.float(),
         calibration=calibration,
+        score=score,
         shifts=SHIFTS,
         yaw_bins=YAW_BINS,
         yaw_step=YAW_STEP,
         motion_noise=drive.motion_noise,
-        **settings,
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []
@@ -314,7 +306,7 @@ def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
 
 def run_argmax(drive: Drive, method: str) -> dict:
     """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
-    metric, kind = METHODS[method]
+    score, kind = METHODS[method]
     variance = drive.variance(kind, drive.pixel_noise)
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
@@ -328,7 +320,7 @@ def run_argmax(drive: Drive, method: str) -> dict:
             drive.valid,
             center,
             [yaw_center + step * YAW_STEP for step in range(-2, 3)],
-            metric,
+            score,
         )
         pose = result.pose[0].double()
         poses.append(torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]]))

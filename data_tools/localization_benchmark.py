@@ -53,6 +53,7 @@ from tqdm import tqdm
 from enmi_torch.data.truth import camera_truth, lidar_truth
 from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.localization.search import localize
+from enmi_torch.scores import ECR, ENMI, NCC, NMI
 from enmi_torch.variance import empirical_variance
 
 LOCAL = 64
@@ -141,14 +142,15 @@ def run_trials(map_name, model, noise_power, trials, pairs, bins, seed, response
     local = clean + torch.randn(clean.shape, generator=generator, dtype=torch.float64) * variance.sqrt()
     local = torch.where(valid, local, 0.0).float()
     learned, observed = learned_mask(prior, unit_variance, valid, noise_power, pairs, generator, response)
-    settings = {"shifts": RADIUS, "center": priors, "yaws": YAWS, "bins": bins}
+    settings = {"shifts": RADIUS, "center": priors, "yaws": YAWS}
+    ecr, enmi = ECR(bins=bins), ENMI(bins=bins)
     searches = {
-        METHODS[0]: localize(local, prior.float(), variance.float(), metric="ecr", captured_mask=valid, **settings),
-        METHODS[1]: localize(local, prior.float(), learned.float(), metric="ecr", captured_mask=observed, **settings),
-        METHODS[2]: localize(local, prior.float(), variance.float(), metric="enmi", captured_mask=valid, **settings),
-        METHODS[3]: localize(local, prior.float(), learned.float(), metric="enmi", captured_mask=observed, **settings),
-        METHODS[4]: localize(local, prior.float(), metric="nmi", captured_mask=valid, **settings),
-        METHODS[5]: localize(local, prior.float(), metric="ncc", captured_mask=valid, **settings),
+        METHODS[0]: localize(local, prior.float(), variance.float(), score=ecr, captured_mask=valid, **settings),
+        METHODS[1]: localize(local, prior.float(), learned.float(), score=ecr, captured_mask=observed, **settings),
+        METHODS[2]: localize(local, prior.float(), variance.float(), score=enmi, captured_mask=valid, **settings),
+        METHODS[3]: localize(local, prior.float(), learned.float(), score=enmi, captured_mask=observed, **settings),
+        METHODS[4]: localize(local, prior.float(), score=NMI(bins=bins), captured_mask=valid, **settings),
+        METHODS[5]: localize(local, prior.float(), score=NCC(), captured_mask=valid, **settings),
     }
     truth = torch.cat([shifts[:, 1:], shifts[:, :1], yaws[:, None]], dim=1)
     successes = {}

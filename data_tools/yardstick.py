@@ -54,8 +54,7 @@ from skimage import color, data
 
 from enmi_torch.data.truth import camera_truth
 from enmi_torch.geometry.camera import RoadCamera
-from enmi_torch.localization.mixture_surface import mixture_surface
-from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.scores import ECR, ENMI, NCC, NMI, Mixture
 from enmi_torch.variance import empirical_variance
 
 LOCAL = 64
@@ -82,6 +81,24 @@ METHODS = (
     "NMI",
     "NCC",
 )
+
+
+# The score and the variance ("true", "learned", "mean" or none) of each method but the uniform-grid controls.
+METHOD_SCORES = {
+    "ECR true": (ECR(bins=BINS), "true"),
+    "ECR learned": (ECR(bins=BINS), "learned"),
+    "ECR uniform mean": (ECR(bins=BINS), "mean"),
+    "ECR linear true": (ECR(bins=BINS, response="linear"), "true"),
+    "Mixture true": (Mixture(bins=BINS), "true"),
+    "ENMI truncated true": (ENMI(bins=BINS, kernel="truncated"), "true"),
+    "ENMI reliability true": (ENMI(bins=BINS, reliability=True), "true"),
+    "ENMI true": (ENMI(bins=BINS), "true"),
+    "ENMI learned": (ENMI(bins=BINS), "learned"),
+    "NMI": (NMI(bins=BINS), None),
+    "NCC": (NCC(), None),
+}
+# The uniform-variance controls: this score at the mean variance times each factor of GRID.
+GRID_SCORE = ENMI(bins=BINS)
 
 
 def map_image(name: str) -> torch.Tensor:
@@ -175,16 +192,17 @@ def run_cell(
         mask = (valid & observed.reshape(LOCAL, LOCAL))[None, None]
         mean = float(variance[0, 0][valid].mean())
         true_variance = variance.float()
-        options = {"bins": BINS, "captured_mask": mask}
         window = windows.float()
-        searches = _searches(local, window, true_variance, learned, mean, mask, options)
+        variances = {"true": true_variance, "learned": learned, "mean": mean, None: None}
+        searches = _searches(local, window, variances, mask)
         outcomes = {
             method: _outcomes(search().score, truth) for method, search in searches.items() if method in methods
         }
         best = 1.0
         if {"ENMI uniform mean", "ENMI best uniform"} & set(methods):
             grid = {
-                factor: _outcomes(enmi_surface(local, window, mean * factor, **options).score, truth) for factor in GRID
+                factor: _outcomes(GRID_SCORE.surface(local, window, mean * factor, captured_mask=mask).score, truth)
+                for factor in GRID
             }
             best = max(GRID, key=lambda factor: (int(grid[factor][0].sum()), factor == 1.0))
             outcomes["ENMI uniform mean"], outcomes["ENMI best uniform"] = grid[1.0], grid[best]
@@ -196,21 +214,13 @@ def run_cell(
     return rows
 
 
-def _searches(local, window, true_variance, learned, mean, mask, options) -> dict:
+def _searches(local, window, variances, mask) -> dict:
     """Each method's surface, computed when called."""
-    return {
-        "ECR true": lambda: ecr_surface(local, window, true_variance, **options),
-        "ECR learned": lambda: ecr_surface(local, window, learned, **options),
-        "ECR uniform mean": lambda: ecr_surface(local, window, mean, **options),
-        "ECR linear true": lambda: ecr_surface(local, window, true_variance, response="linear", **options),
-        "Mixture true": lambda: mixture_surface(local, window, true_variance, **options),
-        "ENMI truncated true": lambda: enmi_surface(local, window, true_variance, kernel="truncated", **options),
-        "ENMI reliability true": lambda: enmi_surface(local, window, true_variance, reliability=True, **options),
-        "ENMI true": lambda: enmi_surface(local, window, true_variance, **options),
-        "ENMI learned": lambda: enmi_surface(local, window, learned, **options),
-        "NMI": lambda: nmi_surface(local, window, **options),
-        "NCC": lambda: ncc_surface(local, window, captured_mask=mask),
-    }
+
+    def search(score, kind):
+        return lambda: score.surface(local, window, variances[kind], captured_mask=mask)
+
+    return {method: search(score, kind) for method, (score, kind) in METHOD_SCORES.items()}
 
 
 def _outcomes(score: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

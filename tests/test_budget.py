@@ -12,17 +12,19 @@ from enmi_torch import (
     NMILoss,
     _budget,
     enmi,
+    enmi_surface,
     get_memory_budget,
     histogram,
     joint_histogram,
     memory_budget,
+    ncc_surface,
     nmi,
+    nmi_surface,
     set_memory_budget,
 )
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.localization.search import Localizer, localize
-from enmi_torch.localization.surface import enmi_surface, ncc_surface, nmi_surface
 
 GENERATOR = torch.Generator().manual_seed(15)
 CAPTURED = torch.rand(1, 1, 16, 16, generator=GENERATOR) * 256
@@ -88,7 +90,7 @@ def test_localize_refuses_a_huge_search_window():
     ):
         localize(local, prior_map, 25.0, shifts=10**4)
     with pytest.raises(MemoryBudgetError, match=r"^shifts=\(10000, 10000\) with coarse_factor=2 needs about .* GiB"):
-        Localizer(metric="ncc", shifts=10**4, coarse_factor=2)(local, prior_map)
+        Localizer(score="ncc", shifts=10**4, coarse_factor=2)(local, prior_map)
 
 
 def test_surfaces_refuse_a_huge_window():

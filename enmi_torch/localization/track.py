@@ -44,7 +44,7 @@ from torch import Tensor, nn
 
 from enmi_torch._checks import check_floating, check_non_negative_int, check_option, check_positive_int, check_shifts
 from enmi_torch.localization.search import localize
-from enmi_torch.localization.surface import METRICS
+from enmi_torch.scores import Score, as_score, score_names
 from enmi_torch.variance.base import VarianceModel
 
 # Chi-square quantile with 2 degrees of freedom at 95 %: the (x, y) ellipse radius squared.
@@ -356,12 +356,12 @@ class Calibration(NamedTuple):
     """The score's likelihood scale and health threshold, saved next to a map.
 
     Attributes:
-        metric: the score they belong to.
+        score: the name of the score they belong to (:func:`~enmi_torch.as_score`).
         temperature: divide ``score * n_valid`` by it to get a log-likelihood.
         min_peak_z: the smallest robust z-score of a surface's peak that counts as a match.
     """
 
-    metric: str
+    score: str
     temperature: float
     min_peak_z: float
 
@@ -373,12 +373,16 @@ class Calibration(NamedTuple):
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
-        """Read a calibration written by :meth:`save`."""
+        """Read a calibration written by :meth:`save` (files that name the score ``metric`` too)."""
         values = json.loads(Path(path).read_text())
+        if "metric" in values and "score" not in values:
+            values["score"] = values.pop("metric")
         if set(values) != set(cls._fields):
             raise ValueError(f"{path}: a calibration needs keys {list(cls._fields)}, got {sorted(values)}")
         return cls(
-            check_option("metric", values["metric"], METRICS), float(values["temperature"]), float(values["min_peak_z"])
+            check_option("score", values["score"], score_names()),
+            float(values["temperature"]),
+            float(values["min_peak_z"]),
         )
 
 
@@ -391,9 +395,7 @@ def track_step(
     captured_mask: Tensor | None = None,
     *,
     motion_noise: Sequence[float] | Tensor = (0.5, 0.5, 0.5),
-    metric: str = "ecr",
-    bins: int = 32,
-    value_range: tuple[float, float] = (0.0, 256.0),
+    score: Score | str = "ecr",
     temperature: float = 1.0,
     min_peak_z: float = 3.0,
     max_surprise: float = 30.0,
@@ -412,14 +414,13 @@ def track_step(
         captured: ``(B, 1, h, w)`` captured images on the map's cell grid, one per vehicle.
         reference: ``(1, 1, Hm, Wm)`` the map.
         odometry: ``(B, 3)`` increment since the previous frame (see :func:`predict`).
-        variance: the captured images' noise variance for ``metric`` ``"ecr"``, ``"enmi"`` or ``"mixture"``
-            (a number, ``(h, w)``, ``(1 or B, 1, h, w)`` or a :class:`~enmi_torch.variance.VarianceModel`);
-            ``None`` for ``"nmi"`` and ``"ncc"``.
+        variance: the captured images' noise variance for a score that uses one (ECR, ENMI, mixture): a number,
+            ``(h, w)``, ``(1 or B, 1, h, w)`` or a :class:`~enmi_torch.variance.VarianceModel`; ``None`` for NMI and
+            NCC.
         captured_mask: bool, like ``variance``: ``False`` pixels are unobserved.
         motion_noise: standard deviations of the odometry's error ``(du, dv, dyaw)`` per frame.
-        metric: the score (see :func:`~enmi_torch.localize`).
-        bins: bins of the score.
-        value_range: range of the bins.
+        score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
+            :func:`~enmi_torch.localize`).
         temperature: ``score * n_valid / temperature`` is the log-likelihood (:func:`calibrate_temperature`).
         min_peak_z: a surface whose best score's robust z-score is below this is no match.
         max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
@@ -438,7 +439,7 @@ def track_step(
         for the next step.
     """
     _check_belief(belief)
-    check_option("metric", metric, METRICS)
+    score = as_score(score)
     check_floating("captured", captured)
     if captured.ndim != 4 or captured.shape[1] != 1 or captured.shape[0] != belief.log_prob.shape[0]:
         raise ValueError(
@@ -458,7 +459,7 @@ def track_step(
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
     batch = captured.shape[0]
     health = _check_health(health, batch, captured.device)
-    search = _Searcher(captured, reference, variance, captured_mask, metric, bins, value_range, temperature)
+    search = _Searcher(captured, reference, variance, captured_mask, score, temperature)
     prior = predict(belief, odometry, motion_noise)
     log_likelihood, score, peak_z = search.window(prior)
     surprise = _surprise(prior.log_prob, log_likelihood)
@@ -529,16 +530,17 @@ class Tracker(nn.Module):
     Args:
         reference: ``(1, 1, Hm, Wm)`` or ``(Hm, Wm)`` map (a non-persistent buffer).
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel` of the captured images' noise.
-        calibration: optional :class:`Calibration` (sets ``metric``, ``temperature`` and ``min_peak_z``).
+        calibration: optional :class:`Calibration` (sets ``score`` by name, ``temperature`` and ``min_peak_z``).
         shifts: belief window radius ``r`` or ``(ry, rx)``.
         yaw_bins: odd number of yaw bins.
         yaw_step: yaw bin spacing in degrees.
-        **settings: the keyword arguments of :func:`track_step` (``motion_noise``, ``metric``, ``bins``, ...).
+        **settings: the keyword arguments of :func:`track_step` (``motion_noise``, ``score``, ``temperature``, ...).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = torch.rand(1, 1, 64, 96, generator=generator) * 256
-        >>> tracker = Tracker(reference, shifts=4, yaw_bins=1, bins=16, motion_noise=(0.3, 0.3, 0.1))
+        >>> from enmi_torch import ECR
+        >>> tracker = Tracker(reference, score=ECR(bins=16), shifts=4, yaw_bins=1, motion_noise=(0.3, 0.3, 0.1))
         >>> tracker.start(torch.tensor([[40.0, 30.0, 0.0]]))
         >>> for x in (42, 44, 46):  # the vehicle drives 2 cells per frame along the map's columns
         ...     output = tracker(reference[..., 22:38, x - 8 : x + 8], torch.tensor([[2.0, 0.0, 0.0]]), 1.0)
@@ -611,9 +613,7 @@ class Tracker(nn.Module):
 
 _STEP_SETTINGS = (
     "motion_noise",
-    "metric",
-    "bins",
-    "value_range",
+    "score",
     "temperature",
     "min_peak_z",
     "max_surprise",
@@ -629,11 +629,9 @@ _STEP_SETTINGS = (
 class _Searcher:
     """Score surfaces of the captured images over a belief's window and over the wide relocalization window."""
 
-    def __init__(self, captured, reference, variance, captured_mask, metric, bins, value_range, temperature) -> None:
+    def __init__(self, captured, reference, variance, captured_mask, score: Score, temperature) -> None:
         self.captured, self.reference, self.variance, self.mask = captured, reference, variance, captured_mask
-        self.options = {"metric": metric}
-        if metric != "ncc":
-            self.options.update(bins=bins, value_range=value_range)
+        self.score = score
         self.temperature = temperature
         valid = torch.ones_like(captured, dtype=torch.bool)
         if captured_mask is not None:
@@ -660,7 +658,7 @@ class _Searcher:
             center=center.reshape(1, 2),
             yaws=yaws,
             captured_mask=self._per_vehicle(self.mask, slice(vehicle, vehicle + 1)),
-            **self.options,
+            score=self.score,
             **options,
         )
 

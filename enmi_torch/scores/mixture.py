@@ -26,20 +26,33 @@ Convention:
     Captured values are weighted over ``bins`` equal bins of ``value_range``, truncated to it (a value far above the
     range counts in the top bin); reference values are hard-binned, clipped into the edge bins. The score is not a
     sum over batches: the per-pixel terms need the whole joint histogram first.
+
+Over every placement, :func:`mixture_surface` ranks the placements by the ECR surface with the same variance
+(FFT-fast) and scores the neighbourhoods of its best peaks exactly (:func:`~enmi_torch.placement.peaks.rescore_peaks`).
 """
 
 from __future__ import annotations
+
+import functools
 
 import torch
 from torch import Tensor
 
 from enmi_torch._checks import (
+    check_bins,
     check_floating,
     check_non_negative_int,
+    check_option,
+    check_positive_int,
+    check_value_range,
     check_variance_given,
 )
 from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
 from enmi_torch.histogram import _prepare
+from enmi_torch.placement.inputs import Surface, check_inputs
+from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.ecr import _ecr_surface, default_model_variance
 
 # Candidates per chunk are chosen so one chunk's (C, B, N, bins) per-pixel tensors stay near this many elements.
 _CHUNK_ELEMENTS = 1 << 21
@@ -171,3 +184,168 @@ def _add_rows(weights: Tensor, rows: Tensor, row_count: int, scale: Tensor | Non
 def _safe(probability: Tensor) -> Tensor:
     """Per-pixel mixture probabilities of masked pixels can be 0: keep their log and reciprocal finite."""
     return probability.clamp_min(torch.finfo(probability.dtype).tiny)
+
+
+def mixture_surface(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    em_steps: int = 0,
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
+    candidates: int = 8,
+    max_candidates: int = 64,
+) -> Surface:
+    """:func:`mixture_information` of ``captured`` at the promising placements inside ``reference``, in two stages.
+
+    A cheap full surface, :func:`~enmi_torch.scores.ecr.ecr_surface` with the same variance (FFT-fast),
+    picks the ``candidates`` highest separated peaks (captured maxima of their 3 x 3 neighbourhood); each peak and its 8
+    neighbours are rescored exactly. While the exact best lies in the lower half of the rescored peaks' cheap ranking
+    (or next to such a peak), the cheap ranking is not trusted that far: the number of peaks doubles (the new ones
+    rescored), up to ``max_candidates`` or every peak.
+
+    Args:
+        captured: noisy captured image ``(B, 1, h, w)``, floating point.
+        reference: noiseless map section ``(1 or B, 1, Hw, Ww)`` holding every placement, ``Hw >= h``, ``Ww >= w``.
+        variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(h, w)``, ``(1, 1, h, w)``
+            or ``(B, 1, h, w)``.
+        bins: number of equal-width bins over ``value_range``.
+        value_range: ``(low, high)``.
+        em_steps: as in :func:`mixture_information`.
+        captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
+        reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
+        candidates: peaks of the cheap surface rescored first, >= 1.
+        max_candidates: at most this many peaks rescored, >= ``candidates``.
+
+    Returns:
+        :class:`~enmi_torch.placement.Surface` ``(B, Hw - h + 1, Ww - w + 1)``: ``score[b, u, v]`` equals
+        ``mixture_information(captured[b], reference[b, :, u:u + h, v:v + w], variance, valid_mask=...)`` where rescored
+        (0 where nothing overlaps) and is ``-inf`` elsewhere, so that the surface keeps its shape and its argmax;
+        ``overlap`` is given everywhere.
+
+    Convention:
+        As :mod:`~enmi_torch.placement.inputs`: ``[b, u, v]`` places the captured image's top-left pixel on
+        reference cell ``(u, v)`` (row, column); no gradient; float64 for float64 inputs, float32 otherwise.
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = torch.rand(1, 1, 12, 12, generator=generator) * 256
+        >>> captured = reference[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
+        >>> surface = mixture_surface(captured, reference, 16.0, bins=8)
+        >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
+        (torch.Size([1, 7, 7]), (3, 2))
+    """
+    check_variance_given(variance)
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    em_steps = check_non_negative_int("em_steps", em_steps)
+    candidates = check_positive_int("candidates", candidates)
+    max_candidates = check_positive_int("max_candidates", max_candidates)
+    if max_candidates < candidates:
+        raise ValueError(f"max_candidates must be >= candidates ({candidates}), got {max_candidates}")
+    inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance, bins)
+    with torch.no_grad():
+        cheap = _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range)
+        batch, height, width = inputs.captured.shape
+        weights = truncated_likelihood_weights(
+            inputs.captured.reshape(batch, -1), inputs.variance.reshape(batch, -1), bins, value_range
+        )
+        window_bins = hard_bin_index(inputs.reference, bins, value_range)
+        scores = []
+        for sample in range(batch):
+            window_index = sample if inputs.reference.shape[0] > 1 else 0
+            exact = functools.partial(
+                _placement_scores,
+                weights=weights[sample : sample + 1],
+                section_bins=window_bins[window_index].unfold(0, height, 1).unfold(1, width, 1),
+                section_valid=inputs.reference_valid[window_index].unfold(0, height, 1).unfold(1, width, 1),
+                captured_valid=inputs.captured_valid[sample],
+                bins=bins,
+                em_steps=em_steps,
+            )
+            scores.append(rescore_peaks(cheap.score[sample], exact, candidates, max_candidates))
+        return Surface(torch.stack(scores), cheap.overlap)
+
+
+def _placement_scores(
+    placements: Tensor,
+    *,
+    weights: Tensor,
+    section_bins: Tensor,
+    section_valid: Tensor,
+    captured_valid: Tensor,
+    bins: int,
+    em_steps: int,
+) -> Tensor:
+    """Exact scores ``(P,)`` of one captured image at placements ``(P, 2)`` (row, column).
+
+    ``weights`` ``(1, N, K)``; ``section_bins`` and ``section_valid`` ``(rows, cols, h, w)``, the reference's reference
+    bins and valid cells under each placement; ``captured_valid`` ``(h, w)``.
+    """
+    rows, cols = placements.unbind(-1)
+    reference_bins = section_bins[rows, cols].reshape(placements.shape[0], 1, -1)
+    valid = (section_valid[rows, cols] & captured_valid).reshape(placements.shape[0], 1, -1)
+    return _mixture_score(weights, reference_bins, valid.to(weights.dtype), bins, em_steps)[:, 0]
+
+
+def mixture_loss(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    em_steps: int = 0,
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+) -> Tensor:
+    """``-mixture_information(captured, reference, variance)`` reduced; see :func:`mixture_information`.
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> round(mixture_loss(image, image, 1.0, bins=4).item(), 4)
+        -1.3863
+    """
+    check_option("reduction", reduction, REDUCTIONS)
+    score = mixture_information(
+        captured, reference, variance, bins=bins, value_range=value_range, em_steps=em_steps, valid_mask=valid_mask
+    )
+    return reduce_loss(-score, reduction)
+
+
+class Mixture(Score):
+    """The mixture score as an object: :func:`mixture_information`, :func:`mixture_surface`, :func:`mixture_loss`.
+
+    Args:
+        bins: number of equal-width bins over ``value_range``, for both images.
+        value_range: ``(low, high)`` of the bins.
+        em_steps: EM steps fitting the bin probabilities (see :func:`mixture_information`).
+
+    Example:
+        >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
+        >>> round(Mixture(bins=4)(image, image, 1.0).item(), 4)
+        1.3863
+    """
+
+    name = "mixture"
+    uses_variance = True
+    _bins_captured = True
+
+    def __init__(self, *, bins: int = 32, value_range: tuple[float, float] = (0.0, 256.0), em_steps: int = 0) -> None:
+        bins = check_bins(bins)
+        value_range = check_value_range(value_range)
+        em_steps = check_non_negative_int("em_steps", em_steps)
+        super().__init__(bins=bins, value_range=value_range, em_steps=em_steps)
+
+    def _value(self, captured, reference, variance, valid_mask) -> Tensor:
+        return mixture_information(captured, reference, variance, valid_mask=valid_mask, **self._options)
+
+    def _surface(self, captured, reference, variance, captured_mask, reference_mask) -> Surface:
+        masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
+        return mixture_surface(captured, reference, variance, **masks, **self._options)
+
+    def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
+        return mixture_loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction, **self._options)
