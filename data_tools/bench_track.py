@@ -19,8 +19,8 @@ from pathlib import Path
 
 import torch
 
-from enmi_torch.localization.track import initial_belief, track_step
 from enmi_torch.scores import ECR
+from enmi_torch.tracking import initial_belief, track_step
 
 
 def _drive():

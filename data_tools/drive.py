@@ -1,4 +1,4 @@
-"""Track a simulated drive with the histogram filter (:mod:`enmi_torch.localization.track`) against per-frame argmax.
+"""Track a simulated drive with the histogram filter (:mod:`enmi_torch.tracking`) against per-frame argmax.
 
 The map: scikit-image's CC0 textures and photographs tiled along a road, 320 cells wide and 2560 long (2.5 cm cells:
 8 m x 64 m): ``gravel``, ``grass``, ``brick`` (repetitive), ``camera`` and ``moon``, with painted edge lines, a
@@ -17,7 +17,7 @@ repetitive ``brick`` tile. Odometry (``du``, ``dv``, ``dyaw`` in the frame's axe
 bias of 0.05 degrees per frame and white noise.
 
 Calibration on held-out frames (other poses and noise draws): each score's temperature
-(:func:`enmi_torch.localization.track.calibrate_temperature`), its peak z-score threshold and the odometry noise
+(:func:`enmi_torch.tracking.calibrate_temperature`), its peak z-score threshold and the odometry noise
 (the RMS of the increment errors); it is written as ``calibration_<method>.json`` under ``--logdir``
 (``runs/drive``), with the TensorBoard logs of the errors (``tensorboard --logdir runs/drive/tensorboard``).
 
@@ -47,8 +47,8 @@ from skimage import data
 from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify, value_checks
 from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization.search import localize
-from enmi_torch.localization.track import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
 from enmi_torch.scores import ECR, NCC, NMI, Score
+from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
 
@@ -102,7 +102,7 @@ def trajectory(frames: int) -> tuple[torch.Tensor, torch.Tensor]:
     """True poses ``(frames, 3)`` ``(x, y, yaw)`` and true increments ``(frames, 3)`` ``(du, dv, dyaw)`` (row 0: 0).
 
     The vehicle moves up the map (forward is ``-v`` in the frame): each pose is the previous one moved by its
-    increment turned by the previous yaw, the motion model of :func:`enmi_torch.localization.track.predict`.
+    increment turned by the previous yaw, the motion model of :func:`enmi_torch.tracking.predict`.
     """
     steps = torch.arange(frames, dtype=torch.float64)
     yaw = 6.0 * torch.sin(2 * math.pi * steps / 110) + 2.0 * torch.sin(2 * math.pi * steps / 37)
@@ -118,7 +118,7 @@ def trajectory(frames: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def move(pose: torch.Tensor, increment: torch.Tensor) -> torch.Tensor:
-    """``pose`` moved by ``(du, dv, dyaw)`` in its frame's axes (as in :mod:`enmi_torch.localization.track`)."""
+    """``pose`` moved by ``(du, dv, dyaw)`` in its frame's axes (as in :mod:`enmi_torch.tracking`)."""
     angle = math.radians(-float(pose[2]))
     cos, sin = math.cos(angle), math.sin(angle)
     du, dv, dyaw = increment.tolist()

@@ -16,7 +16,6 @@ from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import entropies, nmi_from_joint_histogram
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
-from enmi_torch.localization.track import Calibration, Tracker
 from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ScoreLoss
 from enmi_torch.placement import Surface
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Mixture, Score, as_score, direct_surface
@@ -25,6 +24,7 @@ from enmi_torch.scores.enmi import enmi, enmi_loss, enmi_surface
 from enmi_torch.scores.mixture import mixture_information, mixture_loss, mixture_surface
 from enmi_torch.scores.ncc import ncc, ncc_loss, ncc_surface
 from enmi_torch.scores.nmi import nmi, nmi_loss, nmi_surface
+from enmi_torch.tracking import Calibration, Tracker
 from enmi_torch.variance import (
     ConstantVariance,
     EmpiricalVariance,

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from enmi_torch import ECR, NMI, Localization, as_score, value_checks
-from enmi_torch.localization.track import (
+from enmi_torch.tracking import (
     CHI2_95_2D,
     Belief,
     Calibration,
