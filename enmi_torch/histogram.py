@@ -38,8 +38,8 @@ from enmi_torch.binning import (
 CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
 
 # Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements: on CPU 1 MiB in
-# float32, which keeps a chunk's temporaries in cache (data_tools/bench_enmi_loss.py --chunk_elements compares
-# sizes); on accelerators larger chunks amortise the kernel launches.
+# float32, which keeps a chunk's temporaries in cache (data_tools/benchmarks/bench_enmi_loss.py --chunk_elements
+# compares sizes); on accelerators larger chunks amortise the kernel launches.
 _CHUNK_ELEMENTS = 1 << 18
 _ACCELERATOR_CHUNK_ELEMENTS = 1 << 20
 # Hard entropies count pixels in a table of every cell up to this many cells (or 16 per pixel), else by sorting.

@@ -268,7 +268,7 @@ def test_bad_inputs_raise_naming_the_argument(case, error, match):
 
 
 def _drive_module():
-    spec = importlib.util.spec_from_file_location("drive", REPO / "data_tools" / "drive.py")
+    spec = importlib.util.spec_from_file_location("drive", REPO / "data_tools" / "drive" / "drive.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

@@ -46,7 +46,7 @@ def _parse_yaws(text: str) -> list[float]:
 
 
 _PROG = "enmi-localize"
-_EPILOG = f"""example (files from python data_tools/localization_benchmark.py --example runs/example):
+_EPILOG = f"""example (files from python data_tools/yardstick/localization_benchmark.py --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
       --local-mask runs/example/captured_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
 

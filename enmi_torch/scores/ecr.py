@@ -17,7 +17,7 @@ has mean 0; a captured image with structure of its own that is unrelated to the 
 ``(K_occ - 1) / (2 n)`` times its spread over the noise variance, small against an aligned placement's score and
 without a term that follows the map's content. A noisy pixel adds its evidence in proportion to its precision
 instead of a full unit of histogram weight, which is what makes the per-pixel variance pay (see
-``data_tools/yardstick.py`` and ``data_tools/diagnose_enmi.py``).
+``data_tools/yardstick/yardstick.py`` and ``data_tools/yardstick/diagnose_enmi.py``).
 
 With one variance for all pixels, ``ECR = eta^2 Var[v] / (2 (sigma^2 + tau^2)) - (K_occ - 1) / (2 n)`` with
 ``eta^2`` the classic correlation ratio (Pearson, Roche et al. 1998) of the captured image given the reference bins.

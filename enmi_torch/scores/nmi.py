@@ -72,7 +72,7 @@ def nmi(
 def _few_pixels(captured: Tensor, bins: int) -> bool:
     """Whether an image has fewer than ``bins^2 / 4`` pixels, where pixel-wise hard entropies beat the histogram.
 
-    ``data_tools/bench_paper_simulation.py`` on CPU, 32 bins: 2.4x faster at 66 pixels, about even at 256
+    ``data_tools/benchmarks/bench_paper_simulation.py`` on CPU, 32 bins: 2.4x faster at 66 pixels, about even at 256
     (``bins^2 / 4``), 2x slower from a few thousand.
     """
     if not isinstance(captured, Tensor) or captured.ndim < 2 or isinstance(bins, bool) or not isinstance(bins, int):

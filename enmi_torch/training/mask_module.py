@@ -9,8 +9,8 @@ single-process gradient of the same global batch: the fitted mask does not depen
 
 Dashboards (TensorBoard): ``train/nll``, ``val/nll``; ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth``,
 ``mask/empirical_rel_rms_vs_truth``; ``localization/<method>`` (share of held-out pairs located within one pixel
-by a whole-image search, the protocol of ``data_tools/yardstick.py``) and ``localization_z/<method>`` (the mean
-z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
+by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and ``localization_z/<method>`` (the
+mean z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
 (``*_learned``), the true field (``*_analytic``, synthetic data) and the uniform controls (``*_uniform``: the learned
 mask's mean; ``enmi_best_uniform``: the best of the mean times ``localization_grid``), hard NMI and NCC (the
 methods that do not depend on the mask, ``*_analytic``, NMI and NCC, are scored at a fit's first validation and

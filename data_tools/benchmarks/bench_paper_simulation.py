@@ -1,6 +1,7 @@
 """Time per N0 point of the paper simulation's scores, three ways, against the point's kernel floor.
 
-    python data_tools/bench_paper_simulation.py [--trials 10000] [--repeats 5] [--chunk_trials 96] [--threads 1]
+    python data_tools/benchmarks/bench_paper_simulation.py [--trials 10000] [--repeats 5] [--chunk_trials 96] \
+        [--threads 1]
 
 One "point" is ``trials`` trials of the paper's 66 tiles at one N0, each trial scoring the truth and the candidate
 against the captured image. Three ways are timed side by side, in interleaved rounds in one process (medians over

@@ -26,9 +26,9 @@ odometry, the best candidate taken): ECR with the analytic, the learned and a un
 window +-8 cells, 5 yaws 1 degree apart). Errors are split along the true heading (longitudinal) and across it
 (lateral); "covered" is the share of frames whose filter 95 % ellipse holds the truth.
 
-    python data_tools/drive.py                                      # runs/drive/drive.png, ~3 min on 2 cores
-    python data_tools/drive.py --out data_tools/figures/drive.png   # README's figure
-    python data_tools/drive.py --frames 60 --methods ecr_analytic   # a quick look
+    python data_tools/drive/drive.py                                      # runs/drive/drive.png, ~3 min on 2 cores
+    python data_tools/drive/drive.py --out data_tools/figures/drive.png   # README's figure
+    python data_tools/drive/drive.py --frames 60 --methods ecr_analytic   # a quick look
 """
 
 from __future__ import annotations

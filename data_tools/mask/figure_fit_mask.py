@@ -1,7 +1,7 @@
 """README figure: the masks learned by ``enmi-fit-mask`` from lidar-like and camera-like pairs.
 
-    python data_tools/figure_fit_mask.py                                        # writes runs/fit_mask.png
-    python data_tools/figure_fit_mask.py --out data_tools/figures/fit_mask.png  # regenerates the README figure
+    python data_tools/mask/figure_fit_mask.py                                        # writes runs/fit_mask.png
+    python data_tools/mask/figure_fit_mask.py --out data_tools/figures/fit_mask.png  # regenerates the README figure
 
 Runs the default configuration (configs/fit_mask.yaml) twice, once per synthetic flavour, and stacks the two mask
 figures the command writes (learned, empirical and true variance on one colour scale, and one held-out residual).

@@ -1,12 +1,12 @@
 """One step of the tracking filter against one ``localize`` call of the same window, in one run.
 
-A 64 x 64 frame (the drive's camera model, :mod:`data_tools.drive`), a window of +-8 cells and 5 yaws one degree
+A 64 x 64 frame (the drive's camera model, ``data_tools/drive/drive.py``), a window of +-8 cells and 5 yaws one degree
 apart, ECR with a per-pixel variance: ``track_step`` (predict, the search, update, pose read-out and health) against
 the bare ``localize`` call, interleaved in rounds on one thread; the table gives the medians of the per-round times
 and of the per-round ratios.
 
-    python data_tools/bench_track.py              # ~1 min on 2 cores
-    python data_tools/bench_track.py --bins 16 --rounds 40
+    python data_tools/drive/bench_track.py              # ~1 min on 2 cores
+    python data_tools/drive/bench_track.py --bins 16 --rounds 40
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ The parent process runs the measurements in child processes, in turn as is, with
 regions instead of spinning), and prints them side by side; the ratio to the direct loop is the median of ratios
 taken within each round, which shared-machine load bursts affect least.
 
-    python data_tools/bench_localize.py                          # about 3 minutes on 2 CPU cores
-    python data_tools/bench_localize.py --rounds 8 --children 3  # steadier medians
+    python data_tools/benchmarks/bench_localize.py                          # about 3 minutes on 2 CPU cores
+    python data_tools/benchmarks/bench_localize.py --rounds 8 --children 3  # steadier medians
 """
 
 from __future__ import annotations

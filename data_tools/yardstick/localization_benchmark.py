@@ -31,11 +31,11 @@ matched against a map made by another sensor: the case mutual information is for
 Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model and writes
 the figure ``runs/localization_success.png`` (``localization_success_nonmonotonic.png``), or ``--figure``.
 
-    python data_tools/localization_benchmark.py                 # 26 s (quiet) to 150 s (busy) on a 2-core CPU
-    python data_tools/localization_benchmark.py --response nonmonotonic
-    python data_tools/localization_benchmark.py --trials 100    # tighter rates
-    python data_tools/localization_benchmark.py --figure data_tools/figures/localization_success.png  # README's
-    python data_tools/localization_benchmark.py --example runs/example   # files for the command line tool
+    python data_tools/yardstick/localization_benchmark.py                 # 26 s (quiet) to 150 s (busy) on a 2-core CPU
+    python data_tools/yardstick/localization_benchmark.py --response nonmonotonic
+    python data_tools/yardstick/localization_benchmark.py --trials 100    # tighter rates
+    python data_tools/yardstick/localization_benchmark.py --figure data_tools/figures/localization_success.png
+    python data_tools/yardstick/localization_benchmark.py --example runs/example   # files for the command line tool
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Time and peak memory of ENMILoss against kornia's and MONAI's mutual-information losses, and its kernel floor.
 
-    python data_tools/bench_enmi_loss.py [--batch 8] [--size 256] [--bins 32] [--repeats 7] [--threads 1]
+    python data_tools/benchmarks/bench_enmi_loss.py [--batch 8] [--size 256] [--bins 32] [--repeats 7] [--threads 1]
 
 Every method scores the same B x 1 x H x W captured/reference batch with the same number of bins; ENMILoss also
 takes a per-pixel variance map (and gets its gradient). Each round times every method once, interleaved, after a

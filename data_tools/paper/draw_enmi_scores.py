@@ -1,7 +1,7 @@
 """README figure for NMI and ENMI: score against shift on a real image with noise that grows with distance.
 
-    python data_tools/draw_enmi_scores.py                                        # writes runs/enmi_vs_nmi.png
-    python data_tools/draw_enmi_scores.py --out data_tools/figures/enmi_vs_nmi.png  # regenerates the README figure
+    python data_tools/paper/draw_enmi_scores.py                                       # writes runs/enmi_vs_nmi.png
+    python data_tools/paper/draw_enmi_scores.py --out data_tools/figures/enmi_vs_nmi.png  # the README figure
 
 The reference is a 48 x 48 crop of scikit-image's bundled CC0 ``gravel()``; the captured image is the crop
 shifted by s pixels plus Gaussian noise of variance N0 (1 + 99 d^3), d the row's distance from the bottom

@@ -1,15 +1,15 @@
 """Mutation check: do the tests notice a swapped axis, a flipped sign or a wrong bound in the numerical core?
 
 Each mutant changes one line of a module of the numerical core or the localization geometry (an arithmetic
-operator, a comparison, a reduction axis, a constant, a boolean); the module's own tests (``tests/test_<name>.py``,
-``tests/variance/`` for the variance models) then run on a copy of the repository. A mutant is killed when they fail
+operator, a comparison, a reduction axis, a constant, a boolean); the module's own tests (:data:`MODULES`) then run
+on a copy of the repository. A mutant is killed when they fail
 (or run past ``--timeout``); the survivors are printed with their line, to be read: either a test is missing or the
 mutant is equivalent. Mutants are drawn at random (``--seed``) from all candidates, at most ``--per-module`` per
 module; comment and docstring lines are skipped.
 
-    python data_tools/mutation_check.py                          # 8 mutants per module, a few minutes on 2 cores
-    python data_tools/mutation_check.py --per-module 30 --jobs 2
-    python data_tools/mutation_check.py --root ../other_checkout  # the same check on another version
+    python data_tools/checks/mutation_check.py                          # 8 mutants per module, a few minutes on 2 cores
+    python data_tools/checks/mutation_check.py --per-module 30 --jobs 2
+    python data_tools/checks/mutation_check.py --root ../other_checkout  # the same check on another version
 """
 
 from __future__ import annotations
@@ -25,32 +25,55 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+SURFACE_TESTS = ["tests/test_score_surface.py", "tests/scores/test_score_objects.py"]
 MODULES = {
     "binning": ["tests/test_binning.py"],
     "histogram": ["tests/test_histogram.py", "tests/test_histogram_candidates.py"],
     "information": ["tests/test_information.py"],
-    "correlation_ratio": ["tests/test_correlation_ratio.py", "tests/test_score_surface.py"],
-    "localization/surface": ["tests/test_score_surface.py"],
+    "placement/inputs": SURFACE_TESTS,
+    "placement/fft": SURFACE_TESTS,
+    "placement/planes": SURFACE_TESTS,
+    "placement/information": SURFACE_TESTS,
+    "scores/base": ["tests/scores/test_score_objects.py"],
+    "scores/ecr": ["tests/test_correlation_ratio.py", *SURFACE_TESTS],
+    "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS],
+    "scores/nmi": ["tests/test_information.py", *SURFACE_TESTS],
+    "scores/ncc": SURFACE_TESTS,
     "localization/search": ["tests/test_localize.py"],
     "localization/peak": ["tests/test_localize.py"],
     "variance/empirical": ["tests/variance/test_empirical.py"],
     "variance/perspective": ["tests/variance/test_perspective.py"],
 }
 
-# Where a module lived before the localization package (commit 4f0c41e and earlier), for --root on older checkouts.
+# Where a module's code lived in older checkouts, newest first, for --root: before the scores package (337d306 and
+# earlier) and before the localization package (4f0c41e and earlier). Modules that share a file draw each mutant once.
 LEGACY_FILES = {
-    "localization/surface": "score_surface",
-    "localization/search": "localize",
-    "localization/peak": "localize",
+    "placement/inputs": ["localization/surface", "score_surface"],
+    "placement/fft": ["localization/surface", "score_surface"],
+    "placement/planes": ["localization/surface", "score_surface"],
+    "placement/information": ["localization/surface", "score_surface"],
+    "scores/ecr": ["correlation_ratio"],
+    "scores/enmi": ["information"],
+    "scores/nmi": ["information"],
+    "scores/ncc": ["localization/surface", "score_surface"],
+    "localization/search": ["localize"],
+    "localization/peak": ["localize"],
 }
 
 
 def module_file(root: Path, module: str) -> Path:
     """The module's source file in the checkout ``root`` (its legacy name where the new one is absent)."""
     path = root / "enmi_torch" / f"{module}.py"
-    if not path.is_file() and module in LEGACY_FILES:
-        path = root / "enmi_torch" / f"{LEGACY_FILES[module]}.py"
+    for legacy in LEGACY_FILES.get(module, []):
+        if path.is_file():
+            break
+        path = root / "enmi_torch" / f"{legacy}.py"
     return path
+
+
+def module_tests(root: Path, module: str) -> list[str]:
+    """The module's test files that the checkout ``root`` has."""
+    return [test for test in MODULES[module] if (root / test).is_file()]
 
 
 # (pattern, replacement): each match on a line gives one mutant.
@@ -132,7 +155,7 @@ def run_mutant(root: Path, mutant: tuple[str, int, str, str], timeout: float) ->
             lines[index] = mutated
             path.write_text("\n".join(lines) + "\n")
         command = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-m", "not slow"]
-        command += MODULES[module]
+        command += module_tests(root, module)
         environment = {"PYTHONPATH": str(copy), "HOME": folder, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}
         try:
             result = subprocess.run(command, cwd=copy, env=environment, capture_output=True, timeout=timeout)
@@ -147,7 +170,7 @@ def main(argv=None) -> None:
         epilog=__doc__.split("\n\n", 1)[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--root", type=Path, default=Path(__file__).resolve().parents[1], help="the checkout to test")
+    parser.add_argument("--root", type=Path, default=Path(__file__).resolve().parents[2], help="the checkout to test")
     parser.add_argument("--per-module", type=int, default=8, help="mutants drawn per module (default 8)")
     parser.add_argument("--modules", nargs="+", choices=sorted(MODULES), default=sorted(MODULES))
     parser.add_argument("--seed", type=int, default=0)

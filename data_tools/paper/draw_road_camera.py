@@ -1,8 +1,8 @@
 """Draw the paper's Fig. GridRoad for a camera config: tiled road, its camera image, the rectified view, the variance.
 
 Usage:
-    python data_tools/draw_road_camera.py --config configs/camera/paper.yaml     # writes runs/road_camera.png
-    python data_tools/draw_road_camera.py --out data_tools/figures/road_camera.png   # regenerates the README figure
+    python data_tools/paper/draw_road_camera.py --config configs/camera/paper.yaml    # writes runs/road_camera.png
+    python data_tools/paper/draw_road_camera.py --out data_tools/figures/road_camera.png  # the README figure
 
 The road is the config's grid of tiles with random shades N(128, 32^2) (the paper's simulation) and dark joints,
 drawn on a grid twenty times finer; it is warped into the camera with ``unrectify``, back to the ground with

@@ -1,7 +1,7 @@
 """Torch threads and ``OMP_WAIT_POLICY``: time representative calls under each setting, quiet and under load.
 
-    python data_tools/bench_threads.py                    # 3 rounds, 0 and 1 competing busy process, about 5 min
-    python data_tools/bench_threads.py --rounds 1 --busy 0 --repeats 3
+    python data_tools/benchmarks/bench_threads.py        # 3 rounds, 0 and 1 competing busy process, about 5 min
+    python data_tools/benchmarks/bench_threads.py --rounds 1 --busy 0 --repeats 3
 
 Settings: torch intra-op threads 1 or 2 (``torch.set_num_threads``) times ``OMP_WAIT_POLICY`` unset (OpenMP's
 default: idle threads spin for a while before they sleep) or ``PASSIVE`` (they sleep at once). OpenMP reads the

@@ -34,8 +34,8 @@ Prints one table per response and profile (success rate and its standard error),
 the claims, and where failures put their peak (share on the window's edge), and writes a CSV and a figure. Nothing
 tracked is written unless ``--output`` points into the repository.
 
-    python data_tools/yardstick.py --trials 100 --jobs 2 --output /tmp/yardstick     # ~30 min on 2 cores
-    python data_tools/yardstick.py --trials 8 --maps camera --levels 120 --output /tmp/quick   # a minute
+    python data_tools/yardstick/yardstick.py --trials 100 --jobs 2 --output /tmp/yardstick     # ~30 min on 2 cores
+    python data_tools/yardstick/yardstick.py --trials 8 --maps camera --levels 120 --output /tmp/quick   # a minute
 """
 
 from __future__ import annotations
