@@ -16,11 +16,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch.binning import hard_bin_index
 from enmi_torch.information import _nmi_from_entropies
 from enmi_torch.placement.fft import Correlator
 from enmi_torch.placement.inputs import Surface, SurfaceInputs
-from enmi_torch.placement.planes import ReferencePlanes
+from enmi_torch.placement.planes import per_sample_reference_planes
 
 
 class EntropySum:
@@ -63,23 +62,15 @@ def information_surface(
     A placement whose joint histogram holds all but half a pixel's weight in one cell (a constant overlap, up to
     round-off) scores 1, as the core does for a zero joint entropy.
     """
-    batch, height, width = inputs.captured.shape
-    windows = inputs.reference.shape[0]
+    _, height, width = inputs.captured.shape
     correlator = Correlator((height, width), tuple(inputs.reference.shape[1:]))
     dtype = inputs.captured.dtype
     weighted = pixel_weight is not None
     pixel_planes = pixel_weight if weighted else inputs.captured_valid.to(dtype)
     plane_weights = (plane_weights * pixel_planes.unsqueeze(-1)).permute(0, 3, 1, 2)
-    window_bins = torch.where(inputs.reference_valid, hard_bin_index(inputs.reference, bins, value_range), bins)
     shape = (correlator.rows, correlator.cols)
     scores, overlaps = [], []
-    reference = None
-    for sample in range(batch):
-        window_index = sample if windows > 1 else 0
-        if reference is None or windows > 1:
-            reference = ReferencePlanes(
-                correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, dtype
-            )
+    for sample, reference in per_sample_reference_planes(correlator, inputs, bins, value_range):
         captured_valid = inputs.captured_valid[sample]
         local_complete = bool(captured_valid.all()) and not weighted
         weights = plane_weights[sample]

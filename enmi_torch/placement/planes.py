@@ -12,6 +12,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor
 
+from enmi_torch.binning import hard_bin_index
 from enmi_torch.placement.fft import Correlator, box_sums
 from enmi_torch.placement.inputs import SurfaceInputs
 
@@ -46,6 +47,22 @@ class ReferencePlanes:
             counts[-1] = counts[-1].neg_().add_(height * width)
             self._counts = counts
         return self._counts
+
+
+def per_sample_reference_planes(
+    correlator: Correlator, inputs: SurfaceInputs, bins: int, value_range: tuple[float, float]
+) -> Iterator[tuple[int, ReferencePlanes]]:
+    """Each sample's index and its reference's :class:`ReferencePlanes` (built once when one reference is shared)."""
+    windows = inputs.reference.shape[0]
+    window_bins = torch.where(inputs.reference_valid, hard_bin_index(inputs.reference, bins, value_range), bins)
+    reference = None
+    for sample in range(inputs.captured.shape[0]):
+        window_index = sample if windows > 1 else 0
+        if reference is None or windows > 1:
+            reference = ReferencePlanes(
+                correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, inputs.captured.dtype
+            )
+        yield sample, reference
 
 
 def moment_blocks(inputs: SurfaceInputs, local_planes: Tensor) -> Iterator[Tensor]:

@@ -45,7 +45,7 @@ from enmi_torch.binning import bin_width, hard_bin_index
 from enmi_torch.histogram import _prepare
 from enmi_torch.placement.fft import Correlator
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
-from enmi_torch.placement.planes import ReferencePlanes, moment_blocks
+from enmi_torch.placement.planes import moment_blocks, per_sample_reference_planes
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
 
 
@@ -327,8 +327,7 @@ def _ecr_surface(
     counts are not correlated (two thirds of the correlations): a bin counts as occupied where its weight sum exceeds
     half the smallest pixel weight (FFT round-off can flip a few), and the overlap is the captured pixel count.
     """
-    batch, height, width = inputs.captured.shape
-    windows = inputs.reference.shape[0]
+    _, height, width = inputs.captured.shape
     correlator = Correlator((height, width), tuple(inputs.reference.shape[1:]))
     dtype = inputs.captured.dtype
     valid = inputs.captured_valid.to(dtype)
@@ -336,15 +335,8 @@ def _ecr_surface(
     # Centring on the weighted mean keeps S_j^2 / W_j - S^2 / W free of cancellation; the score does not depend on it.
     centre = (weight * inputs.captured).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True)
     weighted_value = weight * (inputs.captured - centre)
-    window_bins = torch.where(inputs.reference_valid, hard_bin_index(inputs.reference, bins, value_range), bins)
     scores, overlaps = [], []
-    reference = None
-    for sample in range(batch):
-        window_index = sample if windows > 1 else 0
-        if reference is None or windows > 1:
-            reference = ReferencePlanes(
-                correlator, window_bins[window_index], inputs.reference_valid[window_index], bins, dtype
-            )
+    for sample, reference in per_sample_reference_planes(correlator, inputs, bins, value_range):
         # The counts come from the valid plane's correlations, rounded (exact): cheaper than the box sums of the planes.
         with_valid = exact_counts or not reference.complete
         planes = torch.stack([weight[sample], weighted_value[sample]] + ([valid[sample]] if with_valid else []))
@@ -381,18 +373,12 @@ def _linear_ecr_surface(inputs: SurfaceInputs, model_variance: float) -> Surface
 
 
 def ecr_loss(
-    captured: Tensor,
-    reference: Tensor,
-    variance: Tensor | float,
-    *,
-    bins: int = 32,
-    value_range: tuple[float, float] = (0.0, 256.0),
-    model_variance: float | None = None,
-    valid_mask: Tensor | None = None,
-    response: str = "binned",
-    reduction: str = "mean",
+    captured: Tensor, reference: Tensor, variance: Tensor | float, *, reduction: str = "mean", **options
 ) -> Tensor:
-    """``-ecr(captured, reference, variance)`` reduced; arguments as :func:`ecr`.
+    """``-ecr(captured, reference, variance, **options)`` reduced over the batch.
+
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
+    :func:`ecr`.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
@@ -400,17 +386,7 @@ def ecr_loss(
         (tensor(-7.3843), tensor(-0.3736))
     """
     check_option("reduction", reduction, REDUCTIONS)
-    score = ecr(
-        captured,
-        reference,
-        variance,
-        bins=bins,
-        value_range=value_range,
-        model_variance=model_variance,
-        valid_mask=valid_mask,
-        response=response,
-    )
-    return reduce_loss(-score, reduction)
+    return reduce_loss(-ecr(captured, reference, variance, **options), reduction)
 
 
 class ECR(Score):

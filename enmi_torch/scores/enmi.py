@@ -168,20 +168,12 @@ def enmi_surface(
 
 
 def enmi_loss(
-    captured: Tensor,
-    reference: Tensor,
-    variance: Tensor | float,
-    *,
-    bins: int = 32,
-    value_range: tuple[float, float] = (0.0, 256.0),
-    kernel: str = "mass",
-    log_prior: Tensor | None = None,
-    reference_kernel: str = "hard",
-    valid_mask: Tensor | None = None,
-    reliability: bool = False,
-    reduction: str = "mean",
+    captured: Tensor, reference: Tensor, variance: Tensor | float, *, reduction: str = "mean", **options
 ) -> Tensor:
-    """``2 - enmi(captured, reference, variance)`` reduced; arguments as :func:`enmi`.
+    """``2 - enmi(captured, reference, variance, **options)`` reduced over the batch.
+
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
+    :func:`enmi`.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
@@ -189,19 +181,7 @@ def enmi_loss(
         (tensor(0.), tensor(1.))
     """
     check_option("reduction", reduction, REDUCTIONS)
-    score = enmi(
-        captured,
-        reference,
-        variance,
-        bins=bins,
-        value_range=value_range,
-        kernel=kernel,
-        log_prior=log_prior,
-        reference_kernel=reference_kernel,
-        valid_mask=valid_mask,
-        reliability=reliability,
-    )
-    return reduce_loss(2 - score, reduction)
+    return reduce_loss(2 - enmi(captured, reference, variance, **options), reduction)
 
 
 class ENMI(Score):

@@ -292,17 +292,12 @@ def _placement_scores(
 
 
 def mixture_loss(
-    captured: Tensor,
-    reference: Tensor,
-    variance: Tensor | float,
-    *,
-    bins: int = 32,
-    value_range: tuple[float, float] = (0.0, 256.0),
-    em_steps: int = 0,
-    valid_mask: Tensor | None = None,
-    reduction: str = "mean",
+    captured: Tensor, reference: Tensor, variance: Tensor | float, *, reduction: str = "mean", **options
 ) -> Tensor:
-    """``-mixture_information(captured, reference, variance)`` reduced; see :func:`mixture_information`.
+    """``-mixture_information(captured, reference, variance, **options)`` reduced over the batch.
+
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
+    :func:`mixture_information`.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
@@ -310,10 +305,7 @@ def mixture_loss(
         -1.3863
     """
     check_option("reduction", reduction, REDUCTIONS)
-    score = mixture_information(
-        captured, reference, variance, bins=bins, value_range=value_range, em_steps=em_steps, valid_mask=valid_mask
-    )
-    return reduce_loss(-score, reduction)
+    return reduce_loss(-mixture_information(captured, reference, variance, **options), reduction)
 
 
 class Mixture(Score):

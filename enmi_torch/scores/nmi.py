@@ -118,20 +118,11 @@ def nmi_surface(
         return information_surface(one_hot.to(inputs.captured.dtype), inputs, bins, value_range)
 
 
-def nmi_loss(
-    captured: Tensor,
-    reference: Tensor,
-    *,
-    bins: int = 32,
-    value_range: tuple[float, float] = (0.0, 256.0),
-    kernel: str = "triangular",
-    reference_kernel: str = "hard",
-    valid_mask: Tensor | None = None,
-    reduction: str = "mean",
-) -> Tensor:
-    """``2 - nmi(captured, reference)`` reduced over the batch; arguments as :func:`nmi`.
+def nmi_loss(captured: Tensor, reference: Tensor, *, reduction: str = "mean", **options) -> Tensor:
+    """``2 - nmi(captured, reference, **options)`` reduced over the batch.
 
-    The default ``kernel`` is ``"triangular"`` (a gradient); ``"hard"`` gives the measurement, without gradient.
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
+    :func:`nmi` (``kernel`` defaults to ``"triangular"``: a gradient; ``"hard"`` is the measurement).
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
@@ -139,16 +130,7 @@ def nmi_loss(
         (tensor(0.), tensor(1.))
     """
     check_option("reduction", reduction, REDUCTIONS)
-    score = nmi(
-        captured,
-        reference,
-        bins=bins,
-        value_range=value_range,
-        kernel=kernel,
-        reference_kernel=reference_kernel,
-        valid_mask=valid_mask,
-    )
-    return reduce_loss(2 - score, reduction)
+    return reduce_loss(2 - nmi(captured, reference, **{"kernel": "triangular", **options}), reduction)
 
 
 class NMI(Score):
