@@ -161,3 +161,18 @@ def test_format_bytes():
         "74.5 GiB",
         "1024.0 TiB",
     ]
+
+
+def test_a_score_counts_the_entropies_of_its_histograms_and_a_bare_histogram_does_not():
+    # The scores hold three more tensors of the histograms' size for the entropies: a smaller budget refuses them.
+    with pytest.raises(MemoryBudgetError, match=r"in float32, their entropies and the bin weights of 256 pixels"):
+        nmi(CAPTURED, REFERENCE, bins=100000, kernel="triangular")
+    with pytest.raises(MemoryBudgetError, match=r"\(1, 100000, 100000\) in float32 and their entropies, over"):
+        enmi(CAPTURED, REFERENCE, 4.0, bins=100000)
+    with pytest.raises(MemoryBudgetError, match=r"\(1, 100000, 100000\) in float32, over the memory budget"):
+        joint_histogram(CAPTURED, REFERENCE, bins=100000, captured_variance=4.0)
+    histogram_bytes = 4 * 2000 * 2000
+    with memory_budget(2 * histogram_bytes):  # one histogram fits, four do not
+        assert joint_histogram(CAPTURED, REFERENCE, bins=2000, captured_variance=4.0).shape == (1, 2000, 2000)
+        with pytest.raises(MemoryBudgetError, match="their entropies"):
+            enmi(CAPTURED, REFERENCE, 4.0, bins=2000)

@@ -26,18 +26,26 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 SURFACE_TESTS = ["tests/test_score_surface.py", "tests/scores/test_score_objects.py"]
+# Each module's tests: those of the code it holds (the functional losses live with their scores, ECR's two-stage
+# pieces with ECR, NMI's choice between its two exact paths with NMI).
 MODULES = {
     "binning": ["tests/test_binning.py"],
-    "histogram": ["tests/test_histogram.py", "tests/test_histogram_candidates.py"],
+    "histogram": ["tests/test_histogram.py", "tests/test_histogram_candidates.py", "tests/test_budget.py"],
     "information": ["tests/test_information.py"],
     "placement/inputs": SURFACE_TESTS,
     "placement/fft": SURFACE_TESTS,
     "placement/planes": SURFACE_TESTS,
     "placement/information": SURFACE_TESTS,
     "scores/base": ["tests/scores/test_score_objects.py"],
-    "scores/ecr": ["tests/test_correlation_ratio.py", *SURFACE_TESTS],
-    "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS],
-    "scores/nmi": ["tests/test_information.py", *SURFACE_TESTS],
+    "scores/ecr": ["tests/test_correlation_ratio.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_localize.py"],
+    "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_budget.py"],
+    "scores/nmi": [
+        "tests/test_information.py",
+        *SURFACE_TESTS,
+        "tests/test_losses.py",
+        "tests/test_budget.py",
+        "tests/test_histogram_candidates.py",
+    ],
     "scores/ncc": SURFACE_TESTS,
     "localization/search": ["tests/test_localize.py"],
     "localization/peak": ["tests/test_localize.py"],

@@ -369,3 +369,51 @@ def test_family_losses_build_their_score_or_take_one():
     with pytest.raises(TypeError, match=r"ECRLoss needs a score of the family ECR, got ENMI\("):
         ECRLoss(ENMI())
     assert isinstance(ENMILoss(), ScoreLoss) and isinstance(ENMILoss().score, Score)
+
+
+@pytest.mark.parametrize("score", [ENMI(bins=16), NMI(bins=16), Mixture(bins=16)], ids=["enmi", "nmi", "mixture"])
+def test_direct_surface_refuses_an_unresolved_captured_image_as_the_surface_does(score):
+    # Sample 1 varies inside one bin of the default range (values in [0, 1]): the whole image is checked first, so
+    # both name sample 1 (one placement at a time would name its own sample 0).
+    local, reference, variance, _, _ = _placements(torch.float64)
+    local = local.clone()
+    local[1] = torch.linspace(0.0, 1.0, 54, dtype=torch.float64).reshape(1, 6, 9)
+    given = variance if score.uses_variance else None
+    for surface in (score.surface, lambda *arguments: direct_surface(score, *arguments)):
+        with pytest.raises(ValueError, match=r"captured varies \(0 to 1 in sample 1\) but all its valid pixels fall"):
+            surface(local, reference, given)
+
+
+def test_ncc_of_two_valid_pixels_is_plus_or_minus_one_on_the_surface_and_off_it():
+    captured = torch.tensor([[[[10.0, 30.0], [20.0, 50.0]]]], dtype=torch.float64)
+    reference = torch.tensor([[[[1.0, 9.0, 4.0], [7.0, 2.0, 8.0]]]], dtype=torch.float64)
+    reference_mask = torch.tensor([[[[True, False, False], [False, True, True]]]])
+    # Placement (0, 0) keeps captured pixels (0, 0) and (1, 1): 10 -> 1 and 50 -> 2, a rising pair; placement (0, 1)
+    # keeps (1, 0) and (1, 1): 20 -> 2 and 50 -> 8, rising too.
+    fast = NCC().surface(captured, reference, reference_mask=reference_mask)
+    slow = direct_surface(NCC(), captured, reference, reference_mask=reference_mask)
+    assert fast.overlap.tolist() == [[[2.0, 2.0]]]
+    torch.testing.assert_close(fast.score, torch.ones(1, 1, 2, dtype=torch.float64), rtol=0, atol=1e-12)
+    torch.testing.assert_close(slow.score, fast.score, rtol=0, atol=1e-12)
+    two = torch.tensor([[True, False], [False, True]])
+    assert ncc(captured, -reference[..., :2], valid_mask=two).item() == pytest.approx(-1.0)
+
+
+def test_reliability_weighted_enmi_scores_a_constant_overlap_as_unrelated_images():
+    # At placements (u, 10) the captured image's left half, whose values vary inside one bin (their likelihoods spill
+    # about 1e-8 into the next one), lies on constant map cells and its right half on unmapped ones: a joint histogram
+    # in one cell but for far less than a pixel's weight, scored 1. The masked top row weighs 0, so "less than a
+    # pixel's weight" must be measured against the smallest weight of the valid pixels.
+    generator = torch.Generator().manual_seed(2)
+    window = torch.rand(1, 1, 40, 40, generator=generator, dtype=torch.float64) * 256
+    window[..., 10:20] = 100.0
+    reference_mask = torch.ones(1, 1, 40, 40, dtype=torch.bool)
+    reference_mask[..., 20:] = False
+    local = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 256
+    local[..., :10] = 100 + 5 * torch.rand(1, 1, 20, 10, generator=generator, dtype=torch.float64)
+    captured_mask = torch.ones(1, 1, 20, 20, dtype=torch.bool)
+    captured_mask[..., 0, :] = False
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
+    surface = ENMI(bins=16, reliability=True).surface(local, window, 0.5, **masks)
+    assert bool((surface.overlap[0, :, 10] == 19 * 10).all())
+    assert bool((surface.score[0, :, 10] == 1.0).all())
