@@ -178,11 +178,14 @@ class Tracker(nn.Module):
     Args:
         reference: ``(1, 1, Hm, Wm)`` or ``(Hm, Wm)`` map (a non-persistent buffer).
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel` of the captured images' noise.
-        calibration: optional :class:`Calibration` (sets ``score`` by name, ``temperature`` and ``min_peak_z``).
+        score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
+            :func:`~enmi_torch.localize`); ``None``: the calibration's score by name, else ``"ecr"``.
+        calibration: optional :class:`Calibration` (sets ``temperature``, ``min_peak_z`` and, without ``score``, the
+            score by name).
         shifts: belief window radius ``r`` or ``(ry, rx)``.
         yaw_bins: odd number of yaw bins.
         yaw_step: yaw bin spacing in degrees.
-        **settings: the keyword arguments of :func:`track_step` (``motion_noise``, ``score``, ``temperature``, ...).
+        **settings: the other keyword arguments of :func:`track_step` (``motion_noise``, ``temperature``, ...).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -201,6 +204,7 @@ class Tracker(nn.Module):
         reference: Tensor,
         variance_model: VarianceModel | None = None,
         *,
+        score: Score | str | None = None,
         calibration: Calibration | None = None,
         shifts: int | tuple[int, int] = 8,
         yaw_bins: int = 5,
@@ -221,6 +225,8 @@ class Tracker(nn.Module):
             if not isinstance(calibration, Calibration):
                 raise TypeError(f"calibration must be a Calibration or None, got {type(calibration).__name__}")
             settings = {**calibration._asdict(), **settings}
+        if score is not None:
+            settings["score"] = as_score(score)
         unknown = set(settings) - set(_STEP_SETTINGS)
         if unknown:
             raise TypeError(f"Tracker got unknown setting(s) {sorted(unknown)}; known: {list(_STEP_SETTINGS)}")
