@@ -9,15 +9,17 @@ one shape, ``changed.npy`` (bool, where the source marks change, when it does) a
 how the pair is registered, the measured residual offset). ``OUT/manifest.json`` lists every folder under OUT
 and the pairs rejected. ``<case>`` is ``another-date`` or ``another-modality``.
 
-Every pair is checked by measurement: the normalised cross-correlation of the gradient magnitudes of the two images
-over integer shifts of +-6 pixels (changed pixels left out where the source marks them), refined to sub-pixel by a
-parabola, on the whole image and on overlapping 96 x 96 tiles (those with a clear peak). A pair is kept when the
-whole-image peak and the median of at least 3 tiles both lie within ``--tolerance`` pixels (0.5) of (0, 0) on both
-axes, and an affine field fitted to the tiles' offsets (where >= 6 tiles agree) stays within twice the tolerance at
-the image corners (a rotation or scale error left by a registration grows there); the tiles' spread (scaled median
-absolute deviation) is recorded, not judged. With ``--correct``, a pair whose whole-image and tile estimates agree
-on one larger offset is shifted by that offset rounded to whole pixels (both images cropped, no resampling) and
-measured again.
+Every pair is checked by measurement: a similarity of the two images over integer shifts of +-6 pixels (changed
+pixels left out where the source marks them), refined to sub-pixel by a parabola: the normalised cross-correlation
+of the gradient magnitudes for two photographs (another date), the normalised mutual information of the grey levels
+for two modalities, where a map's or a SAR image's grey levels bear no monotone relation to the photograph's; on
+the whole image and on overlapping 96 x 96 tiles (those with a clear peak). A pair is kept when the whole-image peak
+and the median of at least 3 tiles both lie within ``--tolerance`` pixels (0.5) of (0, 0) on both axes, and an affine
+field fitted to the tiles' offsets (where >= 6 tiles agree) stays within twice the tolerance at the image corners,
+less two standard errors of the fit (a rotation or scale error left by a registration grows there); the tiles'
+spread (scaled median absolute deviation) is recorded, not judged. With ``--correct``, a pair whose whole-image and
+tile estimates agree on one larger offset is shifted by that offset rounded to whole pixels (both images cropped, no
+resampling) and measured again.
 
 Datasets (``--dataset``), what ``--source`` must hold, where each is published and its terms as the source states:
 
@@ -34,7 +36,8 @@ Datasets (``--dataset``), what ``--source`` must hold, where each is published a
   percentiles.
 * ``pix2pix-maps`` (another modality): 1200 x 600 jpgs holding a satellite photograph (left half) beside its Google
   Maps rendering (right half), the pix2pix ``maps`` set (https://efrosgans.eecs.berkeley.edu/pix2pix/datasets/,
-  scraped from Google Maps; no licence stated, Google's terms apply). The rendering is the reference.
+  scraped from Google Maps; no licence stated, Google's terms apply), or a pix2pix test run's ``N_real_A.png`` /
+  ``N_real_B.png`` images of it (256 x 256). The rendering is the reference.
 * ``srif-optical-map``, ``srif-optical-sar``, ``srif-optical-infrared`` (another modality) and
   ``srif-optical-optical`` (another date): the ``dataset/`` folder of https://github.com/LJY-RS/SRIF (Li, Hu and
   Zhang, ISPRS J. 2023; no licence stated, the README asks for a citation). Each ``pairN_1.jpg`` / ``pairN_2.jpg``
@@ -141,31 +144,80 @@ def surface_peak(surface: np.ndarray) -> tuple[float, float, float, float, bool]
     return i - radius + offsets[0], j - radius + offsets[1], surface[i, j], surface[i, j] - surface[far].max(), edge
 
 
+def nmi_surface(reference: np.ndarray, captured: np.ndarray, valid: np.ndarray, radius: int, bins: int) -> np.ndarray:
+    """(H(A) + H(B)) / H(A, B) over ``valid``, hard bins over [0, 256), ``captured`` moved by (dy, dx) as above."""
+    height, width = reference.shape
+    inner = (slice(radius, height - radius), slice(radius, width - radius))
+    keep = valid[inner]
+    reference_bins = np.clip((reference[inner][keep] * bins / 256.0).astype(int), 0, bins - 1) * bins
+    captured_bins = np.clip((captured * bins / 256.0).astype(int), 0, bins - 1)
+
+    def entropy(counts: np.ndarray) -> float:
+        probability = counts[counts > 0] / counts.sum()
+        return float(-(probability * np.log(probability)).sum())
+
+    surface = np.empty((2 * radius + 1, 2 * radius + 1))
+    for i, dy in enumerate(range(-radius, radius + 1)):
+        for j, dx in enumerate(range(-radius, radius + 1)):
+            moved = captured_bins[radius + dy : height - radius + dy, radius + dx : width - radius + dx][keep]
+            joint = np.bincount(reference_bins + moved, minlength=bins * bins).reshape(bins, bins)
+            surface[i, j] = (entropy(joint.sum(1)) + entropy(joint.sum(0))) / entropy(joint.ravel())
+    return surface
+
+
+SCORES = {
+    "gradient-ncc": "NCC of gradient magnitudes (Gaussian sigma 1, Sobel)",
+    "nmi": "normalised mutual information of the grey levels (32 bins on the whole image, 16 on tiles)",
+}
+
+
 def measure_offset(
-    reference: np.ndarray, captured: np.ndarray, changed: np.ndarray | None = None, radius: int = 6, tile: int = 96
+    reference: np.ndarray,
+    captured: np.ndarray,
+    changed: np.ndarray | None = None,
+    score: str = "gradient-ncc",
+    radius: int = 6,
+    tile: int = 96,
 ) -> dict:
     """Where the captured image's content sits relative to the reference's, in pixels (dy, dx); (0, 0) = aligned.
 
-    A positive dy means a feature at row r of the reference is at row r + dy of the captured image.
+    A positive dy means a feature at row r of the reference is at row r + dy of the captured image. ``score`` is
+    ``"gradient-ncc"`` (two photographs) or ``"nmi"`` (two modalities, where grey levels map non-linearly).
     """
     valid = np.ones(reference.shape, bool) if changed is None else ~ndimage.binary_dilation(changed, iterations=4)
-    grad_reference, grad_captured = gradient_magnitude(reference), gradient_magnitude(captured)
-    dy, dx, peak, margin, edge = surface_peak(ncc_surface(grad_reference, grad_captured, valid, radius))
+    if score == "gradient-ncc":
+        first, second = gradient_magnitude(reference), gradient_magnitude(captured)
+
+        def surface_of(box, bins):
+            return ncc_surface(first[box], second[box], valid[box], radius)
+    else:
+        first, second = reference, captured
+
+        def surface_of(box, bins):
+            return nmi_surface(first[box], second[box], valid[box], radius, bins)
+
+    whole = (slice(None), slice(None))
+    dy, dx, peak, margin, edge = surface_peak(surface_of(whole, 32))
     tiles = []
     for top in range(0, reference.shape[0] - tile + 1, tile // 2):
         for left in range(0, reference.shape[1] - tile + 1, tile // 2):
             box = (slice(top, top + tile), slice(left, left + tile))
             if valid[box].mean() < 0.6:
                 continue
-            surface = ncc_surface(grad_reference[box], grad_captured[box], valid[box], radius)
+            surface = surface_of(box, 16)
             tile_dy, tile_dx, tile_peak, tile_margin, tile_edge = surface_peak(surface)
-            if not tile_edge and tile_margin >= 0.02 and tile_peak >= 0.1:
+            clear = (
+                tile_margin >= 0.02 and tile_peak >= 0.1
+                if score == "gradient-ncc"
+                else (tile_margin >= 0.15 * (tile_peak - np.median(surface)))
+            )
+            if not tile_edge and clear:
                 tiles.append((tile_dy, tile_dx, top + tile / 2, left + tile / 2))
     result = {
-        "method": f"NCC of gradient magnitudes (Gaussian sigma 1, Sobel), shifts +-{radius} px, parabolic peak",
+        "method": f"{SCORES[score]}, shifts +-{radius} px, parabolic peak",
         "whole_image_offset_dy_dx": [round(float(dy), 2), round(float(dx), 2)],
-        "whole_image_peak_ncc": round(float(peak), 3),
-        "whole_image_peak_margin": round(float(margin), 3),
+        "whole_image_peak": round(float(peak), 4),
+        "whole_image_peak_margin": round(float(margin), 4),
         "whole_image_peak_on_edge": bool(edge),
         "tiles_agreeing": len(tiles),
         "tile_size": tile,
@@ -176,26 +228,34 @@ def measure_offset(
         result["tiles_median_offset_dy_dx"] = [round(float(value), 2) for value in median]
         result["tiles_spread_dy_dx"] = [round(float(v), 2) for v in 1.4826 * np.median(abs(shifts - median), 0)]
         if len(tiles) >= 6:
-            result["tiles_affine_corner_offset_max"] = round(affine_corner_offset(shifts, centres, reference.shape), 2)
+            corner, error = affine_corner_offset(shifts, centres, reference.shape)
+            result["tiles_affine_corner_offset_max"] = round(corner, 2)
+            result["tiles_affine_corner_offset_error"] = round(error, 2)
     return result
 
 
-def affine_corner_offset(shifts: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> float:
-    """Largest offset at the image corners of an affine field fitted to the tile offsets (outliers trimmed once).
+def affine_corner_offset(shifts: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> tuple[float, float]:
+    """Largest offset at the image corners of an affine field fitted to the tile offsets, and its standard error.
 
-    A rotation or scale error left by the registration grows towards the corners; a pure translation does not.
+    A rotation or scale error left by a registration grows towards the corners; a pure translation does not. Tiles
+    farther than 3 scaled deviations from a first fit are left out of the second.
     """
-    design = np.hstack([np.ones((len(centres), 1)), centres])
+    design = np.hstack([np.ones((len(centres), 1)), centres / np.array(shape)])
     keep = np.ones(len(shifts), dtype=bool)
     for _ in range(2):
         coefficients, *_ = np.linalg.lstsq(design[keep], shifts[keep], rcond=None)
         residual = np.abs(shifts - design @ coefficients)
-        scale = 1.4826 * np.median(residual[keep], axis=0) + 0.1
-        keep = (residual <= 3 * scale).all(axis=1)
-        if keep.sum() < 4:
+        scale = 1.4826 * np.median(residual[keep], axis=0) + 0.05
+        if (residual <= 3 * scale).all(axis=1).sum() < 6:
             break
-    corners = np.array([[1.0, row, col] for row in (0, shape[0] - 1) for col in (0, shape[1] - 1)])
-    return float(np.abs(corners @ coefficients).max())
+        keep = (residual <= 3 * scale).all(axis=1)
+    noise = np.sqrt((residual[keep] ** 2).sum(axis=0) / max(keep.sum() - 3, 1))  # per axis
+    covariance = np.linalg.pinv(design[keep].T @ design[keep])
+    corners = np.array([[1.0, row, col] for row in (0.0, 1.0) for col in (0.0, 1.0)])
+    offsets = np.abs(corners @ coefficients)  # (4 corners, 2 axes)
+    errors = np.sqrt(np.einsum("ci,ij,cj->c", corners, covariance, corners))[:, None] * noise
+    worst = np.unravel_index(np.argmax(offsets), offsets.shape)
+    return float(offsets[worst]), float(errors[worst])
 
 
 def verdict(measured: dict, tolerance: float) -> tuple[bool, np.ndarray | None]:
@@ -207,7 +267,10 @@ def verdict(measured: dict, tolerance: float) -> tuple[bool, np.ndarray | None]:
     if np.abs(whole - tiles).max() > tolerance:
         return False, None
     aligned = np.abs(whole).max() <= tolerance and np.abs(tiles).max() <= tolerance
-    corner = measured.get("tiles_affine_corner_offset_max", 0.0)
+    # the corner offset less two standard errors: a rotation or scale error that is both real and large
+    corner = measured.get("tiles_affine_corner_offset_max", 0.0) - 2 * measured.get(
+        "tiles_affine_corner_offset_error", 0.0
+    )
     if corner > 2 * tolerance + np.abs((whole + tiles) / 2).max():  # not one translation: no shift can fix it
         return False, None
     return bool(aligned and corner <= 2 * tolerance), (whole + tiles) / 2
@@ -335,7 +398,17 @@ def read_oscd(source: Path, dataset: str) -> Iterator[Pair]:
 
 
 def read_pix2pix_maps(source: Path, dataset: str) -> Iterator[Pair]:
-    """pix2pix maps: satellite photograph (left half) beside the map rendering (right half)."""
+    """pix2pix maps: side-by-side jpgs (photograph left, map right), or a test run's ``N_real_A/B.png`` images.
+
+    In a test run's output the direction (AtoB or BtoA) decides which of A and B is the map: the one with the weaker
+    mean gradient (flat colours) is taken as the map.
+    """
+    for path in sorted(source.rglob("*_real_A.png"), key=lambda p: int(p.stem.split("_")[0])):
+        first, second = read_grey(path), read_grey(path.with_name(path.name.replace("_real_A", "_real_B")))
+        if gradient_magnitude(first).mean() > gradient_magnitude(second).mean():
+            first, second = second, first
+        paths = [str(path), str(path.with_name(path.name.replace("_real_A", "_real_B")))]
+        yield Pair(path.stem.split("_")[0], first, second, {"paths": paths})
     for path in sorted(source.rglob("*.jpg"), key=lambda p: (p.parent.name, int(p.stem) if p.stem.isdigit() else 0)):
         image = read_grey(path)
         height, width = image.shape
@@ -500,13 +573,14 @@ def prepare(
         if min(pair.reference.shape) < MIN_SIDE:
             rejected.append({"dataset": dataset, "id": pair.name, "reason": f"smaller than {MIN_SIDE} px"})
             continue
-        measured = measure_offset(pair.reference, pair.captured, pair.changed)
+        score = "nmi" if case == "modality" else "gradient-ncc"
+        measured = measure_offset(pair.reference, pair.captured, pair.changed, score)
         aligned, offset = verdict(measured, tolerance)
         before = None
         if not aligned and correct and offset is not None:
             before = measured
             shift_crop(pair, offset)
-            measured = measure_offset(pair.reference, pair.captured, pair.changed)
+            measured = measure_offset(pair.reference, pair.captured, pair.changed, score)
             aligned, _ = verdict(measured, tolerance)
         if not aligned:
             rejected.append({"dataset": dataset, "id": pair.name, "reason": "alignment not verified", **measured})
