@@ -43,14 +43,34 @@ def test_measure_offset_recovers_a_known_shift(prep, photo, dy, dx):
     assert prep.verdict(measured, 0.5)[0] == (max(abs(dy), abs(dx)) <= 0.5)
 
 
+@pytest.mark.parametrize(("dy", "dx"), [(0.0, 0.0), (2.0, -1.0), (-1.0, 3.0)])
+def test_nmi_finds_a_shift_across_a_non_monotone_tone_change(prep, photo, dy, dx):
+    """Mid-grey bright, black and white both dark: correlation fails, mutual information does not."""
+    captured = 255 * np.abs(2 * _moved(photo, dy, dx) / 255 - 1) ** 0.8
+    measured = prep.measure_offset(photo, np.clip(captured, 0, 255), score="nmi")
+    np.testing.assert_allclose(measured["whole_image_offset_dy_dx"], [dy, dx], atol=0.3)
+    np.testing.assert_allclose(measured["tiles_median_offset_dy_dx"], [dy, dx], atol=0.3)
+
+
+def test_pix2pix_test_run_takes_the_flat_image_as_the_map(prep, photo, tmp_path):
+    flat = np.where(photo > 128, 240.0, 200.0)  # a rendering: two flat colours
+    Image.fromarray(flat.astype(np.uint8)).save(tmp_path / "7_real_B.png")
+    Image.fromarray(photo.astype(np.uint8)).save(tmp_path / "7_real_A.png")
+    pair = next(prep.read_pix2pix_maps(tmp_path, "pix2pix-maps"))
+    assert pair.name == "7"
+    np.testing.assert_array_equal(pair.reference, flat)
+    np.testing.assert_array_equal(pair.captured, photo)
+
+
 def test_verdict_rejects_a_rotation_that_no_shift_fixes(prep, photo):
-    angle = np.deg2rad(1.5)  # 1.5 degrees about the centre: ~5 px at the corners of a 280 x 400 image
+    angle = np.deg2rad(0.5)  # 0.5 degrees about the centre: ~2 px at the corners of a 280 x 400 image
     centre = np.array(photo.shape) / 2
     rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     captured = ndimage.affine_transform(photo, rotation, offset=centre - rotation @ centre, order=3, mode="nearest")
     measured = prep.measure_offset(photo, captured)
-    assert max(abs(v) for v in measured["tiles_median_offset_dy_dx"]) <= 0.5  # the centre lines up
-    assert measured["tiles_affine_corner_offset_max"] > 2.0
+    assert max(abs(v) for v in measured["whole_image_offset_dy_dx"]) <= 0.5  # the centre lines up
+    assert max(abs(v) for v in measured["tiles_median_offset_dy_dx"]) <= 0.5
+    assert 1.2 < measured["tiles_affine_corner_deviation"] < 2.5
     assert prep.verdict(measured, 0.5) == (False, None)
 
 

@@ -12,14 +12,14 @@ and the pairs rejected. ``<case>`` is ``another-date`` or ``another-modality``.
 Every pair is checked by measurement: a similarity of the two images over integer shifts of +-6 pixels (changed
 pixels left out where the source marks them), refined to sub-pixel by a parabola: the normalised cross-correlation
 of the gradient magnitudes for two photographs (another date), the normalised mutual information of the grey levels
-for two modalities, where a map's or a SAR image's grey levels bear no monotone relation to the photograph's; on
-the whole image and on overlapping 96 x 96 tiles (those with a clear peak). A pair is kept when the whole-image peak
-and the median of at least 3 tiles both lie within ``--tolerance`` pixels (0.5) of (0, 0) on both axes, and an affine
-field fitted to the tiles' offsets (where >= 6 tiles agree) stays within twice the tolerance at the image corners,
-less two standard errors of the fit (a rotation or scale error left by a registration grows there); the tiles'
-spread (scaled median absolute deviation) is recorded, not judged. With ``--correct``, a pair whose whole-image and
-tile estimates agree on one larger offset is shifted by that offset rounded to whole pixels (both images cropped, no
-resampling) and measured again.
+for two modalities, where a map's or a SAR image's grey levels bear no monotone relation to the photograph's; on the
+whole image and on overlapping 96 x 96 tiles (those with a clear peak). A pair is kept when the whole-image peak and
+the median of at least 3 tiles both lie within ``--tolerance`` pixels (0.5) of (0, 0) on both axes, and an affine
+field fitted to the tiles' offsets (where >= 6 tiles agree) moves by at most twice the tolerance between the image's
+centre and its corners, less two standard errors (a rotation or scale error left by a registration grows there); the
+tiles' spread (scaled median absolute deviation) is recorded, not judged. With ``--correct``, a pair whose whole-
+image and tile estimates agree on one larger offset is shifted by that offset rounded to whole pixels (both images
+cropped, no resampling) and measured again.
 
 Datasets (``--dataset``), what ``--source`` must hold, where each is published and its terms as the source states:
 
@@ -228,19 +228,20 @@ def measure_offset(
         result["tiles_median_offset_dy_dx"] = [round(float(value), 2) for value in median]
         result["tiles_spread_dy_dx"] = [round(float(v), 2) for v in 1.4826 * np.median(abs(shifts - median), 0)]
         if len(tiles) >= 6:
-            corner, error = affine_corner_offset(shifts, centres, reference.shape)
-            result["tiles_affine_corner_offset_max"] = round(corner, 2)
-            result["tiles_affine_corner_offset_error"] = round(error, 2)
+            corner, error = affine_corner_deviation(shifts, centres, reference.shape)
+            result["tiles_affine_corner_deviation"] = round(corner, 2)
+            result["tiles_affine_corner_deviation_error"] = round(error, 2)
     return result
 
 
-def affine_corner_offset(shifts: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> tuple[float, float]:
-    """Largest offset at the image corners of an affine field fitted to the tile offsets, and its standard error.
+def affine_corner_deviation(shifts: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> tuple[float, float]:
+    """How far an affine field fitted to the tile offsets moves between the image's centre and its corners.
 
-    A rotation or scale error left by a registration grows towards the corners; a pure translation does not. Tiles
-    farther than 3 scaled deviations from a first fit are left out of the second.
+    A rotation or scale error left by a registration grows towards the corners; a translation moves all alike and
+    counts zero. Returns the largest deviation (pixels, over corners and axes) and its standard error. Tiles farther
+    than 3 scaled deviations from a first fit are left out of the second.
     """
-    design = np.hstack([np.ones((len(centres), 1)), centres / np.array(shape)])
+    design = np.hstack([np.ones((len(centres), 1)), centres / np.array(shape) - 0.5])
     keep = np.ones(len(shifts), dtype=bool)
     for _ in range(2):
         coefficients, *_ = np.linalg.lstsq(design[keep], shifts[keep], rcond=None)
@@ -250,12 +251,12 @@ def affine_corner_offset(shifts: np.ndarray, centres: np.ndarray, shape: tuple[i
             break
         keep = (residual <= 3 * scale).all(axis=1)
     noise = np.sqrt((residual[keep] ** 2).sum(axis=0) / max(keep.sum() - 3, 1))  # per axis
-    covariance = np.linalg.pinv(design[keep].T @ design[keep])
-    corners = np.array([[1.0, row, col] for row in (0.0, 1.0) for col in (0.0, 1.0)])
-    offsets = np.abs(corners @ coefficients)  # (4 corners, 2 axes)
+    covariance = np.linalg.pinv(design[keep].T @ design[keep])[1:, 1:]
+    corners = np.array([[row, col] for row in (-0.5, 0.5) for col in (-0.5, 0.5)])
+    deviations = np.abs(corners @ coefficients[1:])  # (4 corners, 2 axes)
     errors = np.sqrt(np.einsum("ci,ij,cj->c", corners, covariance, corners))[:, None] * noise
-    worst = np.unravel_index(np.argmax(offsets), offsets.shape)
-    return float(offsets[worst]), float(errors[worst])
+    worst = np.unravel_index(np.argmax(deviations), deviations.shape)
+    return float(deviations[worst]), float(errors[worst])
 
 
 def verdict(measured: dict, tolerance: float) -> tuple[bool, np.ndarray | None]:
@@ -266,14 +267,13 @@ def verdict(measured: dict, tolerance: float) -> tuple[bool, np.ndarray | None]:
     tiles = np.array(measured["tiles_median_offset_dy_dx"])
     if np.abs(whole - tiles).max() > tolerance:
         return False, None
-    aligned = np.abs(whole).max() <= tolerance and np.abs(tiles).max() <= tolerance
-    # the corner offset less two standard errors: a rotation or scale error that is both real and large
-    corner = measured.get("tiles_affine_corner_offset_max", 0.0) - 2 * measured.get(
-        "tiles_affine_corner_offset_error", 0.0
+    # a rotation or scale error that is both real (2 standard errors) and large: no shift can fix it
+    corner = measured.get("tiles_affine_corner_deviation", 0.0) - 2 * measured.get(
+        "tiles_affine_corner_deviation_error", 0.0
     )
-    if corner > 2 * tolerance + np.abs((whole + tiles) / 2).max():  # not one translation: no shift can fix it
+    if corner > 2 * tolerance:
         return False, None
-    return bool(aligned and corner <= 2 * tolerance), (whole + tiles) / 2
+    return bool(np.abs(whole).max() <= tolerance and np.abs(tiles).max() <= tolerance), (whole + tiles) / 2
 
 
 def shift_crop(pair: Pair, offset: np.ndarray) -> None:
