@@ -17,9 +17,9 @@ whole image and on overlapping 96 x 96 tiles (those with a clear peak). A pair i
 the median of at least 3 tiles both lie within ``--tolerance`` pixels (0.5) of (0, 0) on both axes, and an affine
 field fitted to the tiles' offsets (where >= 6 tiles agree) moves by at most twice the tolerance between the image's
 centre and its corners, less two standard errors (a rotation or scale error left by a registration grows there); the
-tiles' spread (scaled median absolute deviation) is recorded, not judged. With ``--correct``, a pair whose whole-
-image and tile estimates agree on one larger offset is shifted by that offset rounded to whole pixels (both images
-cropped, no resampling) and measured again.
+tiles' spread (scaled median absolute deviation) is recorded, not judged. With ``--correct``, a pair whose
+whole-image and tile estimates agree on one larger offset is shifted by that offset rounded to whole pixels (both
+images cropped, no resampling) and measured again.
 
 Datasets (``--dataset``), what ``--source`` must hold, where each is published and its terms as the source states:
 
