@@ -44,11 +44,13 @@ Datasets (``--dataset``), what ``--source`` must hold, where each is published a
   comes with ``gt_N.txt``, the 2 x 3 similarity that maps (1-based) pixels of the first image into the second. One
   image is resampled (cubic, anti-aliased when shrunk) into the other's frame, the frame whose largest fully covered
   rectangle holds more ground (the coarser frame on a tie), and both are cropped to that rectangle. The first image
-  (optical) is the reference. The given similarities are off by up to ~5 px: most pairs need ``--correct``.
+  (optical) is the reference, except for ``srif-optical-map`` where the map rendering is. The given similarities
+  are off by up to ~5 px: most pairs need ``--correct``.
 * ``cfog`` (another modality): a checkout of https://github.com/yeyuanxin110/CFOG (Ye et al., TGRS 2019: "for
   research purposes only. Any commercial use is prohibited"): optical against SAR, lidar depth, lidar intensity,
   infrared and a map, 500-1000 pixels. An affine map (least squares) from the reference image to the sensed one is
-  fitted to the control points shipped with each pair; the sensed image is resampled into the reference frame.
+  fitted to the control points shipped with each pair; the sensed image is resampled into the reference frame. The
+  map (where there is one), else the optical image, is the yardstick's reference.
 """
 
 from __future__ import annotations
@@ -437,7 +439,11 @@ def read_srif(source: Path, dataset: str) -> Iterator[Pair]:
             how = "given as co-registered (identity ground truth)"
         else:
             first, second, how = coregister(first, second, matrix)
-        yield Pair(f"{number:03d}", first, second, {"paths": [str(p) for p in paths], "registration": how})
+        meta = {"paths": [str(p) for p in paths], "registration": how}
+        if dataset == "srif-optical-map":  # the map rendering is the map in the yardstick's roles
+            yield Pair(f"{number:03d}", second, first, meta | {"roles": "reference = pair_2 (map), captured = pair_1"})
+        else:
+            yield Pair(f"{number:03d}", first, second, meta)
 
 
 CFOG_PAIRS = (  # reference image, sensed image, control points (reference x y, sensed x y), modality of each
@@ -505,8 +511,8 @@ def read_cfog(source: Path, dataset: str) -> Iterator[Pair]:
         warped, covered = warp(sensed, matrix, reference.shape, 1.0)
         rows, cols = largest_rectangle(covered & content_mask(reference))
         reference, warped = reference[rows, cols], warped[rows, cols]
-        # the optical image is the map in the yardstick's roles
-        swap = reference_kind != "optical"
+        # the yardstick's map: the street map where there is one, else the optical image
+        swap = sensed_kind == "map" or (reference_kind != "optical" and reference_kind != "map")
         meta = {
             "paths": [str(p) for p in paths],
             "modalities": [sensed_kind, reference_kind] if swap else [reference_kind, sensed_kind],
