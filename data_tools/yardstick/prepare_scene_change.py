@@ -25,7 +25,7 @@ Datasets (``--dataset``), what ``--source`` must hold, where each is published a
 
 * ``levir-cd``, ``dsifn-cd`` (another date): a folder with ``A/``, ``B/`` and ``label/`` holding same-named images
   (the published layout; the ChangeFormer repository's ``samples_LEVIR`` and ``samples_DSIFN`` too). LEVIR-CD:
-  https://justchenhao.github.io/LEVIR/ (Google Earth images, 0.5 m; for academic use only, as its page says).
+  https://justchenhao.github.io/LEVIR/ (Google Earth images, 0.5 m; no licence in the copies read here).
   DSIFN-CD: github.com/GeoZcx/A-deeply-supervised-image-fusion-network-for-change-detection-in-remote-sensing-images
   (Google Earth images of six Chinese cities; no licence stated). A is the reference, B the captured image.
 * ``oscd`` (another date): the ``Onera Satellite Change Detection dataset - Images`` folder (one folder per city
@@ -527,7 +527,7 @@ DATASETS = {  # name: (reader, case, licence as the source states it)
     "levir-cd": (
         read_change_folders,
         "date",
-        "LEVIR-CD: Google Earth imagery; for academic purposes only (dataset page)",
+        "LEVIR-CD: Google Earth imagery; no licence in the copies read (cite Chen & Shi 2020)",
     ),
     "dsifn-cd": (read_change_folders, "date", "DSIFN-CD: Google Earth imagery; no licence stated by the source"),
     "oscd": (read_oscd, "date", "modified Copernicus Sentinel data 2015-2018 (free and open); change maps CC BY-NC-SA"),
