@@ -10,18 +10,21 @@ from enmi_torch.binning import (
     parzen_weights,
     truncated_likelihood_weights,
 )
-from enmi_torch.correlation_ratio import BinSums, ecr, ecr_from_bin_sums
 from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.geometry.rectify import GroundGrid, rectify, unrectify
 from enmi_torch.histogram import joint_histogram
-from enmi_torch.information import enmi, entropies, nmi, nmi_from_joint_histogram
-from enmi_torch.localization.mixture_surface import mixture_surface
+from enmi_torch.information import entropies, nmi_from_joint_histogram
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
-from enmi_torch.localization.surface import Surface, direct_surface, ecr_surface, enmi_surface, ncc_surface, nmi_surface
-from enmi_torch.localization.track import Calibration, Tracker
-from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ecr_loss, enmi_loss, mixture_loss, nmi_loss
-from enmi_torch.mixture import mixture_information
+from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ScoreLoss
+from enmi_torch.placement import Surface
+from enmi_torch.scores import ECR, ENMI, NCC, NMI, Mixture, Score, as_score, direct_surface
+from enmi_torch.scores.ecr import BinSums, ecr, ecr_from_bin_sums, ecr_loss, ecr_surface
+from enmi_torch.scores.enmi import enmi, enmi_loss, enmi_surface
+from enmi_torch.scores.mixture import mixture_information, mixture_loss, mixture_surface
+from enmi_torch.scores.ncc import ncc, ncc_loss, ncc_surface
+from enmi_torch.scores.nmi import nmi, nmi_loss, nmi_surface
+from enmi_torch.tracking import Calibration, Tracker
 from enmi_torch.variance import (
     ConstantVariance,
     EmpiricalVariance,
@@ -36,6 +39,10 @@ from enmi_torch.variance import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "ECR",
+    "ENMI",
+    "NCC",
+    "NMI",
     "BinSums",
     "Calibration",
     "ConstantVariance",
@@ -47,13 +54,17 @@ __all__ = [
     "Localization",
     "Localizer",
     "MemoryBudgetError",
+    "Mixture",
     "MixtureLoss",
     "NMILoss",
     "PerspectiveVariance",
     "RoadCamera",
+    "Score",
+    "ScoreLoss",
     "Surface",
     "Tracker",
     "VarianceModel",
+    "as_score",
     "bin_centers",
     "bin_edges",
     "direct_surface",
@@ -76,6 +87,8 @@ __all__ = [
     "mixture_information",
     "mixture_loss",
     "mixture_surface",
+    "ncc",
+    "ncc_loss",
     "ncc_surface",
     "nmi",
     "nmi_from_joint_histogram",

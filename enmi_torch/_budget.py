@@ -164,7 +164,7 @@ def surface_bytes(
     weight_bins: int,
     itemsize: int,
 ) -> int:
-    """Bytes of an FFT score surface of ``batch`` local images in a window (:mod:`~enmi_torch.localization.surface`).
+    """Bytes of an FFT score surface of ``batch`` local images in a window (:mod:`enmi_torch.placement`).
 
     The window's ``window_planes`` planes are held real and as spectra (about four reals per window cell each), one
     local image's ``local_planes`` spectra at a time (two), a block of counts per window plane at every placement, and

@@ -126,19 +126,19 @@ def check_positive_number(name: str, value: Any) -> float:
 
 def check_positive_int(name: str, value: Any) -> int:
     """Raise unless ``value`` is an integer >= 1 (``bool`` is refused)."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int >= 1, got {type(value).__name__} {value!r}")
-    if value < 1:
-        raise ValueError(f"{name} must be an int >= 1, got {value}")
-    return value
+    return _check_int_at_least(name, value, 1)
 
 
 def check_non_negative_int(name: str, value: Any) -> int:
     """Raise unless ``value`` is an integer >= 0 (``bool`` is refused)."""
+    return _check_int_at_least(name, value, 0)
+
+
+def _check_int_at_least(name: str, value: Any, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int >= 0, got {type(value).__name__} {value!r}")
-    if value < 0:
-        raise ValueError(f"{name} must be an int >= 0, got {value}")
+        raise TypeError(f"{name} must be an int >= {low}, got {type(value).__name__} {value!r}")
+    if value < low:
+        raise ValueError(f"{name} must be an int >= {low}, got {value}")
     return value
 
 

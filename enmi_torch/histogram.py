@@ -38,8 +38,8 @@ from enmi_torch.binning import (
 CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
 
 # Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements: on CPU 1 MiB in
-# float32, which keeps a chunk's temporaries in cache (data_tools/bench_enmi_loss.py --chunk_elements compares
-# sizes); on accelerators larger chunks amortise the kernel launches.
+# float32, which keeps a chunk's temporaries in cache (data_tools/benchmarks/bench_enmi_loss.py --chunk_elements
+# compares sizes); on accelerators larger chunks amortise the kernel launches.
 _CHUNK_ELEMENTS = 1 << 18
 _ACCELERATOR_CHUNK_ELEMENTS = 1 << 20
 # Hard entropies count pixels in a table of every cell up to this many cells (or 16 per pixel), else by sorting.
@@ -190,7 +190,7 @@ def hard_entropies(
     the mean surprisal of the pixels, ``H = sum_pixels log(n / c(pixel)) / n`` with ``c(pixel)`` the count of the
     pixel's cell and ``n`` the number of valid pixels: ``O(pixels)`` logarithms per sample instead of ``O(bins^2)``.
     That pays for small images and many samples (fewer pixels than ``bins^2 / 4``, e.g. the paper's 66 road tiles
-    and 32 bins), where :func:`~enmi_torch.information.nmi` uses it.
+    and 32 bins), where :func:`~enmi_torch.nmi` uses it.
 
     Args:
         captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
@@ -330,7 +330,7 @@ def _prepare(
     if captured_variance is not None:
         variance = variance_map(variance_name, captured_variance, captured, compute_dtype, valid)
     if log_prior is not None:
-        log_prior = check_log_prior(log_prior, bins, batch).to(compute_dtype)
+        log_prior = check_log_prior(log_prior, bins, batch).to(captured_flat.device, compute_dtype)
 
     return _Inputs(
         captured_flat,

@@ -7,7 +7,7 @@ score makes an error when ``score(V, u) >= score(V, a)``; the error rate is esti
 
 Convention:
     Trials are ``(T, K)`` tensors, one row per trial, so the scores run batched over trials with the library's
-    own :func:`~enmi_torch.information.nmi` and :func:`~enmi_torch.information.enmi`, the truth and the candidate
+    own :func:`~enmi_torch.nmi` and :func:`~enmi_torch.enmi`, the truth and the candidate
     scored as two references of one call (``(2, T, K)``: the captured weights are computed once).
     :func:`error_rates` checks its trials once and runs the steps of those functions after their checks, with the
     same scores bit for bit as :func:`count_errors`. Every noise
@@ -30,7 +30,9 @@ from enmi_torch._checks import check_bins, check_option, check_positive_int, che
 from enmi_torch.binning import gaussian_log_prior, hard_bin_index
 from enmi_torch.geometry.camera import RoadCamera, projected_area
 from enmi_torch.histogram import _likelihood_counts, _mean_surprisal
-from enmi_torch.information import _nmi_from_entropies, enmi, entropies, nmi
+from enmi_torch.information import _nmi_from_entropies, entropies
+from enmi_torch.scores.enmi import enmi
+from enmi_torch.scores.nmi import nmi
 
 PAPER_ROW_COUNTS = (5, 5, 7, 7, 9, 9, 11, 13)
 """Tiles per row of the paper's Fig. SimRoadImage, nearest row first (66 tiles)."""
@@ -202,7 +204,7 @@ def count_errors(
 class _TrustedScorer:
     """:func:`count_errors` for trials that :func:`error_rates` drew and checked: the same scores, bit for bit.
 
-    It calls the steps :func:`~enmi_torch.information.nmi` and :func:`~enmi_torch.information.enmi` take after
+    It calls the steps :func:`~enmi_torch.nmi` and :func:`~enmi_torch.enmi` take after
     their checks, and computes once what does not depend on the noise power: the references' bins and hard
     entropies. A test checks every decision against :func:`count_errors`.
     """

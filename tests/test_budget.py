@@ -12,17 +12,19 @@ from enmi_torch import (
     NMILoss,
     _budget,
     enmi,
+    enmi_surface,
     get_memory_budget,
     histogram,
     joint_histogram,
     memory_budget,
+    ncc_surface,
     nmi,
+    nmi_surface,
     set_memory_budget,
 )
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.localization.search import Localizer, localize
-from enmi_torch.localization.surface import enmi_surface, ncc_surface, nmi_surface
 
 GENERATOR = torch.Generator().manual_seed(15)
 CAPTURED = torch.rand(1, 1, 16, 16, generator=GENERATOR) * 256
@@ -88,7 +90,7 @@ def test_localize_refuses_a_huge_search_window():
     ):
         localize(local, prior_map, 25.0, shifts=10**4)
     with pytest.raises(MemoryBudgetError, match=r"^shifts=\(10000, 10000\) with coarse_factor=2 needs about .* GiB"):
-        Localizer(metric="ncc", shifts=10**4, coarse_factor=2)(local, prior_map)
+        Localizer(score="ncc", shifts=10**4, coarse_factor=2)(local, prior_map)
 
 
 def test_surfaces_refuse_a_huge_window():
@@ -159,3 +161,18 @@ def test_format_bytes():
         "74.5 GiB",
         "1024.0 TiB",
     ]
+
+
+def test_a_score_counts_the_entropies_of_its_histograms_and_a_bare_histogram_does_not():
+    # The scores hold three more tensors of the histograms' size for the entropies: a smaller budget refuses them.
+    with pytest.raises(MemoryBudgetError, match=r"in float32, their entropies and the bin weights of 256 pixels"):
+        nmi(CAPTURED, REFERENCE, bins=100000, kernel="triangular")
+    with pytest.raises(MemoryBudgetError, match=r"\(1, 100000, 100000\) in float32 and their entropies, over"):
+        enmi(CAPTURED, REFERENCE, 4.0, bins=100000)
+    with pytest.raises(MemoryBudgetError, match=r"\(1, 100000, 100000\) in float32, over the memory budget"):
+        joint_histogram(CAPTURED, REFERENCE, bins=100000, captured_variance=4.0)
+    histogram_bytes = 4 * 2000 * 2000
+    with memory_budget(2 * histogram_bytes):  # one histogram fits, four do not
+        assert joint_histogram(CAPTURED, REFERENCE, bins=2000, captured_variance=4.0).shape == (1, 2000, 2000)
+        with pytest.raises(MemoryBudgetError, match="their entropies"):
+            enmi(CAPTURED, REFERENCE, 4.0, bins=2000)

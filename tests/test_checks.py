@@ -3,11 +3,20 @@
 import pytest
 import torch
 
-from enmi_torch import ENMILoss, NMILoss, enmi, joint_histogram, nmi
+from enmi_torch import (
+    ENMILoss,
+    NMILoss,
+    direct_surface,
+    enmi,
+    enmi_surface,
+    joint_histogram,
+    ncc_surface,
+    nmi,
+    nmi_surface,
+)
 from enmi_torch.data import match_intensity
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.localization.search import localize
-from enmi_torch.localization.surface import direct_surface, enmi_surface, ncc_surface, nmi_surface
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance, empirical_variance, gaussian_nll
 
 EMPTY = torch.zeros(0, 1, 4, 4)
@@ -28,7 +37,7 @@ WINDOW = torch.zeros(1, 1, 8, 8)
         ("captured", lambda: enmi_surface(EMPTY, WINDOW, 1.0)),
         ("captured", lambda: nmi_surface(EMPTY, WINDOW)),
         ("captured", lambda: ncc_surface(EMPTY, WINDOW)),
-        ("captured", lambda: direct_surface(EMPTY, WINDOW, metric="nmi")),
+        ("captured", lambda: direct_surface("nmi", EMPTY, WINDOW)),
         ("captured", lambda: localize(EMPTY, WINDOW, 1.0, shifts=1)),
         ("residual", lambda: gaussian_nll(EMPTY, torch.zeros(4, 4))),
         ("captured", lambda: LearnedVariance((4, 4)).nll(EMPTY, EMPTY)),
@@ -44,7 +53,7 @@ def test_an_empty_batch_is_refused_the_same_way_everywhere(name, call):
 
 def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
     import enmi_torch
-    from enmi_torch.localization.surface import enmi_surface, nmi_surface
+    from enmi_torch import enmi_surface, nmi_surface
 
     unit = torch.rand(2, 1, 12, 10, generator=torch.Generator().manual_seed(0))
     message = r"captured varies .* but all its valid pixels fall in one of the 32 bins of value_range=\(0.0, 256.0\)"
@@ -63,7 +72,7 @@ def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
     for call in (
         lambda: nmi_surface(unit[..., :6, :5], unit),
         lambda: enmi_surface(unit[..., :6, :5], unit, 0.01),
-        lambda: enmi_torch.localize(unit[..., :6, :5], unit, 0.01, shifts=1, metric="enmi"),
+        lambda: enmi_torch.localize(unit[..., :6, :5], unit, 0.01, shifts=1, score="enmi"),
     ):
         with pytest.raises(ValueError, match=local_message):
             call()

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from enmi_torch import BinSums, ECRLoss, ecr, ecr_from_bin_sums
-from enmi_torch.correlation_ratio import default_model_variance
+from enmi_torch.scores.ecr import default_model_variance
 from enmi_torch.variance import ConstantVariance
 
 
@@ -128,7 +128,7 @@ def test_ecr_gradcheck_in_captured_and_variance():
 
 def test_ecr_from_bin_sums_streams():
     captured, reference, variance, _ = _case(torch.float64, shape=(1, 1, 8, 8))
-    from enmi_torch.correlation_ratio import bin_sums
+    from enmi_torch.scores.ecr import bin_sums
 
     # Sums over two halves add up to the sums of the whole: the score can be accumulated across batches.
     tau2 = 5.0

@@ -310,3 +310,6 @@ def test_pixel_weights_scale_each_valid_pixel_and_masked_pixels_stay_out(dtype, 
     torch.testing.assert_close(masked[0].double(), expected, **tolerance)
     with pytest.raises(ValueError, match="pixel_weight must be >= 0 where valid"):
         joint_histogram(captured, reference, bins=5, pixel_weight=-weight)
+    # A weight of 0 is allowed everywhere: it leaves the pixel out, as a mask does.
+    zeroed = torch.where(mask, weight, 0.0)
+    torch.testing.assert_close(joint_histogram(captured, reference, bins=5, pixel_weight=zeroed), masked, **tolerance)

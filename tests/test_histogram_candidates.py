@@ -178,7 +178,7 @@ def test_invalid_candidate_shapes_raise_clear_errors(images, reference, message)
 
 @pytest.mark.parametrize(("bins", "pixel_wise"), [(32, True), (8, False)])
 def test_nmi_reads_hard_entropies_at_the_pixels_only_for_small_images(images, bins, pixel_wise, monkeypatch):
-    import enmi_torch.information as information_module
+    import enmi_torch.scores.nmi as information_module
 
     captured, candidates, _, valid = images
     calls = []

@@ -7,11 +7,11 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
+from enmi_torch import ECR, ENMI, NCC, Mixture, as_score, direct_surface, ecr_surface
 from enmi_torch.localization.cli import _command, main
-from enmi_torch.localization.mixture_surface import _rescore_peaks
 from enmi_torch.localization.peak import Localization, _quadratic_peak
-from enmi_torch.localization.search import Localizer, _cheap_surface, _rotated, localize
-from enmi_torch.localization.surface import direct_surface, ecr_surface
+from enmi_torch.localization.search import Localizer, _rotated, localize
+from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
 
@@ -45,7 +45,7 @@ def test_known_shifts_are_found_exactly_at_low_noise(gravel_map, dtype, metric):
     truths = [(3, -5), (-7, 0), (6, 6)]
     local = torch.cat([_noisy(_cut(prior_map, 80 + dy, 80 + dx), 2.0, seed) for seed, (dx, dy) in enumerate(truths)])
     variance = 4.0 if metric in ("ecr", "enmi") else None
-    result = localize(local, prior_map, variance, shifts=8, center=(80, 80), metric=metric)
+    result = localize(local, prior_map, variance, shifts=8, center=(80, 80), score=metric)
     assert isinstance(result, Localization)
     assert result.surface.shape == (3, 1, 17, 17)
     assert result.pose.dtype == dtype
@@ -60,7 +60,7 @@ def test_known_shifts_are_found_exactly_at_low_noise(gravel_map, dtype, metric):
 
 def test_yaw_is_recovered_on_a_rotated_crop(gravel_map):
     local = _noisy(_cut(gravel_map, 84, 77, size=40, yaw=7.0), 2.0)
-    result = localize(local, gravel_map, 4.0, shifts=6, center=(80, 80), yaws=range(-12, 13, 3), bins=32)
+    result = localize(local, gravel_map, 4.0, shifts=6, center=(80, 80), yaws=range(-12, 13, 3), score=ECR(bins=32))
     dx, dy, yaw = result.pose[0].tolist()
     assert (round(dx), round(dy)) == (-3, 4)
     assert abs(yaw - 7.0) <= 1.0
@@ -72,7 +72,7 @@ def test_batched_search_over_several_maps_and_centres_equals_single_searches(gra
     maps = torch.cat([gravel_map, gravel_map.flip(-1)])
     local = torch.cat([_cut(maps[:1], 70, 90), _cut(maps[1:], 95, 60)])
     centers = torch.tensor([[72, 88], [92, 63]])
-    batched = localize(local, maps, 9.0, shifts=5, center=centers, yaws=[-2.0, 0.0, 2.0], bins=16)
+    batched = localize(local, maps, 9.0, shifts=5, center=centers, yaws=[-2.0, 0.0, 2.0], score=ECR(bins=16))
     for sample in range(2):
         single = localize(
             local[sample : sample + 1],
@@ -81,7 +81,7 @@ def test_batched_search_over_several_maps_and_centres_equals_single_searches(gra
             shifts=5,
             center=tuple(centers[sample].tolist()),
             yaws=[-2.0, 0.0, 2.0],
-            bins=16,
+            score=ECR(bins=16),
         )
         torch.testing.assert_close(batched.surface[sample], single.surface[0])
         torch.testing.assert_close(batched.pose[sample], single.pose[0])
@@ -91,9 +91,10 @@ def test_batched_search_over_several_maps_and_centres_equals_single_searches(gra
 def test_surface_at_yaw_zero_equals_the_direct_loop_over_the_window(gravel_map):
     local = _noisy(_cut(gravel_map, 80, 80, size=12), 4.0)
     variance = torch.linspace(4, 40, 144, dtype=torch.float64).reshape(1, 1, 12, 12)
-    result = localize(local, gravel_map, variance, shifts=3, center=(81, 79), bins=16, min_overlap=0.1, metric="enmi")
+    score = ENMI(bins=16)
+    result = localize(local, gravel_map, variance, shifts=3, center=(81, 79), min_overlap=0.1, score=score)
     window = gravel_map[..., 81 - 6 - 3 : 81 - 6 + 12 + 3, 79 - 6 - 3 : 79 - 6 + 12 + 3]
-    expected = direct_surface(local, window, variance, bins=16)
+    expected = direct_surface(score, local, window, variance)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
 
 
@@ -146,7 +147,7 @@ def test_fractional_shift_is_refined_below_one_cell():
     shifted = 128 + 60 * torch.sin((rows + 0.3) / 5.0) * torch.cos((cols - 0.4) / 7.0)
     shifted = (shifted + 40 * torch.sin((rows + cols - 0.1) / 11.0)).double().reshape(1, 1, 96, 96)
     local = shifted[..., 32:64, 32:64]
-    result = localize(local, smooth, metric="ncc", shifts=4, center=(48, 48))
+    result = localize(local, smooth, score="ncc", shifts=4, center=(48, 48))
     assert result.pose[0, :2].tolist() == pytest.approx([-0.4, 0.3], abs=0.1)
 
 
@@ -168,13 +169,13 @@ def test_brick_is_more_ambiguous_than_gravel():
     margins = []
     for prior_map in (brick, gravel):
         local = _noisy(_cut(prior_map, 80, 80), 20.0)
-        margins.append(localize(local, prior_map, 400.0, shifts=16, center=(80, 80), bins=16).margin[0])
+        margins.append(localize(local, prior_map, 400.0, shifts=16, center=(80, 80), score=ECR(bins=16)).margin[0])
     assert margins[0] < margins[1]
 
 
 def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map):
     local = _noisy(_cut(gravel_map, 91, 66, yaw=3.0), 3.0)
-    options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "bins": 16}
+    options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": ECR(bins=16)}
     exhaustive = localize(local, gravel_map, 9.0, **options)
     coarse = localize(local, gravel_map, 9.0, coarse_factor=4, **options)
     torch.testing.assert_close(coarse.pose, exhaustive.pose)
@@ -204,8 +205,8 @@ def test_variance_model_and_its_valid_mask_are_used(gravel_map):
 
 def test_localizer_module_agrees_with_the_function(gravel_map):
     local = _noisy(_cut(gravel_map, 77, 85), 3.0)
-    module = Localizer(ConstantVariance(9.0), shifts=6, yaws=[-1.0, 0.0, 1.0], bins=16)
-    function = localize(local, gravel_map, 9.0, shifts=6, yaws=[-1.0, 0.0, 1.0], bins=16)
+    module = Localizer(ConstantVariance(9.0), shifts=6, yaws=[-1.0, 0.0, 1.0], score=ECR(bins=16))
+    function = localize(local, gravel_map, 9.0, shifts=6, yaws=[-1.0, 0.0, 1.0], score=ECR(bins=16))
     by_module = module(local, gravel_map)
     torch.testing.assert_close(by_module.surface, function.surface)
     torch.testing.assert_close(by_module.pose, function.pose)
@@ -250,7 +251,7 @@ def test_command_line_mistakes_end_in_one_line(gravel_map, tmp_path, capsys):
     np.save(tmp_path / "local.npy", local)
     files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy")]
     assert "needs step > 0 and stop >= start" in _one_line_error(capsys, [*files, "--variance", "4", "--yaws=0:-3:1"])
-    assert "variance must be given for metric='ecr'" in _one_line_error(capsys, files)
+    assert "variance must be given for score 'ecr'" in _one_line_error(capsys, files)
     assert "(did you mean --variance?)" in _one_line_error(capsys, [*files, "--varience", "4"])
     missing = ["--map", str(tmp_path / "nothing.npy"), "--local", str(tmp_path / "local.npy")]
     assert "--map: no such file" in _one_line_error(capsys, missing)
@@ -288,14 +289,14 @@ def _invalid_localize_cases(gravel_map):
             r"variance must have the spatial shape of captured \(32, 32\)",
         ),
         ({"variance": -torch.ones(32, 32)}, ValueError, "variance must be finite and > 0"),
-        ({"metric": "enmi", "variance": None}, ValueError, "variance must be given for metric='enmi'"),
-        ({"metric": "nmi"}, ValueError, "variance is only used by metric='ecr', 'enmi' or 'mixture'"),
-        ({"metric": "ecr", "reliability": True}, ValueError, "reliability is only used by metric='enmi'"),
-        ({"em_steps": 2}, ValueError, "em_steps is only used by metric='mixture'"),
-        ({"metric": "ecr", "variance": None}, ValueError, "variance must be given for metric='ecr'"),
-        ({"metric": "ecr", "model_variance": -1.0}, ValueError, "model_variance must be a number >= 0"),
-        ({"metric": "enmi", "model_variance": 1.0}, ValueError, "model_variance is only used by metric='ecr'"),
-        ({"metric": "mi"}, ValueError, "metric must be one of"),
+        ({"score": "enmi", "variance": None}, ValueError, "variance must be given for score 'enmi'"),
+        ({"score": "nmi"}, ValueError, "variance is not used by score 'nmi'; pass variance=None"),
+        ({"score": lambda: ECR(reliability=True)}, TypeError, "unexpected keyword argument 'reliability'"),
+        ({"score": lambda: ECR(em_steps=2)}, TypeError, "unexpected keyword argument 'em_steps'"),
+        ({"score": "ecr", "variance": None}, ValueError, "variance must be given for score 'ecr'"),
+        ({"score": lambda: ECR(model_variance=-1.0)}, ValueError, "model_variance must be a number >= 0"),
+        ({"score": lambda: ENMI(model_variance=1.0)}, TypeError, "unexpected keyword argument 'model_variance'"),
+        ({"score": "mi"}, ValueError, "score must be a Score or one of"),
         ({"captured_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "captured_mask selects no pixel"),
         ({"captured_mask": torch.ones(32, 32)}, TypeError, "captured_mask must be a bool tensor"),
         (
@@ -318,13 +319,17 @@ def _invalid_localize_cases(gravel_map):
         ({"exclusion_radius": -2}, ValueError, "exclusion_radius must be an int >= 0"),
         ({"coarse_factor": 0}, ValueError, "coarse_factor must be an int >= 1"),
         ({"coarse_factor": 64}, ValueError, "coarse_factor must not exceed the captured image size"),
-        ({"bins": 1}, ValueError, "bins must be an int >= 2"),
-        ({"kernel": "gauss"}, ValueError, "kernel must be one of"),
+        ({"score": lambda: ECR(bins=1)}, ValueError, "bins must be an int >= 2"),
+        ({"score": lambda: ENMI(kernel="gauss")}, ValueError, "kernel must be one of"),
         ({"resample": "bicubic"}, ValueError, "resample must be one of"),
         ({"search": "greedy"}, ValueError, "search must be one of"),
-        ({"search": "two_stage", "metric": "enmi"}, ValueError, "search='two_stage' needs metric='ecr'"),
-        ({"search": "two_stage", "response": "linear"}, ValueError, "search='two_stage' needs metric='ecr'"),
-        ({"search": "two_stage", "coarse_factor": 2}, ValueError, "search='two_stage' needs metric='ecr'"),
+        ({"search": "two_stage", "score": "enmi"}, ValueError, "search='two_stage' needs an ECR score"),
+        (
+            {"search": "two_stage", "score": lambda: ECR(response="linear")},
+            ValueError,
+            "search='two_stage' needs an ECR score with response='binned'",
+        ),
+        ({"search": "two_stage", "coarse_factor": 2}, ValueError, "search='two_stage' needs an ECR score"),
         ({"search": "two_stage", "cheap_bins": 64}, ValueError, r"cheap_bins must be at most bins \(32\)"),
         ({"search": "two_stage", "cheap_bins": 1}, ValueError, "bins must be an int >= 2"),
     ], local
@@ -337,6 +342,8 @@ def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     arguments = {"captured": local, "reference": gravel_map, "variance": 9.0, "shifts": 4}
     arguments.update(change)
     with pytest.raises(error, match=message):
+        if callable(arguments.get("score")):  # a score whose options are wrong fails as it is built
+            arguments["score"] = arguments["score"]()
         localize(**arguments)
 
 
@@ -376,22 +383,22 @@ def test_ecr_search_with_unequal_radii_and_a_noisy_far_half_equals_the_direct_lo
         local
         + torch.randn(local.shape, generator=torch.Generator().manual_seed(5), dtype=local.dtype) * variance.sqrt()
     )
-    result = localize(local, gravel_map, variance, shifts=(3, 5), center=(80, 80), metric="ecr", min_overlap=0.1)
+    result = localize(local, gravel_map, variance, shifts=(3, 5), center=(80, 80), score="ecr", min_overlap=0.1)
     assert result.surface.shape == (1, 1, 7, 11)
     assert result.pose[0, :2].round().tolist() == [-4.0, 3.0]
     window = gravel_map[..., 80 - 12 - 3 : 80 - 12 + 24 + 3, 80 - 10 - 5 : 80 - 10 + 20 + 5]
-    expected = direct_surface(local, window, variance, metric="ecr")
+    expected = direct_surface("ecr", local, window, variance)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
 
 
 def test_mixture_search_rescores_its_best_shifts_exactly_and_finds_the_pose(gravel_map):
     local = _noisy(_cut(gravel_map, 83, 78, size=20)[..., :, :18], 6.0)
     variance = torch.linspace(4, 400, 20 * 18, dtype=torch.float64).reshape(20, 18)
-    result = localize(local, gravel_map, variance, shifts=(3, 4), center=(80, 80), metric="mixture", bins=16)
+    result = localize(local, gravel_map, variance, shifts=(3, 4), center=(80, 80), score=Mixture(bins=16))
     assert result.surface.shape == (1, 1, 7, 9)
     assert result.pose[0, :2].round().tolist() == [-3.0, 3.0]
     window = gravel_map[..., 80 - 10 - 3 : 80 - 10 + 20 + 3, 80 - 9 - 4 : 80 - 9 + 18 + 4]
-    expected = direct_surface(local, window, variance, metric="mixture", bins=16).score
+    expected = direct_surface(Mixture(bins=16), local, window, variance).score
     rescored = torch.isfinite(result.surface[:, 0])
     assert 9 <= int(rescored.sum()) < 63
     torch.testing.assert_close(result.surface[:, 0][rescored], expected[rescored], rtol=0, atol=1e-9)
@@ -427,33 +434,35 @@ def test_a_log_prior_per_sample_applies_to_that_sample_at_every_yaw(gravel_map, 
     priors = torch.stack(
         [gaussian_log_prior(90.0, 20.0, 16, (0.0, 256.0)), gaussian_log_prior(160.0, 50.0, 16, (0.0, 256.0))]
     )
-    options = {"shifts": 4, "center": (80, 80), "yaws": yaws, "bins": 16, "metric": "enmi"}
-    batched = localize(local, gravel_map, 36.0, log_prior=priors.double(), **options)
+    options = {"shifts": 4, "center": (80, 80), "yaws": yaws}
+    batched = localize(local, gravel_map, 36.0, score=ENMI(bins=16, log_prior=priors.double()), **options)
     for sample in range(2):
-        single = localize(local[sample : sample + 1], gravel_map, 36.0, log_prior=priors[sample].double(), **options)
+        score = ENMI(bins=16, log_prior=priors[sample].double())
+        single = localize(local[sample : sample + 1], gravel_map, 36.0, score=score, **options)
         torch.testing.assert_close(batched.surface[sample], single.surface[0])
-    other = localize(local[:1], gravel_map, 36.0, log_prior=priors[1].double(), **options)
+    other = localize(local[:1], gravel_map, 36.0, score=ENMI(bins=16, log_prior=priors[1].double()), **options)
     assert not torch.allclose(batched.surface[0], other.surface[0])
-    module = Localizer(shifts=4, yaws=yaws, bins=16, metric="enmi", log_prior=priors[0].double())
+    module = Localizer(shifts=4, yaws=yaws, score=ENMI(bins=16, log_prior=priors[0].double()))
     torch.testing.assert_close(module(local[:1], gravel_map, 36.0, center=(80, 80)).surface, batched.surface[:1])
 
 
 def test_ecr_linear_response_in_the_search_equals_the_direct_loop(gravel_map):
     local = _noisy(_cut(gravel_map, 82, 79, size=16), 5.0) * 0.8 + 12
-    result = localize(local, gravel_map, 25.0, shifts=(2, 3), center=(80, 80), response="linear", min_overlap=0.1)
+    linear = ECR(response="linear")
+    result = localize(local, gravel_map, 25.0, shifts=(2, 3), center=(80, 80), score=linear, min_overlap=0.1)
     window = gravel_map[..., 80 - 8 - 2 : 80 - 8 + 16 + 2, 80 - 8 - 3 : 80 - 8 + 16 + 3]
-    expected = direct_surface(local, window, 25.0, metric="ecr", response="linear")
+    expected = direct_surface(linear, local, window, 25.0)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
     assert result.pose[0, :2].round().tolist() == [-1.0, 2.0]
-    with pytest.raises(ValueError, match="response is only used by metric='ecr'"):
-        localize(local, gravel_map, 25.0, metric="enmi", response="linear")
+    with pytest.raises(TypeError, match="response"):
+        localize(local, gravel_map, 25.0, score=ENMI(response="linear"))
 
 
 def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(gravel_map):
     # A rotated cut on a non-square local image: a swapped axis or a mirrored yaw puts pixels on other map cells.
     local = _cut(gravel_map, 86, 75, size=40, yaw=8.0)[..., 4:36, :]  # (1, 1, 32, 40)
     center = (80, 80)
-    result = localize(local, gravel_map, 4.0, shifts=(8, 9), center=center, yaws=range(-12, 13, 2), bins=32)
+    result = localize(local, gravel_map, 4.0, shifts=(8, 9), center=center, yaws=range(-12, 13, 2), score=ECR(bins=32))
     assert result.dx.shape == result.yaw.shape == (1,)
     assert abs(result.yaw.item() - 8.0) <= 1.0
     rows, cols = torch.meshgrid(torch.arange(8.0, 24.0), torch.arange(8.0, 32.0), indexing="ij")  # interior
@@ -508,7 +517,7 @@ def _two_stage_case(gravel_map, seed):
         "shifts": (4, 5),
         "center": torch.tensor([[80, 76], [80, 76]]),
         "yaws": yaws,
-        "bins": 16,
+        "score": ECR(bins=16),
         "captured_mask": captured_mask,
         "reference_mask": reference_mask,
         "min_overlap": 0.97,
@@ -577,11 +586,11 @@ def test_rescoring_over_yaws_doubles_its_peaks_and_completes_the_best_neighbourh
         distance = (placements - torch.tensor(target)).abs().sum(-1).to(torch.float64)
         return 50.0 - distance
 
-    score = _rescore_peaks(cheap, exact, 2, 64, complete_best=True)
+    score = rescore_peaks(cheap, exact, 2, 64, complete_best=True)
     assert int(score.argmax()) == 3 * 144 + 10 * 12 + 2
     assert all(bool(torch.isfinite(score[peak])) for peak in peaks)  # 2 -> 4 -> 8 -> 12 peaks
     assert bool(torch.isfinite(score[2:4, 9:12, 1:4]).all())  # the best's own neighbourhood, completed
-    without = _rescore_peaks(cheap, exact, 2, 64)
+    without = rescore_peaks(cheap, exact, 2, 64)
     assert not bool(torch.isfinite(without[2:4, 9:12, 1:4]).all())
     assert int(without.argmax()) == int(score.argmax())
 
@@ -593,7 +602,7 @@ def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_mas
     window = gravel_map[..., 60:100, 50:90]
     reference_mask = options["reference_mask"][60:100, 50:90] if reference_masked else None
     masks = {"captured_mask": options["captured_mask"], "reference_mask": reference_mask}
-    cheap = _cheap_surface(local, window, variance, *masks.values(), sample=0, bins=6, value_range=(40.0, 200.0))
+    cheap = ECR(bins=6, value_range=(40.0, 200.0))._rough_surface(local, window, variance, *masks.values())
     expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), **masks)
     torch.testing.assert_close(cheap.score, expected.score, rtol=0, atol=1e-9)
     torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)
@@ -650,3 +659,53 @@ def test_two_stage_search_keeps_candidates_with_exactly_the_required_overlap(gra
     two_stage = localize(local, gravel_map, 25.0, search="two_stage", **options)
     torch.testing.assert_close(two_stage.pose, exhaustive.pose)
     assert two_stage.pose.round().tolist() == [[-3.0, 2.0, 0.0]]
+
+
+@pytest.mark.parametrize("name", ["ecr", "enmi", "nmi", "ncc", "mixture"])
+def test_a_score_by_name_or_by_object_gives_identical_poses(gravel_map, name):
+    local = _noisy(_cut(gravel_map, 82, 77, size=20), 3.0)
+    variance = None if name in ("nmi", "ncc") else 9.0
+    options = {"shifts": (3, 4), "center": (80, 80), "yaws": [-2.0, 0.0, 2.0]}
+    by_name = localize(local, gravel_map, variance, score=name, **options)
+    by_object = localize(local, gravel_map, variance, score=as_score(name), **options)
+    assert torch.equal(by_name.surface, by_object.surface) and torch.equal(by_name.pose, by_object.pose)
+    center = options.pop("center")
+    module = Localizer(score=name, **options)(local, gravel_map, variance, center=center)
+    assert torch.equal(module.surface, by_object.surface)
+    assert Localizer(score=name).score == as_score(name)
+
+
+def test_command_line_builds_the_score_from_its_flags_and_keeps_the_old_one(gravel_map, tmp_path, capsys):
+    np.save(tmp_path / "map.npy", gravel_map[0, 0].numpy())
+    local = _noisy(_cut(gravel_map, 83, 78, size=24), 3.0)
+    np.save(tmp_path / "local.npy", local[0, 0].numpy())
+    files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy"), "--shifts", "4"]
+    files += ["--center", "80", "80", "--dtype", "float64"]
+
+    def expected(score, variance=4.0):
+        result = localize(local, gravel_map, variance, score=score, shifts=4, center=(80, 80))
+        return round(float(result.score[0]), 4), [round(value, 2) for value in result.pose[0, :2].tolist()]
+
+    def printed(arguments):
+        report = _command([*files, *arguments])
+        capsys.readouterr()
+        return report["score"], [report["dx"], report["dy"]]
+
+    density = ["--bins", "16", "--score-option", "kernel=density", "--score-option", "log_prior=None"]
+    assert printed(["--variance", "4", "--score", "enmi", *density]) == expected(ENMI(bins=16, kernel="density"))
+    assert printed(["--variance", "4", "--metric", "enmi", *density]) == expected(ENMI(bins=16, kernel="density"))
+    tau = ["--score-option", "model_variance=2.5", "--value-range", "0", "200"]
+    assert printed(["--variance", "4", *tau]) == expected(ECR(model_variance=2.5, value_range=(0.0, 200.0)))
+    assert printed(["--score", "ncc", "--bins", "1"]) == expected(NCC(), None)  # NCC has no bins to check
+    unknown = _one_line_error(capsys, [*files, "--variance", "4", "--score-option", "em_steps=2"])
+    assert "--score-option takes KEY=VALUE with KEY one of ECR's options ['bins', 'value_range', 'model_variance'" in (
+        unknown
+    )
+    assert "got 'em_steps=2'" in unknown
+    assert "response must be one of" in _one_line_error(
+        capsys, [*files, "--variance", "4", "--score-option", "response=cubic"]
+    )
+    assert "--value-range must be finite with low < high" in _one_line_error(
+        capsys, [*files, "--variance", "4", "--value-range", "5", "1"]
+    )
+    assert "--score-option takes KEY=VALUE" in _one_line_error(capsys, [*files, "--score-option", "kernel"])

@@ -144,15 +144,17 @@ def test_functional_losses_equal_the_modules(images, reduction, tolerance):
     )
 
 
-def test_loss_modules_take_variance_and_mask_by_keyword_only(images):
+def test_loss_modules_take_variance_positionally_like_the_functions_and_the_mask_by_keyword(images):
     from enmi_torch import ECRLoss, MixtureLoss
 
     captured, reference = images
+    valid = torch.ones_like(captured, dtype=torch.bool)
     for loss in (ENMILoss(), ECRLoss(), MixtureLoss()):
+        assert torch.equal(loss(captured, reference, 50.0), loss(captured, reference, variance=50.0))
         with pytest.raises(TypeError, match="positional"):
-            loss(captured, reference, 50.0)
-    with pytest.raises(TypeError, match="positional"):
-        NMILoss()(captured, reference, torch.ones_like(captured, dtype=torch.bool))
+            loss(captured, reference, 50.0, valid)
+    with pytest.raises(ValueError, match="variance is not used by score 'nmi'; pass variance=None"):
+        NMILoss()(captured, reference, valid)
 
 
 def test_functional_losses_check_the_reduction(images):

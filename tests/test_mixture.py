@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import mixture_information, mixture_surface
+from enmi_torch import Mixture, direct_surface, mixture_information, mixture_surface
 from enmi_torch.binning import _log_bin_masses, likelihood_weights, truncated_likelihood_weights
-from enmi_torch.localization.mixture_surface import _rescore_peaks, direct_mixture_surface
-from enmi_torch.localization.surface import ecr_surface
-from enmi_torch.mixture import _mixture_log_likelihoods
+from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.scores.ecr import ecr_surface
+from enmi_torch.scores.mixture import _mixture_log_likelihoods
 
 
 def _numpy_weights(values, variance, bins, value_range):
@@ -316,7 +316,7 @@ def _surface_case(seed, batch=1, windows=1, masks=False):
 def test_two_stage_surface_equals_direct_where_rescored_and_has_its_argmax(seed, batch, windows, masks, em_steps):
     local, window, variance, options = _surface_case(seed, batch, windows, masks)
     fast = mixture_surface(local, window, variance, bins=8, em_steps=em_steps, candidates=2, **options)
-    slow = direct_mixture_surface(local, window, variance, bins=8, em_steps=em_steps, **options)
+    slow = direct_surface(Mixture(bins=8, em_steps=em_steps), local, window, variance, **options)
     rescored = torch.isfinite(fast.score)
     assert fast.score.shape == slow.score.shape == (batch, 7, 6)
     assert rescored.sum() >= 9 * batch and (~rescored).any()
@@ -387,7 +387,7 @@ def test_rescoring_doubles_while_the_exact_best_comes_from_the_lower_half(best_r
     # Until the target's peak is rescored, the exact best sits by the lowest-ranked peak rescored (the lower half).
     exact = _exact_favouring(peaks, (best[0], best[1] + 1))
 
-    score = _rescore_peaks(cheap, exact, 8, 64)
+    score = rescore_peaks(cheap, exact, 8, 64)
     rescored_peaks = sum(bool(torch.isfinite(score[row, col])) for row, col in peaks)
     assert rescored_peaks == expected_peaks
     # Each rescored peak brings its 8 neighbours (none shared here, none outside).
@@ -403,7 +403,7 @@ def test_rescoring_takes_separated_peaks_not_the_shoulders_of_one():
     def exact(placements):
         return -placements.sum(-1).double()
 
-    score = _rescore_peaks(cheap, exact, 2, 2)
+    score = rescore_peaks(cheap, exact, 2, 2)
     assert torch.isfinite(score[1, 1]) and torch.isfinite(score[5, 5])
     assert int(torch.isfinite(score).sum()) == 18
 
@@ -411,7 +411,7 @@ def test_rescoring_takes_separated_peaks_not_the_shoulders_of_one():
 def test_rescoring_stops_at_max_candidates():
     cheap, peaks = _peaks_case()
 
-    score = _rescore_peaks(cheap, _exact_favouring(peaks), 2, 5)  # always best by the lowest-ranked peak
+    score = rescore_peaks(cheap, _exact_favouring(peaks), 2, 5)  # always best by the lowest-ranked peak
     assert sum(bool(torch.isfinite(score[row, col])) for row, col in peaks) == 5
 
 

@@ -5,16 +5,30 @@ import pytest
 import torch
 from skimage import data
 
-from enmi_torch import enmi, gaussian_log_prior, nmi
-from enmi_torch.localization import surface as score_surface
-from enmi_torch.localization.surface import (
-    Surface,
+from enmi_torch import (
+    ECR,
+    ENMI,
+    NCC,
+    NMI,
     direct_surface,
+    ecr_surface,
+    enmi,
     enmi_surface,
-    fft_size,
+    gaussian_log_prior,
     ncc_surface,
+    nmi,
     nmi_surface,
 )
+from enmi_torch.placement import Surface, fft_size
+from enmi_torch.placement import fft as placement_fft
+
+FAMILIES = {"ecr": ECR, "enmi": ENMI, "nmi": NMI, "ncc": NCC}
+
+
+def _direct(local, window, variance=None, *, metric="enmi", captured_mask=None, reference_mask=None, **options):
+    """direct_surface of the family ``metric`` with ``options``."""
+    masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
+    return direct_surface(FAMILIES[metric](**options), local, window, variance, **masks)
 
 
 def _case(dtype, *, batch=2, local_shape=(9, 7), window_shape=(16, 15), seed=0):
@@ -60,7 +74,7 @@ def test_fft_surface_equals_direct_loop_with_masks_and_partial_overlap(metric, o
         fast = nmi_surface(local, window, **binned, **masks)
     else:
         fast = ncc_surface(local, window, **masks)
-    reference = direct_surface(
+    reference = _direct(
         local, window, variance if metric == "enmi" else None, metric=metric, **binned, **options, **masks
     )
     assert isinstance(fast, Surface)
@@ -89,7 +103,7 @@ def test_fft_surface_equals_direct_loop_for_each_mask_combination(metric, masked
         fast = nmi_surface(local, window, **binned, **masks)
     else:
         fast = ncc_surface(local, window, **masks)
-    reference = direct_surface(local, window, variance if metric == "enmi" else None, metric=metric, **binned, **masks)
+    reference = _direct(local, window, variance if metric == "enmi" else None, metric=metric, **binned, **masks)
     torch.testing.assert_close(fast.overlap, reference.overlap, rtol=0, atol=0)
     torch.testing.assert_close(fast.score, reference.score, rtol=0, atol=1e-9)
     if masked == "none":
@@ -104,11 +118,11 @@ def test_blocks_of_reference_planes_give_the_one_block_surface(monkeypatch, mask
     whole = enmi_surface(local, window, variance, bins=12, **masks)
     half_spectrum = fft_size(16) * (fft_size(15) // 2 + 1)
     for planes_per_block in (1, 2, 5):
-        monkeypatch.setattr(score_surface, "_BLOCK_ELEMENTS", planes_per_block * half_spectrum)
+        monkeypatch.setattr(placement_fft, "_BLOCK_ELEMENTS", planes_per_block * half_spectrum)
         blocked = enmi_surface(local, window, variance, bins=12, **masks)
         torch.testing.assert_close(blocked.score, whole.score, rtol=0, atol=1e-12)
         torch.testing.assert_close(blocked.overlap, whole.overlap, rtol=0, atol=0)
-    reference = direct_surface(local, window, variance, bins=12, **masks)
+    reference = _direct(local, window, variance, bins=12, **masks)
     torch.testing.assert_close(blocked.score, reference.score, rtol=0, atol=1e-9)
 
 
@@ -142,7 +156,8 @@ def test_float32_surface_is_close_to_the_float64_reference(metric):
         torch.float64, local_shape=(24, 20), window_shape=(34, 33)
     )
     masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
-    reference = direct_surface(local, window, variance if metric == "enmi" else None, metric=metric, bins=16, **masks)
+    binned = {} if metric == "ncc" else {"bins": 16}
+    reference = _direct(local, window, variance if metric == "enmi" else None, metric=metric, **binned, **masks)
     single = {"captured": local.float(), "reference": window.float(), **masks}
     if metric == "enmi":
         fast = enmi_surface(variance=variance.float(), bins=16, **single)
@@ -276,20 +291,20 @@ def test_invalid_inputs_raise_clear_errors(index):
         enmi_surface(**arguments)
 
 
-def test_direct_surface_checks_its_metric_and_variance():
+def test_direct_surface_checks_its_score_and_variance():
     local, window, variance, _, _ = _case(torch.float64)
-    with pytest.raises(ValueError, match="metric must be one of"):
-        direct_surface(local, window, variance, metric="mi")
-    with pytest.raises(ValueError, match="variance must be given for metric='ecr', 'enmi' or 'mixture' and only then"):
-        direct_surface(local, window, variance, metric="nmi")
-    with pytest.raises(ValueError, match="variance must be given for metric='ecr', 'enmi' or 'mixture' and only then"):
-        direct_surface(local, window, metric="enmi")
-    with pytest.raises(ValueError, match="variance must be given for metric='ecr', 'enmi' or 'mixture' and only then"):
-        direct_surface(local, window, metric="ecr")
+    with pytest.raises(ValueError, match=r"score must be a Score or one of \['ecr', 'enmi', 'mixture', 'ncc', 'nmi'\]"):
+        direct_surface("mi", local, window, variance)
+    with pytest.raises(ValueError, match="variance is not used by score 'nmi'; pass variance=None"):
+        direct_surface(NMI(), local, window, variance)
+    with pytest.raises(ValueError, match="variance must be given for score 'enmi', got None"):
+        direct_surface(ENMI(), local, window)
+    with pytest.raises(ValueError, match="variance must be given for score 'ecr', got None"):
+        direct_surface("ecr", local, window)
     with pytest.raises(ValueError, match="model_variance must be a number >= 0"):
-        score_surface.ecr_surface(local, window, variance, model_variance=-2.0)
+        ecr_surface(local, window, variance, model_variance=-2.0)
     with pytest.raises(ValueError, match="variance must be a number or a tensor"):
-        score_surface.ecr_surface(local, window, None)
+        ecr_surface(local, window, None)
     with pytest.raises(ValueError, match="reference must be at least as large as captured"):
         ncc_surface(local, window[..., :, :3])
 
@@ -303,10 +318,8 @@ def test_ecr_fft_surface_equals_direct_loop(masks, dtype):
         "captured_mask": captured_mask if masks in ("local", "both") else None,
         "reference_mask": torch.cat([reference_mask, reference_mask.flip(-2)]) if masks in ("window", "both") else None,
     }
-    fast = score_surface.ecr_surface(
-        local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, model_variance=3.0, **chosen
-    )
-    slow = direct_surface(local, window, variance, metric="ecr", bins=12, model_variance=3.0, **chosen)
+    fast = ecr_surface(local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, model_variance=3.0, **chosen)
+    slow = _direct(local, window, variance, metric="ecr", bins=12, model_variance=3.0, **chosen)
     assert fast.score.shape == (2, 8, 9)
     assert fast.score.dtype == dtype
     tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 2e-3}
@@ -326,8 +339,8 @@ def test_reliability_weighted_enmi_surface_equals_direct_loop(masks, dtype):
         "reference_mask": reference_mask if masks in ("window", "both") else None,
     }
     fast = enmi_surface(local.to(dtype), window.to(dtype), variance.to(dtype), bins=12, reliability=True, **chosen)
-    slow = direct_surface(local, window, variance, metric="enmi", bins=12, reliability=True, **chosen)
-    plain = direct_surface(local, window, variance, metric="enmi", bins=12, **chosen)
+    slow = _direct(local, window, variance, metric="enmi", bins=12, reliability=True, **chosen)
+    plain = _direct(local, window, variance, metric="enmi", bins=12, **chosen)
     tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-4, "atol": 1e-4}
     torch.testing.assert_close(fast.score.double(), slow.score, **tolerance)
     torch.testing.assert_close(fast.overlap.double(), slow.overlap, rtol=0, atol=0)
@@ -352,8 +365,8 @@ def test_float32_surface_scores_a_nearly_constant_overlap_like_nmi():
 def test_ecr_linear_fft_surface_equals_direct_loop(masks, dtype):
     local, window, variance, captured_mask, reference_mask = _case(torch.float64)
     chosen = {"captured_mask": captured_mask, "reference_mask": reference_mask} if masks == "both" else {}
-    fast = score_surface.ecr_surface(local.to(dtype), window.to(dtype), variance.to(dtype), response="linear", **chosen)
-    slow = direct_surface(local, window, variance, metric="ecr", response="linear", **chosen)
+    fast = ecr_surface(local.to(dtype), window.to(dtype), variance.to(dtype), response="linear", **chosen)
+    slow = _direct(local, window, variance, metric="ecr", response="linear", **chosen)
     tolerance = {"rtol": 1e-9, "atol": 1e-9} if dtype == torch.float64 else {"rtol": 1e-3, "atol": 1e-3}
     torch.testing.assert_close(fast.score.double(), slow.score, **tolerance)
     torch.testing.assert_close(fast.overlap.double(), slow.overlap, rtol=0, atol=0)
@@ -380,7 +393,7 @@ def test_moment_surfaces_of_a_batch_against_one_shared_reference_equal_per_sampl
     def call(captured):
         if surface == "ncc":
             return ncc_surface(captured, reference).score
-        return score_surface.ecr_surface(captured, reference, variance, response="linear").score
+        return ecr_surface(captured, reference, variance, response="linear").score
 
     batched = call(local)
     for sample in range(2):

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from enmi_torch import Localization, value_checks
-from enmi_torch.localization.track import (
+from enmi_torch import ECR, NMI, Localization, as_score, value_checks
+from enmi_torch.tracking import (
     CHI2_95_2D,
     Belief,
     Calibration,
@@ -127,7 +127,7 @@ def test_belief_pose_refines_below_a_cell_and_reports_a_laplace_covariance():
 
 def test_noiseless_drive_is_tracked_exactly(generator):
     reference = _texture(generator, (96, 200))
-    tracker = Tracker(reference.float(), shifts=(4, 5), yaw_bins=3, bins=16, motion_noise=(0.5, 0.5, 0.3))
+    tracker = Tracker(reference.float(), score=ECR(bins=16), shifts=(4, 5), yaw_bins=3, motion_noise=(0.5, 0.5, 0.3))
     tracker.start(torch.tensor([[40.0, 50.0, 0.0]]))
     x, y = 40, 50
     for step in range(12):
@@ -141,7 +141,7 @@ def test_noiseless_drive_is_tracked_exactly(generator):
 
 def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
     reference = _texture(generator, (120, 240))
-    settings = {"shifts": 4, "yaw_bins": 1, "bins": 16, "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
+    settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
     tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
     tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
     x, y, recovered_after, relocalized = 40, 60, None, []
@@ -166,11 +166,11 @@ def test_batched_vehicles_equal_one_at_a_time(generator):
     starts = torch.tensor([[40.0, 30.0, 0.0], [70.0, 45.0, 0.0]])
     odometry = torch.tensor([[2.0, 1.0, 0.0], [-1.0, 2.0, 0.0]])
     frames = torch.cat([_cut(reference, 42, 31), _cut(reference, 69, 47)])
-    batched = Tracker(reference, shifts=3, yaw_bins=1, bins=16)
+    batched = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
     batched.start(starts)
     together = batched(frames, odometry, 1.0)
     for vehicle in range(2):
-        alone = Tracker(reference, shifts=3, yaw_bins=1, bins=16)
+        alone = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
         alone.start(starts[vehicle : vehicle + 1])
         single = alone(frames[vehicle : vehicle + 1], odometry[vehicle : vehicle + 1], 1.0)
         torch.testing.assert_close(together.pose[vehicle], single.pose[0])
@@ -179,14 +179,12 @@ def test_batched_vehicles_equal_one_at_a_time(generator):
 
 def test_module_agrees_with_the_function(generator):
     reference = _texture(generator, (80, 120)).float()
-    tracker = Tracker(reference, shifts=3, yaw_bins=3, bins=16, metric="nmi", temperature=0.01)
+    tracker = Tracker(reference, score=NMI(bins=16), shifts=3, yaw_bins=3, temperature=0.01)
     tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
     start = tracker.belief
     frame, odometry = _cut(reference, 62, 41), torch.tensor([[2.0, 1.0, 0.0]])
     output = tracker(frame, odometry)
-    belief, expected, health = track_step(
-        start, frame, reference, odometry, None, metric="nmi", bins=16, temperature=0.01
-    )
+    belief, expected, health = track_step(start, frame, reference, odometry, None, score=NMI(bins=16), temperature=0.01)
     torch.testing.assert_close(output.pose, expected.pose)
     torch.testing.assert_close(tracker.belief.log_prob, belief.log_prob)
     assert health.weak_frames.tolist() == tracker.health.weak_frames.tolist()
@@ -230,7 +228,7 @@ def _bad_call(case: str):
         "likelihood shape": lambda: update(belief, torch.zeros(1, 1, 5, 4)),
         "captured batch": lambda: track_step(belief, torch.rand(2, 1, 8, 8), reference, odometry, 1.0),
         "reference shape": lambda: track_step(belief, frame, torch.rand(32, 32), odometry, 1.0),
-        "metric": lambda: track_step(belief, frame, reference, odometry, 1.0, metric="ssd"),
+        "score": lambda: track_step(belief, frame, reference, odometry, 1.0, score="ssd"),
         "temperature": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature=0.0),
         "patience": lambda: track_step(belief, frame, reference, odometry, 1.0, patience=0),
         "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
@@ -256,7 +254,7 @@ def _bad_call(case: str):
         ("likelihood shape", ValueError, "log_likelihood must have the belief's shape"),
         ("captured batch", ValueError, r"captured must be \(B, 1, h, w\) with B = 1"),
         ("reference shape", ValueError, r"reference must be one map \(1, 1, Hm, Wm\)"),
-        ("metric", ValueError, "metric must be one of"),
+        ("score", ValueError, "score must be a Score or one of"),
         ("temperature", ValueError, "temperature must be a finite number > 0"),
         ("patience", ValueError, "patience must be an int >= 1"),
         ("truth shape", ValueError, r"truth \(N, 3\)"),
@@ -270,7 +268,7 @@ def test_bad_inputs_raise_naming_the_argument(case, error, match):
 
 
 def _drive_module():
-    spec = importlib.util.spec_from_file_location("drive", REPO / "data_tools" / "drive.py")
+    spec = importlib.util.spec_from_file_location("drive", REPO / "data_tools" / "drive" / "drive.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -293,3 +291,27 @@ def test_filter_ellipses_cover_the_truth_on_the_benchmark_drive():
     filtered, searched = (drive_tools.summary(drive.truth, run["pose"]) for run in (result, argmax))
     assert filtered["lateral_rms"] < searched["lateral_rms"]
     assert filtered["longitudinal_rms"] < searched["longitudinal_rms"]
+
+
+@pytest.mark.parametrize("name", ["ecr", "nmi"])
+def test_a_tracker_takes_the_score_by_name_or_object_alike(generator, name):
+    reference = _texture(generator, (80, 120)).float()
+    frame, odometry = _cut(reference, 62, 41), torch.tensor([[2.0, 1.0, 0.0]])
+    variance = 1.0 if name == "ecr" else None
+    outputs = []
+    for score in (name, as_score(name)):
+        tracker = Tracker(reference, score=score, shifts=3, yaw_bins=3, temperature=0.05)
+        tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
+        outputs.append(tracker(frame, odometry, variance))
+    assert all(torch.equal(first, second) for first, second in zip(*outputs, strict=True))
+    calibrated = Tracker(reference, calibration=Calibration(name, 0.05, 3.0), shifts=3, yaw_bins=3)
+    calibrated.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
+    assert torch.equal(calibrated(frame, odometry, variance).pose, outputs[0].pose)
+
+
+def test_a_calibration_file_that_names_its_score_metric_still_loads(tmp_path):
+    (tmp_path / "old.json").write_text('{"metric": "nmi", "temperature": 2.0, "min_peak_z": 3.5}')
+    assert Calibration.load(tmp_path / "old.json") == Calibration("nmi", 2.0, 3.5)
+    (tmp_path / "wrong.json").write_text('{"score": "mi", "temperature": 2.0, "min_peak_z": 3.5}')
+    with pytest.raises(ValueError, match="score must be one of"):
+        Calibration.load(tmp_path / "wrong.json")

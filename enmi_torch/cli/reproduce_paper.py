@@ -98,7 +98,7 @@ def build_parser() -> jsonargparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="seed of the common random numbers")
     parser.add_argument("--scores", type=list[str], default=list(SCORES), help=f"scores to simulate, of {list(SCORES)}")
     parser.add_argument(
-        "--paper_points", type=str, default="data_tools/paper_points.csv", help="the paper's plotted points (CSV)"
+        "--paper_points", type=str, default="data_tools/paper/paper_points.csv", help="the paper's plotted points (CSV)"
     )
     parser.add_argument(
         "--output_dir", type=str, default="runs/paper_simulation", help="folder for the CSV and the figure"
@@ -122,7 +122,7 @@ def read_paper_points(path: Path) -> dict[str, list[float]]:
         rows = list(csv.DictReader(handle))
     if not rows or set(rows[0]) != {"noise_power", "nmi", "enmi"}:
         raise ValueError(
-            f"{path} must be a CSV with columns noise_power, nmi, enmi (data_tools/extract_paper_points.py)"
+            f"{path} must be a CSV with columns noise_power, nmi, enmi (data_tools/paper/extract_paper_points.py)"
         )
     return {column: [float(row[column]) for row in rows] for column in ("noise_power", "nmi", "enmi")}
 

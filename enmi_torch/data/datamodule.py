@@ -52,7 +52,7 @@ class PairDataModule(LightningDataModule):
             whenever it is read. Either way every epoch sees the same pairs (pair ``i`` is a function of the seed and
             ``i``; only their order changes from epoch to epoch), so the fitted mask is the same, bit for bit;
             keeping them saves drawing every pair again each epoch (most of an epoch's time: ``python
-            data_tools/bench_fit_mask.py``). A folder's pairs are always read from disk.
+            data_tools/benchmarks/bench_fit_mask.py``). A folder's pairs are always read from disk.
 
     Attributes:
         shape: ``(H, W)`` of the images.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import math
 import re
@@ -15,7 +16,7 @@ from torch import Tensor
 
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import RESAMPLING, localize
-from enmi_torch.localization.surface import METRICS
+from enmi_torch.scores import Score, as_score, score_names
 
 
 def _read_array(path: str, name: str):
@@ -45,7 +46,7 @@ def _parse_yaws(text: str) -> list[float]:
 
 
 _PROG = "enmi-localize"
-_EPILOG = f"""example (files from python data_tools/localization_benchmark.py --example runs/example):
+_EPILOG = f"""example (files from python data_tools/yardstick/localization_benchmark.py --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
       --local-mask runs/example/captured_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
 
@@ -72,13 +73,15 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--map", required=True, help="prior map, .npy (2-D) or .png (read as grey levels)")
     parser.add_argument("--local", required=True, help="local image on the map's cell grid, .npy or .png")
     parser.add_argument(
-        "--variance", help="local noise variance: a number or a .npy map (needed by --metric ecr, enmi, mixture)"
+        "--variance", help="local noise variance: a number or a .npy map (needed by --score ecr, enmi, mixture)"
     )
     parser.add_argument("--local-mask", help="valid local pixels, .npy or .png (nonzero = valid)")
     parser.add_argument("--map-mask", help="valid map cells, .npy or .png (nonzero = valid)")
     parser.add_argument(
-        "--metric", default="ecr", choices=METRICS, help="score of a candidate pose (ecr: the noise-aware default)"
+        "--score", default="ecr", choices=score_names(), help="score of a candidate pose (ecr: the noise-aware default)"
     )
+    # The flag's former name, kept working.
+    parser.add_argument("--metric", dest="score", choices=score_names(), help=argparse.SUPPRESS)
     parser.add_argument("--shifts", type=int, nargs="+", default=[16], help="search radius r, or ry rx, in cells")
     parser.add_argument(
         "--center",
@@ -93,6 +96,14 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--bins", type=int, default=32, help="histogram bins (ECR: of the map; ENMI, mixture, NMI)")
     parser.add_argument(
         "--value-range", type=float, nargs=2, default=[0.0, 256.0], metavar=("LOW", "HIGH"), help="range of the bins"
+    )
+    parser.add_argument(
+        "--score-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any other option of the score, repeatable (e.g. model_variance=4.0, kernel=density, em_steps=2; the "
+        "value read as a Python literal, else as text)",
     )
     parser.add_argument(
         "--min-overlap", type=float, default=0.5, help="share of valid local pixels a candidate must cover"
@@ -119,6 +130,26 @@ _OPTION_NAMES = {
     "coarse_factor": "--coarse-factor",
     "value_range": "--value-range",
 }
+
+
+def _score(args: argparse.Namespace) -> Score:
+    """The score of ``--score`` with ``--bins``, ``--value-range`` (where it has them) and every ``--score-option``."""
+    family = type(as_score(args.score))
+    names = family.option_names()
+    flags = {"bins": args.bins, "value_range": tuple(args.value_range)}
+    options = {name: value for name, value in flags.items() if name in names}
+    for text in args.score_option:
+        key, equals, value = text.partition("=")
+        if not equals or key not in names:
+            raise ValueError(
+                f"--score-option takes KEY=VALUE with KEY one of {family.__name__}'s options {list(names)}, "
+                f"got {text!r}"
+            )
+        try:
+            options[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            options[key] = value
+    return family(**options)
 
 
 def _check_finite_file(name: str, values: Tensor, valid: Tensor | None) -> None:
@@ -172,9 +203,7 @@ def _command(argv: Sequence[str]) -> dict:
             shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
             center=None if args.center is None else tuple(args.center),
             yaws=args.yaws,
-            metric=args.metric,
-            bins=args.bins,
-            value_range=tuple(args.value_range),
+            score=_score(args),
             min_overlap=args.min_overlap,
             exclusion_radius=args.exclusion_radius,
             coarse_factor=args.coarse_factor,
@@ -183,6 +212,8 @@ def _command(argv: Sequence[str]) -> dict:
         )
     except (ValueError, TypeError) as error:
         message = str(error)
+        if message.startswith("--score-option"):  # it lists the option names as --score-option takes them
+            raise
         for name, option in _OPTION_NAMES.items():
             message = re.sub(rf"\b{name}\b", option, message)
         raise ValueError(message) from error
@@ -200,12 +231,12 @@ def _command(argv: Sequence[str]) -> dict:
     }
     print(json.dumps(report))
     if args.output is not None:
-        _draw_surface(result, args.output, args.metric)
+        _draw_surface(result, args.output, args.score)
         print(f"wrote {args.output}", file=sys.stderr)
     return report
 
 
-def _draw_surface(result: Localization, path: str, metric: str) -> None:
+def _draw_surface(result: Localization, path: str, score_name: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -224,7 +255,9 @@ def _draw_surface(result: Localization, path: str, metric: str) -> None:
     dx, dy, yaw = result.pose[0].tolist()
     axes[0, 0].plot(dx, dy, marker="+", color="red", markersize=14, markeredgewidth=2)
     axes[0, 0].set(
-        xlabel="dx (cells)", ylabel="dy (cells)", title=f"{metric.upper()} at yaw {float(result.yaws[yaw_index]):g}°"
+        xlabel="dx (cells)",
+        ylabel="dy (cells)",
+        title=f"{score_name.upper()} at yaw {float(result.yaws[yaw_index]):g}°",
     )
     figure.colorbar(image, ax=axes[0, 0], shrink=0.85)
     if several:

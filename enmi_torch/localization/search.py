@@ -3,7 +3,8 @@
 The vehicle's captured image (a rectified camera view or a lidar intensity grid, on the map's cell grid) is compared
 with the map at every integer shift of a window around the prior pose and at a few yaw angles; the best candidate is
 refined below one cell by a quadratic fit of the surface, and the surface's curvature and its second peak say how
-sure the estimate is. Surfaces come from :mod:`enmi_torch.localization.surface` (ENMI, NMI or NCC by FFT).
+sure the estimate is. Each candidate is scored by the score object's surface (:meth:`~enmi_torch.scores.Score.surface`:
+ECR, ENMI, mixture, NMI or NCC over every shift at once); the search knows no score by name.
 
 Run ``enmi-localize --help`` (or ``python -m enmi_torch.localization --help``) for the command-line tool.
 
@@ -32,35 +33,16 @@ from enmi_torch._budget import check_search_memory
 from enmi_torch._checks import (
     check_bins,
     check_captured_in_reference,
-    check_log_prior,
     check_mask_not_empty,
     check_non_negative_int,
     check_option,
     check_positive_int,
     check_shifts,
-    check_value_range,
 )
 from enmi_torch._layout import mask_map, variance_map
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS, hard_bin_index
-from enmi_torch.correlation_ratio import (
-    RESPONSES,
-    BinSums,
-    check_model_variance,
-    default_model_variance,
-    ecr_from_bin_sums,
-)
-from enmi_torch.localization.mixture_surface import _rescore_peaks, mixture_surface
 from enmi_torch.localization.peak import Localization, _read_peak, _separated_peaks
-from enmi_torch.localization.surface import (
-    METRICS,
-    Surface,
-    _check_inputs,
-    _ecr_surface,
-    ecr_surface,
-    enmi_surface,
-    ncc_surface,
-    nmi_surface,
-)
+from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.scores import ECR, Score, as_score
 from enmi_torch.variance.base import VarianceModel, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
@@ -72,18 +54,10 @@ def localize(
     reference: Tensor,
     variance: Tensor | float | VarianceModel | None = None,
     *,
+    score: Score | str = "ecr",
     shifts: int | tuple[int, int] = 16,
     center: tuple[int, int] | Tensor | None = None,
     yaws: Sequence[float] | Tensor | None = None,
-    metric: str = "ecr",
-    bins: int = 32,
-    value_range: tuple[float, float] = (0.0, 256.0),
-    kernel: str = "mass",
-    log_prior: Tensor | None = None,
-    model_variance: float | None = None,
-    response: str = "binned",
-    reliability: bool = False,
-    em_steps: int = 0,
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
     min_overlap: float = 0.5,
@@ -99,29 +73,21 @@ def localize(
     Args:
         captured: captured images ``(B, 1, h, w)``, floating point, on the map's cell grid.
         reference: ``(1, 1, Hm, Wm)`` (one map for all) or ``(B, 1, Hm, Wm)``, floating point.
-        variance: for ``metric="ecr"`` and ``"enmi"``: the captured images' per-pixel noise variance (a number,
-            ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel` (its
-            ``valid_mask`` is used too). Must be ``None`` for the other metrics.
+        variance: for a score that uses one (ECR, ENMI, mixture): the captured images' per-pixel noise variance (a
+            number, ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel`
+            (its ``valid_mask`` is used too). Must be ``None`` for the others (NMI, NCC).
+        score: the score of a candidate, a :class:`~enmi_torch.scores.Score` or its name (:func:`~enmi_torch.as_score`):
+            :class:`~enmi_torch.ECR` (the default: the noise-aware correlation ratio, where the per-pixel variance
+            weighs each pixel's evidence; the best of the library's scores on ``data_tools/yardstick/yardstick.py``),
+            :class:`~enmi_torch.ENMI` (the paper's score; a ``(B, bins)`` ``log_prior`` gives each sample its row,
+            applied to all of that sample's yaws), :class:`~enmi_torch.Mixture` (shifts that its cheap first stage
+            does not rescore are ``-inf`` in ``surface``), :class:`~enmi_torch.NMI` (hard bins) or
+            :class:`~enmi_torch.NCC`. Each candidate is scored by ``score.surface``.
         shifts: search radius in cells, ``r`` or ``(ry, rx)``: shifts ``dy`` in ``[-ry, ry]``, ``dx`` in
             ``[-rx, rx]``.
         center: prior pose: map cell ``(row, col)`` under the captured centre pixel, or ``(B, 2)`` integers, one per
             sample; ``None`` for the map's centre cell ``(Hm // 2, Wm // 2)``.
         yaws: yaw angles to search, in degrees; ``None`` for ``[0]``.
-        metric: ``"ecr"`` (the noise-aware correlation ratio, :func:`~enmi_torch.correlation_ratio.ecr`: the
-            per-pixel variance weighs each pixel's evidence; the best of the library's scores on
-            ``data_tools/yardstick.py``), ``"enmi"`` (the paper's score), ``"mixture"`` (the noise-integrated mutual
-            information, :func:`~enmi_torch.mixture.mixture_information`), ``"nmi"`` (hard bins) or ``"ncc"``.
-        bins: number of equal-width bins over ``value_range`` (ECR: reference bins; ENMI, NMI).
-        value_range: ``(low, high)`` of the bins.
-        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` likelihood weights (ENMI).
-        log_prior: optional log prior of the amplitudes per bin (ENMI): ``(bins,)`` for every sample or
-            ``(B, bins)``, one per sample (applied to all of that sample's yaws).
-        model_variance: ``tau^2`` of ECR (``None``: ``bin_width^2 / 12``).
-        response: ECR's model of the sensor's response: ``"binned"`` (any function of the map, the default) or
-            ``"linear"`` (increasing affine: the noise-aware normalised cross-correlation).
-        reliability: reliability-weighted counts (ENMI, see :func:`~enmi_torch.information.enmi`).
-        em_steps: EM steps of the mixture score (``metric="mixture"``, see :func:`~enmi_torch.mixture.mixture_surface`:
-            shifts that its cheap first stage does not rescore are ``-inf`` in ``surface``).
         captured_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
         reference_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
         min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) captured image's
@@ -136,106 +102,58 @@ def localize(
             pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
             geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
             noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
-        search: ``"exhaustive"`` (every shift and yaw scored) or ``"two_stage"`` (``metric="ecr"`` with the binned
-            response, ``coarse_factor=1``): ECR with ``cheap_bins`` bins (spanning the 2nd to 98th percentile of
-            the map window's valid cells, so that few bins still split the map's values) over every shift and yaw,
-            then the exact score at the 3 x 3 x 3 (shift, shift, yaw) neighbourhoods of its best 4 peaks; while the
-            exact best lies by a peak of the lower half of that cheap ranking, the number of peaks doubles (up to
-            64), then the exact best's own neighbourhood is completed for the sub-cell fit. Rescored candidates score
-            as in the exhaustive surface (up to round-off), the others are ``-inf`` in ``surface``. It misses the
-            exhaustive argmax when the cheap score ranks that peak below the ones it rescored and the doubling has
-            stopped (``data_tools/bench_search.py`` measures how often: rarely, at extreme noise).
+        search: ``"exhaustive"`` (every shift and yaw scored) or ``"two_stage"`` (an :class:`~enmi_torch.ECR` score
+            with the binned response, ``coarse_factor=1``): ECR with ``cheap_bins`` bins (spanning the 2nd to 98th
+            percentile of the map window's valid cells, so that few bins still split the map's values; the default
+            model variance of those bins) over every shift and yaw, then the exact score at the 3 x 3 x 3 (shift,
+            shift, yaw) neighbourhoods of its best 4 peaks; while the exact best lies by a peak of the lower half of
+            that cheap ranking, the number of peaks doubles (up to 64), then the exact best's own neighbourhood is
+            completed for the sub-cell fit. Rescored candidates score as in the exhaustive surface (up to
+            round-off), the others are ``-inf`` in ``surface``. It misses the exhaustive argmax when the cheap score
+            ranks that peak below the ones it rescored and the doubling has stopped
+            (``data_tools/benchmarks/bench_search.py`` measures how often: rarely, at extreme noise).
         cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.
 
     Returns:
         :class:`Localization`.
 
     Raises:
-        ValueError: on inconsistent shapes, empty masks, a captured image larger than the map, or when no candidate of
-            a sample passes ``min_overlap``.
+        ValueError: on inconsistent shapes, empty masks, a captured image larger than the map, a variance given to
+            a score that does not use one (or none to one that does), or when no candidate of a sample passes
+            ``min_overlap``.
 
     Convention:
         No gradient (a search). Scores are computed in float64 for float64 ``captured`` and in float32 otherwise;
         results have the dtype and device of ``captured``. Cost: one FFT surface per sample and yaw, dominated by
-        ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window.
+        ``bins^2`` inverse FFTs of the ``(h + 2 ry) x (w + 2 rx)`` window (ENMI, NMI; ``3 bins`` for ECR).
 
     Example:
+        >>> from enmi_torch import ECR
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
         >>> captured = reference[..., 14:30, 19:35] + 8 * torch.randn(1, 1, 16, 16, generator=generator)
-        >>> result = localize(captured, reference, 64.0, shifts=6, bins=16)
+        >>> result = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=6)
         >>> result.pose.round().tolist(), result.surface.shape
         ([[3.0, -2.0, 0.0]], torch.Size([1, 1, 13, 13]))
     """
-    check_option("metric", metric, METRICS)
+    score = as_score(score)
     check_option("resample", resample, RESAMPLING)
     batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
     radius = check_shifts(shifts)
     centers = _check_center(center, batch, tuple(reference.shape[2:]), captured.device)
     yaw_list = _check_yaws(yaws)
-    if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
-        raise ValueError(f"min_overlap must be a fraction in (0, 1], got {min_overlap!r}")
-    check_non_negative_int("exclusion_radius", exclusion_radius)
-    check_positive_int("coarse_factor", coarse_factor)
-    check_positive_int("coarse_peaks", coarse_peaks)
-    if metric != "ncc":
-        check_bins(bins)
-        check_value_range(value_range)
-    if metric in ("ecr", "enmi", "mixture"):
-        check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
-        if variance is None:
-            raise ValueError(f"variance must be given for metric={metric!r} (a number, a tensor or a VarianceModel)")
-    elif variance is not None:
-        raise ValueError(
-            f"variance is only used by metric='ecr', 'enmi' or 'mixture', got metric={metric!r}; pass variance=None"
-        )
-    if log_prior is not None and metric != "enmi":
-        raise ValueError(f"log_prior is only used by metric='enmi', got metric={metric!r}")
-    if log_prior is not None:
-        log_prior = check_log_prior(log_prior, bins, batch).reshape(-1, bins).to(captured.device)
-    if model_variance is not None and metric != "ecr":
-        raise ValueError(f"model_variance is only used by metric='ecr', got metric={metric!r}")
-    if metric == "ecr":
-        check_model_variance(model_variance, bins, value_range)
-    check_option("response", response, RESPONSES)
-    if response != "binned" and metric != "ecr":
-        raise ValueError(f"response is only used by metric='ecr', got metric={metric!r}")
-    if reliability is not False and metric != "enmi":
-        raise ValueError(f"reliability is only used by metric='enmi', got metric={metric!r}")
-    if em_steps != 0 and metric != "mixture":
-        raise ValueError(f"em_steps is only used by metric='mixture', got metric={metric!r}")
-    check_option("search", search, SEARCHES)
+    _check_search_settings(min_overlap, exclusion_radius, coarse_factor, coarse_peaks, search)
+    score.check_variance(variance)
+    samples = score.per_sample(batch)
     if search == "two_stage":
-        if metric != "ecr" or response != "binned" or coarse_factor != 1:
-            raise ValueError(
-                "search='two_stage' needs metric='ecr', response='binned' and coarse_factor=1, got "
-                f"metric={metric!r}, response={response!r}, coarse_factor={coarse_factor!r}"
-            )
-        if check_bins(cheap_bins) > bins:
-            raise ValueError(f"cheap_bins must be at most bins ({bins}), got {cheap_bins}")
-    check_search_memory(captured, shifts, radius, len(yaw_list), None if metric == "ncc" else bins, coarse_factor)
-
+        _check_two_stage(score, coarse_factor, cheap_bins)
+    check_search_memory(captured, shifts, radius, len(yaw_list), score.options.get("bins"), coarse_factor)
     with torch.no_grad():
-        captured_valid = _captured_valid(captured, captured_mask, variance)
-        variance = _variance_map(captured, variance, captured_valid)
-        reference_valid = _reference_valid(reference, reference_mask)
-        ecr_options = {"model_variance": model_variance, "response": response}
-        score_fn = _ScoreFunction(metric, bins, value_range, kernel, log_prior, ecr_options, reliability, em_steps)
-        searcher = _Search(
-            captured,
-            variance,
-            captured_valid,
-            reference,
-            reference_valid,
-            centers,
-            radius,
-            yaw_list,
-            score_fn,
-            resample,
+        searcher = _Search.prepare(
+            captured, reference, variance, captured_mask, reference_mask, centers, radius, yaw_list, samples, resample
         )
         if search == "two_stage":
-            exact = {"bins": bins, "value_range": value_range, "model_variance": model_variance}
-            surface = searcher.two_stage(min_overlap, cheap_bins, exact)
+            surface = searcher.two_stage(min_overlap, cheap_bins)
         elif coarse_factor == 1:
             surface = searcher.exhaustive(min_overlap)
         else:
@@ -243,20 +161,38 @@ def localize(
         return _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
 
 
+def _check_search_settings(
+    min_overlap: float, exclusion_radius: int, coarse_factor: int, coarse_peaks: int, search: str
+) -> None:
+    """The search's own settings (the score checks its options itself)."""
+    if not isinstance(min_overlap, (int, float)) or isinstance(min_overlap, bool) or not 0 < min_overlap <= 1:
+        raise ValueError(f"min_overlap must be a fraction in (0, 1], got {min_overlap!r}")
+    check_non_negative_int("exclusion_radius", exclusion_radius)
+    check_positive_int("coarse_factor", coarse_factor)
+    check_positive_int("coarse_peaks", coarse_peaks)
+    check_option("search", search, SEARCHES)
+
+
+def _check_two_stage(score: Score, coarse_factor: int, cheap_bins: int) -> None:
+    """The two-stage search ranks by a cheap binned ECR and rescores with the exact one: it needs a binned ECR."""
+    if not isinstance(score, ECR) or score.response != "binned" or coarse_factor != 1:
+        raise ValueError(
+            "search='two_stage' needs an ECR score with response='binned' and coarse_factor=1, got "
+            f"score={score!r}, coarse_factor={coarse_factor!r}"
+        )
+    if check_bins(cheap_bins) > score.bins:
+        raise ValueError(f"cheap_bins must be at most bins ({score.bins}), got {cheap_bins}")
+
+
 class Localizer(nn.Module):
-    """Module form of :func:`localize`: stores the search settings and an optional variance model.
+    """Module form of :func:`localize`: stores the score, the search settings and an optional variance model.
 
     Args:
-        variance_model: optional :class:`~enmi_torch.variance.VarianceModel` for ``metric="ecr"`` or ``"enmi"``
-            (else give the variance per call).
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel` for a score that uses a variance (else
+            give the variance per call).
+        score: a :class:`~enmi_torch.scores.Score` or its name (see :func:`localize`).
         shifts: search radius (see :func:`localize`).
         yaws: yaws in degrees (stored as a non-persistent buffer).
-        metric: ``"ecr"``, ``"enmi"``, ``"nmi"`` or ``"ncc"``.
-        bins: number of bins.
-        value_range: ``(low, high)`` of the bins.
-        kernel: ``"mass"``, ``"density"`` or ``"truncated"`` (ENMI).
-        log_prior: optional ``(bins,)`` log prior of the amplitudes (ENMI), a non-persistent buffer.
-        model_variance: ``tau^2`` of ECR (see :func:`localize`).
         min_overlap: see :func:`localize`.
         exclusion_radius: see :func:`localize`.
         coarse_factor: see :func:`localize`.
@@ -266,10 +202,11 @@ class Localizer(nn.Module):
         cheap_bins: see :func:`localize`.
 
     Example:
+        >>> from enmi_torch import ECR
         >>> from enmi_torch.variance import ConstantVariance
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = torch.rand(1, 1, 40, 40, generator=generator) * 256
-        >>> localizer = Localizer(ConstantVariance(16.0), shifts=5, bins=16)
+        >>> localizer = Localizer(ConstantVariance(16.0), score=ECR(bins=16), shifts=5)
         >>> localizer(reference[..., 15:31, 14:30], reference).pose.round().tolist()
         [[2.0, 3.0, 0.0]]
     """
@@ -278,14 +215,9 @@ class Localizer(nn.Module):
         self,
         variance_model: VarianceModel | None = None,
         *,
+        score: Score | str = "ecr",
         shifts: int | tuple[int, int] = 16,
         yaws: Sequence[float] | Tensor | None = None,
-        metric: str = "ecr",
-        bins: int = 32,
-        value_range: tuple[float, float] = (0.0, 256.0),
-        kernel: str = "mass",
-        log_prior: Tensor | None = None,
-        model_variance: float | None = None,
         min_overlap: float = 0.5,
         exclusion_radius: int = 3,
         coarse_factor: int = 1,
@@ -296,18 +228,9 @@ class Localizer(nn.Module):
     ) -> None:
         super().__init__()
         self.variance_model = check_variance_model(variance_model)
-        self.metric = check_option("metric", metric, METRICS)
+        self.score = as_score(score)
         self.shifts = check_shifts(shifts)
         self.register_buffer("yaws", torch.tensor(_check_yaws(yaws), dtype=torch.float64), persistent=False)
-        self.bins = check_bins(bins)
-        self.value_range = check_value_range(value_range)
-        self.kernel = check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
-        self.model_variance = (
-            None if model_variance is None else check_model_variance(model_variance, bins, value_range)
-        )
-        if log_prior is not None:
-            log_prior = check_log_prior(log_prior, self.bins, 1).reshape(-1, self.bins)
-        self.register_buffer("log_prior", log_prior, persistent=False)
         self.options = {
             "min_overlap": min_overlap,
             "exclusion_radius": exclusion_radius,
@@ -335,15 +258,10 @@ class Localizer(nn.Module):
             captured,
             reference,
             self.variance_model if variance is None else variance,
+            score=self.score,
             shifts=self.shifts,
             center=center,
             yaws=self.yaws.tolist(),
-            metric=self.metric,
-            bins=self.bins,
-            value_range=self.value_range,
-            kernel=self.kernel,
-            log_prior=self.log_prior,
-            model_variance=self.model_variance,
             captured_mask=captured_mask,
             reference_mask=reference_mask,
             **self.options,
@@ -408,54 +326,6 @@ def _reference_valid(reference: Tensor, reference_mask: Tensor | None) -> Tensor
     return mask_map("reference_mask", reference_mask, reference, "reference").reshape(reference.shape)
 
 
-class _ScoreFunction:
-    """The chosen surface function with its settings."""
-
-    def __init__(self, metric, bins, value_range, kernel, log_prior, ecr_options, reliability, em_steps) -> None:
-        self.metric, self.bins, self.value_range = metric, bins, value_range
-        self.kernel, self.log_prior, self.ecr_options = kernel, log_prior, ecr_options
-        self.reliability, self.em_steps = reliability, em_steps
-
-    def __call__(self, captured, window, variance, captured_mask, reference_mask, *, sample: int = 0) -> Surface:
-        masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
-        if self.metric == "ncc":
-            return ncc_surface(captured, window, **masks)
-        if self.metric == "nmi":
-            return nmi_surface(captured, window, bins=self.bins, value_range=self.value_range, **masks)
-        if self.metric == "mixture":
-            return mixture_surface(
-                captured,
-                window,
-                variance,
-                bins=self.bins,
-                value_range=self.value_range,
-                em_steps=self.em_steps,
-                **masks,
-            )
-        if self.metric == "ecr":
-            return ecr_surface(
-                captured,
-                window,
-                variance,
-                bins=self.bins,
-                value_range=self.value_range,
-                **self.ecr_options,
-                **masks,
-            )
-        return enmi_surface(
-            captured,
-            window,
-            variance,
-            bins=self.bins,
-            value_range=self.value_range,
-            kernel=self.kernel,
-            # One prior per sample: every rotation of the sample takes that sample's row.
-            log_prior=None if self.log_prior is None else self.log_prior[min(sample, self.log_prior.shape[0] - 1)],
-            reliability=self.reliability,
-            **masks,
-        )
-
-
 RESAMPLING = ("nearest", "bilinear")
 SEARCHES = ("exhaustive", "two_stage")
 # Peaks of the two-stage search's cheap surface rescored first, and at most.
@@ -505,15 +375,27 @@ class _Search:
     """Windows around the prior poses and the surfaces over them."""
 
     def __init__(
-        self, captured, variance, captured_valid, reference, reference_valid, centers, radius, yaws, score_fn, resample
+        self, captured, variance, captured_valid, reference, reference_valid, centers, radius, yaws, samples, resample
     ) -> None:
         self.captured, self.variance, self.captured_valid = captured, variance, captured_valid
         self.resample = resample
         self.reference, self.reference_valid = reference, reference_valid
-        self.radius, self.yaws, self.score_fn = radius, yaws, score_fn
+        self.radius, self.yaws, self.samples = radius, yaws, samples
         height, width = captured.shape[2:]
         # Map cell of the captured top-left pixel at shift (-ry, -rx), per sample.
         self.origins = centers - torch.tensor([height // 2 + radius[0], width // 2 + radius[1]], device=captured.device)
+
+    @classmethod
+    def prepare(
+        cls, captured, reference, variance, captured_mask, reference_mask, centers, radius, yaws, samples, resample
+    ) -> _Search:
+        """The search over checked settings: masks combined, the variance as a map; ``samples``: a score per sample."""
+        captured_valid = _captured_valid(captured, captured_mask, variance)
+        variance = _variance_map(captured, variance, captured_valid)
+        reference_valid = _reference_valid(reference, reference_mask)
+        return cls(
+            captured, variance, captured_valid, reference, reference_valid, centers, radius, yaws, samples, resample
+        )
 
     def _window(self, sample: int, top: int, left: int, rows: int, cols: int, factor: int = 1):
         """Map section ``(1, 1, rows, cols)`` at ``(top, left)`` on the map pooled by ``factor``, and its mask."""
@@ -541,10 +423,12 @@ class _Search:
             self.captured[sample : sample + 1], variance, self.captured_valid[sample : sample + 1], yaws, self.resample
         )
 
-    def _surface(self, sample, captured, variance, valid, window, window_valid, min_overlap, score_fn=None) -> Tensor:
-        """``(Y, Sy, Sx)`` scores of one sample's rotations.
+    def _surface(self, sample, captured, variance, valid, window, window_valid, min_overlap, surface_fn=None) -> Tensor:
+        """``(Y, Sy, Sx)`` scores of one sample's rotations, by the sample's score or by ``surface_fn``.
 
-        ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows.
+        ``-inf`` below the overlap rule, for yaws that lose every pixel, on empty windows. ``surface_fn`` takes
+        ``(captured, window, variance, captured_mask, reference_mask)`` and returns a
+        :class:`~enmi_torch.placement.Surface`.
         """
         rows, cols = window.shape[2] - captured.shape[2] + 1, window.shape[3] - captured.shape[3] + 1
         result = captured.new_full((captured.shape[0], rows, cols), -math.inf, dtype=self.captured.dtype)
@@ -552,13 +436,21 @@ class _Search:
         if not bool(window_valid.any()) or not bool(kept.any()):
             return result
         captured, valid = captured[kept], valid[kept]
-        surface = (score_fn or self.score_fn)(
-            captured, window, None if variance is None else variance[kept], valid, window_valid, sample=sample
-        )
+        surface_fn = surface_fn or self._score_surface(sample)
+        surface = surface_fn(captured, window, None if variance is None else variance[kept], valid, window_valid)
         needed = min_overlap * valid.flatten(1).sum(1).to(surface.overlap.dtype)
         enough = surface.overlap >= needed[:, None, None] - 0.5
         result[kept] = torch.where(enough, surface.score, -math.inf).to(result.dtype)
         return result
+
+    def _score_surface(self, sample: int):
+        """The surface function of the sample's score."""
+        score = self.samples[sample]
+
+        def surface(captured, window, variance, captured_mask, reference_mask):
+            return score.surface(captured, window, variance, captured_mask=captured_mask, reference_mask=reference_mask)
+
+        return surface
 
     def exhaustive(self, min_overlap: float) -> Tensor:
         """``(B, Y, 2 ry + 1, 2 rx + 1)`` surface over every shift and yaw."""
@@ -571,7 +463,7 @@ class _Search:
             surfaces.append(self._surface(sample, captured, variance, valid, window, window_valid, min_overlap))
         return torch.stack(surfaces)
 
-    def two_stage(self, min_overlap: float, cheap_bins: int, exact: dict) -> Tensor:
+    def two_stage(self, min_overlap: float, cheap_bins: int) -> Tensor:
         """``(B, Y, 2 ry + 1, 2 rx + 1)``: a cheap surface over every shift and yaw, exact ECR around its peaks."""
         height, width = self.captured.shape[2:]
         rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
@@ -579,16 +471,18 @@ class _Search:
         for sample in range(self.captured.shape[0]):
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
             captured, variance, valid = self._rotations(sample, self.yaws)
-            cheap_fn = functools.partial(_cheap_surface, bins=cheap_bins, value_range=_spread(window, window_valid))
+            exact = self.samples[sample]
+            # The cheap stage: few bins over the window's values, with their own default model variance.
+            cheap_score = exact.replace(bins=cheap_bins, value_range=_spread(window, window_valid), model_variance=None)
+            cheap_fn = cheap_score._rough_surface
             cheap = self._surface(sample, captured, variance, valid, window, window_valid, min_overlap, cheap_fn)
             scorer = functools.partial(
-                _ecr_placements,
+                exact._placement_scores,
                 rotations=(captured, variance, valid),
                 window=(window, window_valid),
                 min_overlap=min_overlap,
-                **exact,
             )
-            surfaces.append(_rescore_peaks(cheap, scorer, _CANDIDATES, _MAX_CANDIDATES, complete_best=True))
+            surfaces.append(rescore_peaks(cheap, scorer, _CANDIDATES, _MAX_CANDIDATES, complete_best=True))
         return torch.stack(surfaces)
 
     def coarse_to_fine(self, min_overlap: float, factor: int, peaks: int, exclusion_radius: int) -> Tensor:
@@ -668,14 +562,6 @@ class _Search:
         return True
 
 
-def _cheap_surface(
-    captured, window, variance, captured_mask, reference_mask, *, sample: int, bins: int, value_range
-) -> Surface:
-    """The two-stage search's first stage: ECR with few bins, occupied bins read from the weight sums."""
-    inputs = _check_inputs(captured, window, captured_mask, reference_mask, value_range, variance)
-    return _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range, exact_counts=False)
-
-
 def _spread(window: Tensor, window_valid: Tensor) -> tuple[float, float]:
     """The 2nd to 98th percentile of the window's valid cells: the cheap stage's few bins split the map's values."""
     values = window[window_valid].float()
@@ -683,44 +569,3 @@ def _spread(window: Tensor, window_valid: Tensor) -> tuple[float, float]:
         return (0.0, 1.0)
     low, high = torch.quantile(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
     return (low, high) if high > low else (low, low + 1.0)
-
-
-def _ecr_placements(
-    placements: Tensor, *, rotations, window, min_overlap: float, bins: int, value_range, model_variance
-) -> Tensor:
-    """Exact ECR ``(P,)`` of the rotated captured images at placements ``(P, 3)`` (yaw index, row, column).
-
-    As :func:`~enmi_torch.localization.surface.ecr_surface` and :meth:`_Search._surface` score them: weights
-    ``1 / (variance + tau^2)`` over the captured valid pixels, values centred on each rotation's weighted mean, ``-inf``
-    below ``min_overlap`` or for a rotation without a valid pixel. Per shift, one matrix product of the rotations'
-    count, weight and weighted-value planes with the one-hot reference bins under the image (unmapped cells in a bin
-    left out) gives the per-bin sums: several times faster on the CPU than scattering every pixel.
-    """
-    captured, variance, valid = rotations
-    reference, reference_valid = window
-    dtype = torch.float64 if captured.dtype == torch.float64 else torch.float32
-    height, width = captured.shape[2:]
-    tau2 = check_model_variance(model_variance, bins, value_range)
-    yaws, yaw_index = torch.unique(placements[:, 0], return_inverse=True)  # only the rotations rescored
-    valid = valid[yaws, 0].flatten(1).to(dtype)
-    weight = valid / (variance[yaws, 0].to(dtype).flatten(1) + tau2)
-    values = captured[yaws, 0].to(dtype).flatten(1)
-    centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
-    planes = torch.stack([valid, weight, weight * (values - centre)], 1)  # (Y, 3, N)
-    reference_bins = torch.where(reference_valid, hard_bin_index(reference, bins, value_range), bins)[0, 0]
-    section_bins = reference_bins.unfold(0, height, 1).unfold(1, width, 1)
-    shifts, shift_index = torch.unique(placements[:, 1:], dim=0, return_inverse=True)
-    order = shift_index.argsort()
-    sums = planes.new_empty(placements.shape[0], 3, bins + 1)
-    one_hot = planes.new_zeros(height * width, bins + 1)
-    for (row, col), members in zip(
-        shifts.tolist(), order.split(torch.bincount(shift_index, minlength=len(shifts)).tolist()), strict=True
-    ):
-        cells = section_bins[row, col].reshape(-1, 1)
-        one_hot.scatter_(1, cells, 1.0)
-        sums[members] = planes[yaw_index[members]] @ one_hot
-        one_hot.scatter_(1, cells, 0.0)  # cheaper than clearing the whole matrix
-    score = ecr_from_bin_sums(BinSums(*sums[..., :bins].unbind(1)))
-    needed = min_overlap * valid.sum(1)[yaw_index]
-    count = sums[:, 0, :bins].sum(1)
-    return torch.where((count >= needed - 0.5) & (needed > 0), score, -math.inf)

@@ -9,8 +9,8 @@ single-process gradient of the same global batch: the fitted mask does not depen
 
 Dashboards (TensorBoard): ``train/nll``, ``val/nll``; ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth``,
 ``mask/empirical_rel_rms_vs_truth``; ``localization/<method>`` (share of held-out pairs located within one pixel
-by a whole-image search, the protocol of ``data_tools/yardstick.py``) and ``localization_z/<method>`` (the mean
-z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
+by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and ``localization_z/<method>`` (the
+mean z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
 (``*_learned``), the true field (``*_analytic``, synthetic data) and the uniform controls (``*_uniform``: the learned
 mask's mean; ``enmi_best_uniform``: the best of the mean times ``localization_grid``), hard NMI and NCC (the
 methods that do not depend on the mask, ``*_analytic``, NMI and NCC, are scored at a fit's first validation and
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -31,7 +32,7 @@ from torch import Tensor
 from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
-from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
 
@@ -49,51 +50,53 @@ def localization_trials(
     variances: dict[str, Tensor | float],
     *,
     max_shift: int,
-    bins: int,
-    value_range: tuple[float, float],
+    scores: Sequence[Score],
     uniform_grid: tuple[float, ...] = (),
-    nmi_ncc: bool = True,
+    grid_score: Score | None = None,
 ) -> dict[str, tuple[int, float]]:
-    """Whole-image localization of aligned pairs, the protocol of ``data_tools/yardstick.py``: hits and peak z-scores.
+    """Whole-image localization of aligned pairs, the yardstick's protocol: hits and peak z-scores.
 
     Each pair's local image, less a border of ``max_shift`` pixels, is searched in its prior image at every shift in
-    ``[-max_shift, max_shift]^2`` (FFT score surfaces); the pair is located when the best shift is within one pixel of
-    the zero shift. The peak z-score, ``(score at zero shift - mean) / std`` over the shifts more than one pixel away,
-    measures the margin where every method locates the pair.
+    ``[-max_shift, max_shift]^2`` (the scores' FFT surfaces); the pair is located when the best shift is within one
+    pixel of the zero shift. The peak z-score, ``(score at zero shift - mean) / std`` over the shifts more than one
+    pixel away, measures the margin where every method locates the pair.
 
     Args:
         local: ``(B, 1, H, W)``.
         prior: ``(B, 1, H, W)``, aligned with ``local``.
         valid: bool ``(B, 1, H, W)``, pixels usable by every method.
-        variances: name -> ``(H, W)`` variance map or a number (one uniform variance); each is scored with ECR and with
-            ENMI (methods ``"ecr_<name>"``, ``"enmi_<name>"``). The name ``"uniform"`` also gives ENMI at the uniform
-            variance times each factor of ``uniform_grid`` (``"enmi_uniform_x<factor>"``).
+        variances: name -> ``(H, W)`` variance map or a number (one uniform variance); each score that uses a
+            variance is scored with each (methods ``"<score name>_<variance name>"``, e.g. ``"ecr_learned"``).
         max_shift: largest shift in pixels.
-        bins: bins of ECR (reference), ENMI and NMI.
-        value_range: range of the bins.
-        uniform_grid: factors for the best-uniform control.
-        nmi_ncc: also score hard NMI and NCC (methods ``"nmi"``, ``"ncc"``).
+        scores: the scores searched (e.g. ``ECR(bins=32)``, ``ENMI(bins=32)``, ``NMI(bins=32)``, ``NCC()``); those
+            without a variance once each (method ``"<score name>"``).
+        uniform_grid: factors for the best-uniform control: ``grid_score`` at the variance named ``"uniform"`` times
+            each factor (``"<grid score name>_uniform_x<factor>"``).
+        grid_score: the score of the best-uniform control (needed with ``uniform_grid``).
 
     Returns:
-        Method -> ``(hits, sum of peak z-scores)`` over the pairs, for the methods above (and ``"nmi"``, ``"ncc"``).
+        Method -> ``(hits, sum of peak z-scores)`` over the pairs, for the methods above.
     """
+    if uniform_grid and grid_score is None:
+        raise ValueError(f"uniform_grid needs a grid_score, got uniform_grid={uniform_grid!r} and grid_score=None")
     height, width = local.shape[-2:]
     inner = (..., slice(max_shift, height - max_shift), slice(max_shift, width - max_shift))
     crop, crop_valid = local[inner].float(), valid[inner]
     window = prior.float()
-    options = {"bins": bins, "value_range": value_range, "captured_mask": crop_valid}
     surfaces = {}
     for name, variance in variances.items():
         if isinstance(variance, Tensor):
             variance = variance[inner].float()
-        surfaces[f"ecr_{name}"] = ecr_surface(crop, window, variance, **options)
-        surfaces[f"enmi_{name}"] = enmi_surface(crop, window, variance, **options)
+        for score in scores:
+            if score.uses_variance:
+                surfaces[f"{score.name}_{name}"] = score.surface(crop, window, variance, captured_mask=crop_valid)
         if name == "uniform":
             for factor in uniform_grid:
-                surfaces[f"enmi_uniform_x{factor:g}"] = enmi_surface(crop, window, variance * factor, **options)
-    if nmi_ncc:
-        surfaces["nmi"] = nmi_surface(crop, window, **options)
-        surfaces["ncc"] = ncc_surface(crop, window, captured_mask=crop_valid)
+                surface = grid_score.surface(crop, window, variance * factor, captured_mask=crop_valid)
+                surfaces[f"{grid_score.name}_uniform_x{factor:g}"] = surface
+    for score in scores:
+        if not score.uses_variance:
+            surfaces[score.name] = score.surface(crop, window, captured_mask=crop_valid)
     span = 2 * max_shift + 1
     offsets = torch.arange(span, device=local.device) - max_shift
     far = (offsets.abs().view(-1, 1) > 1) | (offsets.abs().view(1, -1) > 1)
@@ -297,11 +300,8 @@ class MaskFitModule(LightningModule):
             return
         take = min(local.shape[0], -(-room // self.trainer.world_size))
         local, prior, valid = local[:take], prior[:take], valid[:take]
-        options = {
-            "max_shift": self.hparams.localization_shift,
-            "bins": self.hparams.bins,
-            "value_range": tuple(self.hparams.value_range),
-        }
+        bins, value_range = self.hparams.bins, tuple(self.hparams.value_range)
+        variance_scores = (ECR(bins=bins, value_range=value_range), ENMI(bins=bins, value_range=value_range))
         with torch.no_grad():
             learned = self.mask.variance_map().to(local.device)
             usable = valid & self.mask.valid_mask(local)  # the learned pixels are fixed from the fit's start
@@ -309,19 +309,27 @@ class MaskFitModule(LightningModule):
             if truth is not None:
                 usable = usable & truth.valid.to(local.device)
             # The true map, NMI and NCC score the same pairs the same way at every validation of a fit: once.
-            key = (tuple(index[:take].tolist()), self.hparams.localization_shift, self.hparams.bins)
+            key = (tuple(index[:take].tolist()), self.hparams.localization_shift, bins)
             if key not in self._fixed_results:
                 fixed = {} if truth is None else {"analytic": truth.variance.to(local.device)}
-                self._fixed_results[key] = localization_trials(local, prior, usable, fixed, **options)
+                self._fixed_results[key] = localization_trials(
+                    local,
+                    prior,
+                    usable,
+                    fixed,
+                    max_shift=self.hparams.localization_shift,
+                    scores=(*variance_scores, NMI(bins=bins, value_range=value_range), NCC()),
+                )
             variances = {"learned": learned, "uniform": float(learned[self.mask.valid].mean())}
             results = localization_trials(
                 local,
                 prior,
                 usable,
                 variances,
+                max_shift=self.hparams.localization_shift,
+                scores=variance_scores,
                 uniform_grid=tuple(self.hparams.localization_grid),
-                nmi_ncc=False,
-                **options,
+                grid_score=variance_scores[1],
             )
             results.update(self._fixed_results[key])
         for name, (hits, z_sum) in results.items():

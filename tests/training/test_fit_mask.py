@@ -14,6 +14,7 @@ from lightning.pytorch import Callback, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from enmi_torch import ECR, ENMI, NCC, NMI
 from enmi_torch.cli.fit_mask import main
 from enmi_torch.data import PairDataModule
 from enmi_torch.training.fit_mask import fit_mask
@@ -220,7 +221,8 @@ def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
     valid = torch.ones(3, 1, 20, 24, dtype=torch.bool)
     variance = torch.linspace(1, 100, 20 * 24).reshape(20, 24)
     noisy = prior + torch.randn(prior.shape, generator=generator) * variance.sqrt()
-    options = {"max_shift": 3, "bins": 16, "value_range": (0.0, 256.0), "uniform_grid": (0.25, 4.0)}
+    scores = (ECR(bins=16), ENMI(bins=16), NMI(bins=16), NCC())
+    options = {"max_shift": 3, "scores": scores, "uniform_grid": (0.25, 4.0), "grid_score": ENMI(bins=16)}
     results = localization_trials(noisy, prior, valid, {"learned": variance, "uniform": 50.0}, **options)
     expected = {"ecr_learned", "enmi_learned", "ecr_uniform", "enmi_uniform", "nmi", "ncc"}
     assert set(results) == expected | {"enmi_uniform_x0.25", "enmi_uniform_x4"}
@@ -241,12 +243,14 @@ def test_localization_of_fixed_methods_apart_equals_one_call():
     valid = torch.rand(2, 1, 18, 22, generator=generator) > 0.1
     truth = torch.linspace(1, 400, 18 * 22).reshape(18, 22)
     noisy = prior + torch.randn(prior.shape, generator=generator) * truth.sqrt()
-    options = {"max_shift": 2, "bins": 16, "value_range": (0.0, 256.0)}
+    variance_scores = (ECR(bins=16), ENMI(bins=16))
+    scores = (*variance_scores, NMI(bins=16), NCC())
+    grid = {"uniform_grid": (0.5,), "grid_score": ENMI(bins=16)}
     mine = {"learned": truth * 1.5, "uniform": 120.0}
-    together = localization_trials(noisy, prior, valid, {**mine, "analytic": truth}, uniform_grid=(0.5,), **options)
-    apart = localization_trials(noisy, prior, valid, mine, uniform_grid=(0.5,), nmi_ncc=False, **options)
+    together = localization_trials(noisy, prior, valid, {**mine, "analytic": truth}, max_shift=2, scores=scores, **grid)
+    apart = localization_trials(noisy, prior, valid, mine, max_shift=2, scores=variance_scores, **grid)
     assert "nmi" not in apart and "ecr_analytic" not in apart
-    apart.update(localization_trials(noisy, prior, valid, {"analytic": truth}, **options))
+    apart.update(localization_trials(noisy, prior, valid, {"analytic": truth}, max_shift=2, scores=scores))
     assert apart == together
 
 

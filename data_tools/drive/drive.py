@@ -1,0 +1,526 @@
+"""Track a simulated drive with the histogram filter (:mod:`enmi_torch.tracking`) against per-frame argmax.
+
+The map: scikit-image's CC0 textures and photographs tiled along a road, 320 cells wide and 2560 long (2.5 cm cells:
+8 m x 64 m): ``gravel``, ``grass``, ``brick`` (repetitive), ``camera`` and ``moon``, with painted edge lines, a
+dashed centre line and stop bars. The vehicle drives up the road (rows decreasing) at about 9 cells (22 cm) per
+frame, weaving (yaw within about +-6 degrees). Each frame is rendered through the paper's road camera
+(:meth:`~enmi_torch.RoadCamera.paper`, 120 x 160 pixels): the road under the pose is warped into the camera with
+:func:`~enmi_torch.unrectify`, Gaussian pixel noise is added, and the image is rectified back with kornia
+(:func:`~enmi_torch.rectify`, 4 x 4 samples per cell) onto a 64 x 64 grid of 2.5 cm cells 40 cm to 200 cm ahead.
+The analytic variance of a cell is ``N0 / A`` (``A`` the pixels it covers, :func:`homography_variance`); the learned
+variance is the empirical variance of held-out renders against their noiseless rendering; the uniform control is one
+variance, the learned map's mean.
+
+Hard stretches: strong noise (frames 150-179, pixel noise x 4), a changed appearance (frames 60-89: the ground seen
+through a non-monotonic response ``255 |2 v / 255 - 1|^0.8``, as when the map was made by another sensor) and the
+repetitive ``brick`` tile. Odometry (``du``, ``dv``, ``dyaw`` in the frame's axes) has a 3 % scale error, a yaw-rate
+bias of 0.05 degrees per frame and white noise.
+
+Calibration on held-out frames (other poses and noise draws): each score's temperature
+(:func:`enmi_torch.tracking.calibrate_temperature`), its peak z-score threshold and the odometry noise
+(the RMS of the increment errors); it is written as ``calibration_<method>.json`` under ``--logdir``
+(``runs/drive``), with the TensorBoard logs of the errors (``tensorboard --logdir runs/drive/tensorboard``).
+
+Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
+odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
+window +-8 cells, 5 yaws 1 degree apart). Errors are split along the true heading (longitudinal) and across it
+(lateral); "covered" is the share of frames whose filter 95 % ellipse holds the truth.
+
+    python data_tools/drive/drive.py                                      # runs/drive/drive.png, ~3 min on 2 cores
+    python data_tools/drive/drive.py --out data_tools/figures/drive.png   # README's figure
+    python data_tools/drive/drive.py --frames 60 --methods ecr_analytic   # a quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from skimage import data
+
+from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify, value_checks
+from enmi_torch.geometry.rectify import ground_to_image_homography
+from enmi_torch.localization.search import localize
+from enmi_torch.scores import ECR, NCC, NMI, Score
+from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
+from enmi_torch.variance import empirical_variance
+from enmi_torch.variance.perspective import homography_variance
+
+CELL_CM = 2.5
+GRID = GroundGrid((-80.0, 80.0), (40.0, 200.0), CELL_CM)
+CAMERA = RoadCamera.paper((120, 160))
+FRAME = GRID.shape  # (64, 64)
+TILES = ("gravel", "grass", "brick", "camera", "moon")
+ROAD_WIDTH = 320
+SPEED = 9.0
+PIXEL_NOISE = 6.0
+SHIFTS = 8
+YAW_BINS = 5
+YAW_STEP = 1.0
+BINS = 16
+NOISY = (150, 180)
+CHANGED = (60, 90)
+# Each method's score and the variance it is given (None: a score without one).
+METHODS = {
+    "ecr_analytic": (ECR(bins=BINS), "analytic"),
+    "ecr_learned": (ECR(bins=BINS), "learned"),
+    "ecr_uniform": (ECR(bins=BINS), "uniform"),
+    "nmi": (NMI(bins=BINS), None),
+    "ncc": (NCC(), None),
+}
+LABELS = {
+    "ecr_analytic": "ECR, analytic variance",
+    "ecr_learned": "ECR, learned variance",
+    "ecr_uniform": "ECR, uniform variance",
+    "nmi": "NMI",
+    "ncc": "NCC",
+}
+OUT = Path("runs/drive/drive.png")
+
+
+def road_map() -> torch.Tensor:
+    """``(1, 1, 2560, 320)`` float64 grey levels: the tiles bottom (start) to top, with painted markings."""
+    tiles = [getattr(data, name)()[:, 96 : 96 + ROAD_WIDTH].astype(np.float64) for name in reversed(TILES)]
+    image = np.concatenate(tiles, axis=0)
+    paint = 235.0
+    image[:, 20:26] = paint  # solid edge lines
+    image[:, 294:300] = paint
+    for start in range(0, image.shape[0], 64):  # dashed centre line: 32 cells painted, 32 not
+        image[start : start + 32, 157:163] = paint
+    for row in (2200, 1700, 700):  # stop bars across the right lane
+        image[row : row + 8, 163:294] = paint
+    return torch.from_numpy(image)[None, None]
+
+
+def trajectory(frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """True poses ``(frames, 3)`` ``(x, y, yaw)`` and true increments ``(frames, 3)`` ``(du, dv, dyaw)`` (row 0: 0).
+
+    The vehicle moves up the map (forward is ``-v`` in the frame): each pose is the previous one moved by its
+    increment turned by the previous yaw, the motion model of :func:`enmi_torch.tracking.predict`.
+    """
+    steps = torch.arange(frames, dtype=torch.float64)
+    yaw = 6.0 * torch.sin(2 * math.pi * steps / 110) + 2.0 * torch.sin(2 * math.pi * steps / 37)
+    speed = SPEED + 1.0 * torch.sin(2 * math.pi * steps / 53)
+    increments = torch.zeros(frames, 3, dtype=torch.float64)
+    increments[1:, 1] = -speed[1:]
+    increments[1:, 2] = yaw[1:] - yaw[:-1]
+    poses = torch.zeros(frames, 3, dtype=torch.float64)
+    poses[0] = torch.tensor([ROAD_WIDTH * 0.7, 2560.0 - 150.0, float(yaw[0])])
+    for index in range(1, frames):
+        poses[index] = move(poses[index - 1], increments[index])
+    return poses, increments
+
+
+def move(pose: torch.Tensor, increment: torch.Tensor) -> torch.Tensor:
+    """``pose`` moved by ``(du, dv, dyaw)`` in its frame's axes (as in :mod:`enmi_torch.tracking`)."""
+    angle = math.radians(-float(pose[2]))
+    cos, sin = math.cos(angle), math.sin(angle)
+    du, dv, dyaw = increment.tolist()
+    return pose + torch.tensor([cos * du + sin * dv, -sin * du + cos * dv, dyaw], dtype=pose.dtype)
+
+
+def measured_odometry(increments: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Odometry with a 3 % scale error, a 0.05 degree yaw-rate bias and white noise (0.3 cells, 0.1 degrees)."""
+    noise = torch.randn(increments.shape, generator=generator, dtype=torch.float64)
+    measured = increments.clone()
+    measured[:, :2] = increments[:, :2] * 1.03 + 0.3 * noise[:, :2]
+    measured[:, 2] = increments[:, 2] + 0.05 + 0.1 * noise[:, 2]
+    measured[0] = 0
+    return measured
+
+
+def ground_patches(world: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """``(N, 1, 64, 64)`` ground under each pose on the frame grid, bilinear (the map's cells are 2.5 cm too)."""
+    transforms = Localization(poses, *(torch.zeros(len(poses)),) * 5).local_to_map((0, 0), FRAME)
+    rows, cols = torch.meshgrid(*(torch.arange(size, dtype=torch.float64) for size in FRAME), indexing="ij")
+    points = torch.stack([cols.flatten(), rows.flatten(), torch.ones(rows.numel(), dtype=torch.float64)])
+    mapped = transforms @ points
+    height, width = world.shape[2:]
+    grid = torch.stack([mapped[:, 0] / (width - 1), mapped[:, 1] / (height - 1)], -1) * 2 - 1
+    grid = grid.reshape(len(poses), *FRAME, 2)
+    return F.grid_sample(world.expand(len(poses), -1, -1, -1), grid, align_corners=True, padding_mode="border")
+
+
+def render(patches: torch.Tensor, pixel_noise: torch.Tensor, generator: torch.Generator):
+    """Frames seen through the camera: ground into the camera, pixel noise, rectified back. Returns frames, valid."""
+    image, _ = unrectify(patches, CAMERA, GRID)
+    noise = torch.randn(image.shape, generator=generator, dtype=image.dtype) * pixel_noise[:, None, None, None]
+    frames, valid = rectify(image + noise, CAMERA, GRID, supersample=4)
+    return frames, valid
+
+
+def respond(values: torch.Tensor) -> torch.Tensor:
+    """The changed appearance: a non-monotonic response (mid-grey bright, dark and white both dark)."""
+    return 255 * (2 * values.clamp(0, 255) / 255 - 1).abs() ** 0.8
+
+
+def analytic_variance() -> torch.Tensor:
+    """``(1, 1, 64, 64)`` ``N0 / A`` per unit pixel noise variance."""
+    return homography_variance(ground_to_image_homography(CAMERA, GRID), FRAME, 1.0)
+
+
+class Drive:
+    """The drive: map, truth, odometry, frames with their noise level, calibration frames."""
+
+    def __init__(self, frames: int, seed: int) -> None:
+        generator = torch.Generator().manual_seed(seed)
+        self.map = road_map()
+        self.truth, increments = trajectory(frames)
+        self.odometry = measured_odometry(increments, generator)
+        index = torch.arange(frames)
+        noisy = (index >= NOISY[0]) & (index < NOISY[1])
+        changed = (index >= CHANGED[0]) & (index < CHANGED[1])
+        self.pixel_noise = torch.where(noisy, 4 * PIXEL_NOISE, PIXEL_NOISE).double()
+        patches = ground_patches(self.map, self.truth)
+        patches = torch.where(changed[:, None, None, None], respond(patches), patches)
+        self.frames, self.valid = render(patches, self.pixel_noise, generator)
+        self.hard = {"strong noise": noisy, "changed appearance": changed, "brick": self._on_tile("brick")}
+        self._calibration_set(generator, increments)
+
+    def _on_tile(self, name: str) -> torch.Tensor:
+        tile = list(reversed(TILES)).index(name)
+        return (self.truth[:, 1] >= tile * 512) & (self.truth[:, 1] < (tile + 1) * 512)
+
+    def _calibration_set(self, generator: torch.Generator, increments: torch.Tensor) -> None:
+        """Held-out frames at random poses (noise levels as in the drive) and a held-out odometry sequence."""
+        count = 64
+        poses = torch.stack(
+            [
+                60 + torch.rand(count, generator=generator, dtype=torch.float64) * (ROAD_WIDTH - 120),
+                100 + torch.rand(count, generator=generator, dtype=torch.float64) * (2560 - 200),
+                (torch.rand(count, generator=generator, dtype=torch.float64) - 0.5) * 12,
+            ],
+            1,
+        )
+        noise = torch.where(torch.rand(count, generator=generator) < 0.2, 4 * PIXEL_NOISE, PIXEL_NOISE).double()
+        changed = torch.rand(count, generator=generator) < 0.2
+        patches = ground_patches(self.map, poses)
+        patches = torch.where(changed[:, None, None, None], respond(patches), patches)
+        self.held_out_poses = poses
+        self.held_out_noise = noise
+        self.held_out_frames, _ = render(patches, noise, generator)
+        # The learned variance: residuals of held-out renders against their noiseless rendering, per unit variance.
+        clean, _ = render(patches, torch.zeros(count, dtype=torch.float64), generator)
+        unit = (self.held_out_frames - clean) / noise[:, None, None, None]
+        variance, observed = empirical_variance(unit, torch.zeros_like(unit), self.valid.expand_as(unit))
+        self.learned_unit = torch.where(observed, variance, 1.0).reshape(1, 1, *FRAME)
+        errors = measured_odometry(increments, generator) - increments
+        self.motion_noise = tuple(errors[1:].square().mean(0).sqrt().tolist())
+
+    def variance(self, kind: str | None, pixel_noise: torch.Tensor) -> torch.Tensor | None:
+        """``(N, 1, 64, 64)`` variance of frames with these pixel noise levels, or ``None``."""
+        if kind is None:
+            return None
+        unit = {"analytic": analytic_variance(), "learned": self.learned_unit}.get(kind)
+        if kind == "uniform":
+            unit = torch.full_like(self.learned_unit, float(self.learned_unit[self.valid].mean()))
+        return (unit * pixel_noise[:, None, None, None].square()).float()
+
+
+def calibrate(drive: Drive, method: str) -> Calibration:
+    """Temperature and peak z threshold of one method from the held-out frames."""
+    score, kind = METHODS[method]
+    variance = drive.variance(kind, drive.held_out_noise)
+    generator = torch.Generator().manual_seed(1)
+    offsets = torch.randint(-4, 5, (len(drive.held_out_poses), 2), generator=generator)
+    truth_cells = drive.held_out_poses[:, [1, 0]]
+    centers = truth_cells.round().long() + offsets
+    yaw_centers = drive.held_out_poses[:, 2].round()
+    surfaces, aligned_z = [], []
+    count = int(drive.valid.sum())
+    for index in range(len(centers)):
+        frame_variance = None if variance is None else variance[index : index + 1]
+        frame = drive.held_out_frames[index : index + 1].float()
+        yaws = (yaw_centers[index] + torch.arange(-2.0, 3.0) * YAW_STEP).tolist()
+        surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, score)
+        surfaces.append(surface.surface[0].double())
+        aligned_z.append(_peak_z(surface.surface[0]))
+    grid_truth = torch.stack(
+        [
+            truth_cells[:, 0] - centers[:, 0] + SHIFTS,
+            truth_cells[:, 1] - centers[:, 1] + SHIFTS,
+            (drive.held_out_poses[:, 2] - yaw_centers) / YAW_STEP + 2,
+        ],
+        1,
+    )
+    temperature = calibrate_temperature(torch.stack(surfaces) * count, grid_truth)
+    # Aligned frames pass 95 % of the time; wrong windows are caught by the prediction (surprise) instead.
+    threshold = float(torch.tensor(aligned_z).quantile(0.05))
+    return Calibration(score.name, temperature, threshold)
+
+
+def _peak_z(surface: torch.Tensor) -> float:
+    values = surface.double().flatten()
+    values = values[torch.isfinite(values)]
+    median = values.median()
+    return float((values.max() - median) / (1.4826 * (values - median).abs().median()).clamp_min(1e-12))
+
+
+def search(frame, reference, variance, valid, center, yaws, score: Score) -> Localization:
+    """The benchmark's one ``localize`` call (+-8 cells): ``frame`` ``(1, 1, 64, 64)`` around map cell ``center``."""
+    return localize(
+        frame, reference, variance, score=score, shifts=SHIFTS, center=center, yaws=yaws, captured_mask=valid
+    )
+
+
+def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
+    """Poses, covariances, health and relocalization per frame of the filter."""
+    score, kind = METHODS[method]
+    variance = drive.variance(kind, drive.pixel_noise)
+    tracker = Tracker(
+        drive.map.float(),
+        calibration=calibration,
+        score=score,
+        shifts=SHIFTS,
+        yaw_bins=YAW_BINS,
+        yaw_step=YAW_STEP,
+        motion_noise=drive.motion_noise,
+    )
+    tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
+    poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []
+    for index in range(1, len(drive.truth)):
+        frame_variance = None if variance is None else variance[index : index + 1]
+        start = time.perf_counter()
+        output = tracker(
+            drive.frames[index : index + 1].float(), drive.odometry[index : index + 1], frame_variance, drive.valid
+        )
+        seconds.append(time.perf_counter() - start)
+        poses.append(output.pose[0])
+        covariances.append(output.covariance[0])
+        healthy.append(bool(output.healthy[0]))
+        relocalized.append(bool(output.relocalized[0]))
+    return {
+        "pose": torch.stack(poses),
+        "covariance": torch.stack(covariances).double(),
+        "healthy": torch.tensor(healthy),
+        "relocalized": torch.tensor(relocalized),
+        "seconds": torch.tensor(seconds),
+    }
+
+
+def run_argmax(drive: Drive, method: str) -> dict:
+    """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
+    score, kind = METHODS[method]
+    variance = drive.variance(kind, drive.pixel_noise)
+    poses = [drive.truth[0]]
+    for index in range(1, len(drive.truth)):
+        guess = _moved(poses[-1], drive.odometry[index])
+        center = torch.stack([guess[1], guess[0]]).round().long()
+        yaw_center = round(float(guess[2]))
+        result = search(
+            drive.frames[index : index + 1].float(),
+            drive.map.float(),
+            None if variance is None else variance[index : index + 1],
+            drive.valid,
+            center,
+            [yaw_center + step * YAW_STEP for step in range(-2, 3)],
+            score,
+        )
+        pose = result.pose[0].double()
+        poses.append(torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]]))
+    return {"pose": torch.stack(poses)}
+
+
+def _moved(pose: torch.Tensor, increment: torch.Tensor) -> torch.Tensor:
+    return move(pose.double(), increment.double())
+
+
+def dead_reckoning(drive: Drive) -> torch.Tensor:
+    poses = [drive.truth[0]]
+    for index in range(1, len(drive.truth)):
+        poses.append(_moved(poses[-1], drive.odometry[index]))
+    return torch.stack(poses)
+
+
+def errors(truth: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Longitudinal and lateral errors in cells, along and across the true heading."""
+    difference = pose[:, :2] - truth[:, :2]
+    heading = torch.deg2rad(truth[:, 2])
+    forward = torch.stack([heading.sin(), -heading.cos()], 1)
+    right = torch.stack([heading.cos(), heading.sin()], 1)
+    return (difference * forward).sum(1), (difference * right).sum(1)
+
+
+def summary(truth: torch.Tensor, pose: torch.Tensor, frames: torch.Tensor | None = None) -> dict:
+    longitudinal, lateral = errors(truth, pose)
+    if frames is not None:
+        longitudinal, lateral = longitudinal[frames], lateral[frames]
+    within = (longitudinal.abs() <= 1) & (lateral.abs() <= 1)
+    return {
+        "lateral_rms": float(lateral.square().mean().sqrt()),
+        "lateral_max": float(lateral.abs().max()),
+        "longitudinal_rms": float(longitudinal.square().mean().sqrt()),
+        "longitudinal_max": float(longitudinal.abs().max()),
+        "within_1_cell": float(within.double().mean()),
+    }
+
+
+def coverage(truth: torch.Tensor, result: dict) -> float:
+    """Share of frames (after the first) whose 95 % (x, y) ellipse holds the true position."""
+    difference = (result["pose"][1:, :2] - truth[1:, :2])[..., None]
+    covariance = result["covariance"][1:, :2, :2]
+    distance = (difference.transpose(1, 2) @ torch.linalg.solve(covariance, difference))[:, 0, 0]
+    return float((distance <= CHI2_95_2D).double().mean())
+
+
+def print_tables(drive: Drive, results: dict, calibrations: dict) -> list[str]:
+    lines = [
+        f"\n{len(drive.truth)} frames, {CELL_CM} cm cells; errors in cells (cm); within 1 cell on both axes\n",
+        "| method | estimator | lateral RMS | lateral max | longitudinal RMS | longitudinal max | within 1 cell | "
+        "95 % ellipse covers | relocalized |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+
+    def cells(value: float) -> str:
+        return f"{value:.2f} ({value * CELL_CM:.1f})"
+
+    rows = [("odometry only", "dead reckoning", summary(drive.truth, dead_reckoning(drive)), None, None)]
+    for method, (filtered, argmax) in results.items():
+        rows.append((LABELS[method], "filter", summary(drive.truth, filtered["pose"]), filtered, method))
+        rows.append((LABELS[method], "per-frame argmax", summary(drive.truth, argmax["pose"]), None, method))
+    for label, estimator, stats, filtered, _ in rows:
+        covered = f"{coverage(drive.truth, filtered):.3f}" if filtered is not None else "-"
+        relocalized = str(int(filtered["relocalized"].sum())) if filtered is not None else "-"
+        lines.append(
+            f"| {label} | {estimator} | {cells(stats['lateral_rms'])} | {cells(stats['lateral_max'])} | "
+            f"{cells(stats['longitudinal_rms'])} | {cells(stats['longitudinal_max'])} | {stats['within_1_cell']:.3f} | "
+            f"{covered} | {relocalized} |"
+        )
+    lines += ["\nHard stretches: lateral RMS / longitudinal RMS in cells, filter (argmax)\n"]
+    names = list(drive.hard)
+    lines += ["| method | " + " | ".join(names) + " |", "|" + " --- |" * (len(names) + 1)]
+    for method, (filtered, argmax) in results.items():
+        parts = []
+        for name in names:
+            frames = drive.hard[name]
+            if not bool(frames.any()):
+                parts.append("-")
+                continue
+            mine, theirs = summary(drive.truth, filtered["pose"], frames), summary(drive.truth, argmax["pose"], frames)
+            parts.append(
+                f"{mine['lateral_rms']:.2f} / {mine['longitudinal_rms']:.2f} "
+                f"({theirs['lateral_rms']:.2f} / {theirs['longitudinal_rms']:.2f})"
+            )
+        lines.append(f"| {LABELS[method]} | " + " | ".join(parts) + " |")
+    lines += ["\nCalibration (held-out frames): temperature, peak z threshold\n"]
+    for method, calibration in calibrations.items():
+        lines.append(
+            f"- {LABELS[method]}: T = {calibration.temperature:.3g}, min_peak_z = {calibration.min_peak_z:.2f}"
+        )
+    lines.append(
+        f"- odometry noise (RMS increment error du, dv, dyaw): {tuple(round(v, 3) for v in drive.motion_noise)}"
+    )
+    return lines
+
+
+def plot(drive: Drive, results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 3, figsize=(13, 6.5), gridspec_kw={"width_ratios": [1.1, 2, 2]})
+    axes[0].imshow(drive.map[0, 0].numpy(), cmap="gray", aspect="auto")
+    reckoning = dead_reckoning(drive)
+    axes[0].plot(drive.truth[:, 0], drive.truth[:, 1], "g-", lw=2, label="truth")
+    axes[0].plot(reckoning[:, 0], reckoning[:, 1], "r--", lw=1.2, label="odometry")
+    first = next(iter(results))
+    axes[0].plot(results[first][0]["pose"][:, 0], results[first][0]["pose"][:, 1], "c-", lw=1, label="filter")
+    axes[0].set(title="trajectory (map cells)", xlim=(0, ROAD_WIDTH))
+    axes[0].legend(fontsize=7, loc="lower left")
+    frames = np.arange(len(drive.truth))
+    for axis, component, name in ((axes[1], 1, "lateral"), (axes[2], 0, "longitudinal")):
+        for method, (filtered, argmax) in results.items():
+            line = axis.plot(frames, errors(drive.truth, filtered["pose"])[component].abs() * CELL_CM, lw=1.2)
+            axis.plot(
+                frames,
+                errors(drive.truth, argmax["pose"])[component].abs() * CELL_CM,
+                ":",
+                color=line[0].get_color(),
+                lw=0.9,
+            )
+            line[0].set_label(f"{LABELS[method]}: filter (solid), argmax (dotted)")
+        for start, stop, label in ((*NOISY, "strong noise"), (*CHANGED, "changed")):
+            axis.axvspan(start, stop, color="orange", alpha=0.15)
+            axis.text(start, 0.9, label, transform=axis.get_xaxis_transform(), fontsize=7)
+        brick = drive.hard["brick"].nonzero()[:, 0]
+        if len(brick):
+            axis.axvspan(int(brick[0]), int(brick[-1]), color="purple", alpha=0.08)
+            axis.text(int(brick[0]), 0.95, "brick", transform=axis.get_xaxis_transform(), fontsize=7)
+        axis.set(yscale="log", ylim=(0.05, 500), xlabel="frame", ylabel=f"|{name} error| (cm)", title=f"{name} error")
+        axis.axhline(CELL_CM, color="k", lw=0.6, ls="--")
+    axes[1].legend(fontsize=7, loc="upper right")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=80)
+    plt.close(figure)
+
+
+def log_tensorboard(drive: Drive, results: dict, folder: Path) -> Path | None:
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    writer = SummaryWriter(str(folder))
+    for method, (filtered, argmax) in results.items():
+        for estimator, result in (("filter", filtered), ("argmax", argmax)):
+            longitudinal, lateral = errors(drive.truth, result["pose"])
+            for index in range(len(drive.truth)):
+                writer.add_scalars(
+                    f"{method}/{estimator}",
+                    {
+                        "lateral_cm": float(lateral[index]) * CELL_CM,
+                        "longitudinal_cm": float(longitudinal[index]) * CELL_CM,
+                    },
+                    index,
+                )
+    writer.close()
+    return folder
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.epilog = "examples:\n" + __doc__.rsplit("\n\n", 1)[1]
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--frames", type=int, default=240, help="frames of the drive")
+    parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=OUT, help="the figure")
+    parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    drive = Drive(args.frames, args.seed)
+    results, calibrations = {}, {}
+    for method in args.methods:
+        # Featureless frames (the photograph's sky) are no error here: their flat surfaces are weak matches.
+        with value_checks(False):
+            calibrations[method] = calibrate(drive, method)
+            filtered = run_filter(drive, method, calibrations[method])
+            results[method] = (filtered, run_argmax(drive, method))
+        print(f"{method}: {time.perf_counter() - start:.0f} s", flush=True)
+    lines = print_tables(drive, results, calibrations)
+    print("\n".join(lines))
+    folder = args.logdir
+    folder.mkdir(parents=True, exist_ok=True)
+    for method, calibration in calibrations.items():
+        calibration.save(folder / f"calibration_{method}.json")
+    plot(drive, results, args.out)
+    logged = log_tensorboard(drive, results, folder / "tensorboard")
+    step_ms = {method: 1000 * float(pair[0]["seconds"].median()) for method, pair in results.items()}
+    print(f"\nmedian filter step (ms): {json.dumps({k: round(v, 1) for k, v in step_ms.items()})}")
+    print(
+        f"wrote {args.out}"
+        + (f" and TensorBoard logs in {logged}" if logged else "")
+        + f" in {time.perf_counter() - start:.0f} s"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,75 @@
+"""The filter's health: which frames' matches are used, by the peak-z and surprise rules.
+
+A frame whose surface has no clear peak (the best score's robust z-score, :func:`peak_z_score`, below
+``min_peak_z``, or below ``z_drop`` times the recent matches') or whose peak the prediction rules out
+(:func:`prediction_surprise`: more than ``max_surprise`` nats below the prediction's best) is not used
+(:func:`usable`); :class:`Health` counts such frames per vehicle (after ``patience`` of them the tracker
+relocalizes) and keeps the running peak z-score of the used matches (:func:`next_health`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+
+class Health(NamedTuple):
+    """The filter's running health per vehicle.
+
+    Attributes:
+        weak_frames: ``(B,)`` int64 consecutive frames without a usable match.
+        typical_z: ``(B,)`` float64 running mean of the used matches' peak z-scores (NaN before the first).
+    """
+
+    weak_frames: Tensor
+    typical_z: Tensor
+
+
+def check_health(health: object, batch: int, device: torch.device) -> Health:
+    """The previous step's :class:`Health` checked against the batch, or a fresh one for ``None``."""
+    if health is None:
+        return Health(
+            torch.zeros(batch, dtype=torch.int64, device=device),
+            torch.full((batch,), math.nan, dtype=torch.float64, device=device),
+        )
+    if not isinstance(health, Health) or health.weak_frames.shape != (batch,) or health.typical_z.shape != (batch,):
+        raise ValueError(
+            f"health must be a Health of ({batch},) tensors from the previous step or None, got {health!r}"
+        )
+    return health
+
+
+def peak_z_score(surface: Tensor) -> Tensor:
+    """Robust z-score of the best value of a surface: ``(best - median) / (1.4826 MAD)``."""
+    values = surface.flatten()
+    median = values.median()
+    spread = 1.4826 * (values - median).abs().median()
+    return (values.max() - median) / spread.clamp_min(1e-12 * values.abs().max().clamp_min(1e-300))
+
+
+def prediction_surprise(log_prior: Tensor, log_likelihood: Tensor) -> Tensor:
+    """``(B,)`` nats by which the prediction puts the likelihood's peak below the prediction's own best."""
+    flat_likelihood, flat_prior = log_likelihood.flatten(1), log_prior.flatten(1)
+    index = flat_likelihood.argmax(1, keepdim=True)
+    return flat_prior.amax(1) - flat_prior.gather(1, index)[:, 0]
+
+
+def usable(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, z_drop: float, max_surprise: float):
+    """``(B,)`` bool: a clear peak (``min_peak_z``, ``z_drop`` times the recent matches') the prediction allows."""
+    # A peak far weaker than the recent matches' is a match of some other place (a kidnap, a wrong window).
+    typical = torch.where(torch.isfinite(health.typical_z), health.typical_z, peak_z)
+    return (peak_z >= min_peak_z) & (peak_z >= z_drop * typical) & (surprise <= max_surprise)
+
+
+def next_health(health: Health, healthy: Tensor, relocalized: Tensor, weak_frames: Tensor, peak_z: Tensor) -> Health:
+    """The health after a frame: ``weak_frames`` so far, the running peak z-score of the used matches."""
+    weak_frames = torch.where(healthy, 0, weak_frames)
+    typical_z = torch.where(
+        relocalized | ~torch.isfinite(health.typical_z),
+        torch.where(healthy, peak_z, health.typical_z),
+        torch.where(healthy, 0.7 * health.typical_z + 0.3 * peak_z, health.typical_z),
+    )
+    return Health(weak_frames, typical_z)

@@ -1,0 +1,360 @@
+"""Sequential localization over a drive: a Bayes (histogram) filter on the score surfaces of :func:`localize`.
+
+One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of frames):
+
+* predict: the belief (:mod:`~enmi_torch.tracking.belief`) moves by the odometry and is blurred by its noise;
+* update: the score surface over the belief's window, turned into a log-likelihood ``score * n_valid /
+  temperature`` (``n_valid`` the captured image's valid pixels; :mod:`~enmi_torch.tracking.calibration` fits the
+  temperature), is added to the log belief;
+* read: pose and covariance are the posterior's moments;
+* health (:mod:`~enmi_torch.tracking.health`): a frame whose surface has no clear peak, or whose peak the prediction
+  rules out, is not used; after ``patience`` such frames the filter searches a wider window (a coarse-to-fine
+  :func:`~enmi_torch.localize`): if that search lands on the window's own peak the frame is used after all, and if it
+  finds a match better than the window's by ``relocalize_odds`` nats the filter restarts there (relocalization).
+
+Convention:
+    Poses and odometry as in :mod:`~enmi_torch.tracking.belief`; searches run without gradient.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from enmi_torch._checks import (
+    check_floating,
+    check_non_negative_int,
+    check_positive_int,
+    check_positive_number,
+    check_shifts,
+)
+from enmi_torch.localization.search import localize
+from enmi_torch.scores import Score, as_score
+from enmi_torch.tracking.belief import (
+    Belief,
+    belief_pose,
+    check_belief,
+    finite_floor,
+    initial_belief,
+    normalized,
+    predict,
+)
+from enmi_torch.tracking.calibration import Calibration
+from enmi_torch.tracking.health import Health, check_health, next_health, peak_z_score, prediction_surprise, usable
+from enmi_torch.variance.base import VarianceModel
+
+
+class TrackOutput(NamedTuple):
+    """What one filter step reports per vehicle.
+
+    Attributes:
+        pose: ``(B, 3)`` posterior mean ``(x, y, yaw)``: map column and row in cells, yaw in degrees.
+        covariance: ``(B, 3, 3)`` posterior covariance of ``(x, y, yaw)`` (cells², cells x degrees, degrees²).
+        healthy: ``(B,)`` bool: this frame's match was used (a clear peak that the prediction allows).
+        relocalized: ``(B,)`` bool: the filter searched the wide window this frame and restarted there.
+        score: ``(B,)`` best score of the frame's surface.
+        peak_z: ``(B,)`` the best score's robust z-score over the surface (``(best - median) / (1.4826 MAD)``).
+    """
+
+    pose: Tensor
+    covariance: Tensor
+    healthy: Tensor
+    relocalized: Tensor
+    score: Tensor
+    peak_z: Tensor
+
+
+def track_step(
+    belief: Belief,
+    captured: Tensor,
+    reference: Tensor,
+    odometry: Tensor,
+    variance: Tensor | float | VarianceModel | None = None,
+    captured_mask: Tensor | None = None,
+    *,
+    motion_noise: Sequence[float] | Tensor = (0.5, 0.5, 0.5),
+    score: Score | str = "ecr",
+    temperature: float = 1.0,
+    min_peak_z: float = 3.0,
+    max_surprise: float = 30.0,
+    z_drop: float = 0.3,
+    health: Health | None = None,
+    patience: int = 2,
+    relocalize_shifts: int = 32,
+    relocalize_yaw_bins: int = 9,
+    coarse_factor: int = 4,
+    relocalize_odds: float = 10.0,
+) -> tuple[Belief, TrackOutput, Health]:
+    """One frame of the filter: predict by ``odometry``, update by the frame's score surface, read the pose.
+
+    Args:
+        belief: the belief after the previous frame (:func:`initial_belief` for the first).
+        captured: ``(B, 1, h, w)`` captured images on the map's cell grid, one per vehicle.
+        reference: ``(1, 1, Hm, Wm)`` the map.
+        odometry: ``(B, 3)`` increment since the previous frame (see :func:`predict`).
+        variance: the captured images' noise variance for a score that uses one (ECR, ENMI, mixture): a number,
+            ``(h, w)``, ``(1 or B, 1, h, w)`` or a :class:`~enmi_torch.variance.VarianceModel`; ``None`` for NMI and
+            NCC.
+        captured_mask: bool, like ``variance``: ``False`` pixels are unobserved.
+        motion_noise: standard deviations of the odometry's error ``(du, dv, dyaw)`` per frame.
+        score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
+            :func:`~enmi_torch.localize`).
+        temperature: ``score * n_valid / temperature`` is the log-likelihood (:func:`calibrate_temperature`).
+        min_peak_z: a surface whose best score's robust z-score is below this is no match.
+        max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
+            is no match (the prediction rules it out).
+        z_drop: a peak z-score below this fraction of the recent matches' (:class:`Health`) is no match.
+        health: the :class:`Health` from the previous step (``None`` at the start).
+        patience: relocalize after this many consecutive frames without a match.
+        relocalize_shifts: radius in cells of the relocalization search.
+        relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
+        coarse_factor: pooling factor of the coarse-to-fine relocalization search.
+        relocalize_odds: the relocalization moves the belief only if its match beats the window's best by this
+            many nats of log-likelihood, or lands within 1.5 cells of the window's own peak.
+
+    Returns:
+        ``(belief, output, health)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the :class:`Health`
+        for the next step.
+    """
+    check_belief(belief)
+    score = as_score(score)
+    check_floating("captured", captured)
+    if captured.ndim != 4 or captured.shape[1] != 1 or captured.shape[0] != belief.log_prob.shape[0]:
+        raise ValueError(
+            f"captured must be (B, 1, h, w) with B = {belief.log_prob.shape[0]} (the belief's vehicles), got "
+            f"{tuple(captured.shape)}"
+        )
+    check_floating("reference", reference)
+    if reference.ndim != 4 or reference.shape[:2] != (1, 1):
+        raise ValueError(f"reference must be one map (1, 1, Hm, Wm), got {tuple(reference.shape)}")
+    temperature = check_positive_number("temperature", temperature)
+    check_positive_number("min_peak_z", min_peak_z)
+    check_positive_number("max_surprise", max_surprise)
+    check_positive_number("relocalize_odds", relocalize_odds)
+    check_positive_number("z_drop", z_drop)
+    patience = check_positive_int("patience", patience)
+    relocalize_shifts = check_non_negative_int("relocalize_shifts", relocalize_shifts)
+    relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
+    batch = captured.shape[0]
+    health = check_health(health, batch, captured.device)
+    search = _Searcher(captured, reference, variance, captured_mask, score, temperature)
+    prior = predict(belief, odometry, motion_noise)
+    log_likelihood, best_score, peak_z = search.window(prior)
+    surprise = prediction_surprise(prior.log_prob, log_likelihood)
+    healthy = usable(peak_z, surprise, health, min_peak_z, z_drop, max_surprise)
+    weak_frames = torch.where(healthy, 0, health.weak_frames + 1)
+    relocalized = torch.zeros_like(healthy)
+    log_prob = prior.log_prob.clone()
+    center, yaw_center = prior.center.clone(), prior.yaw_center.clone()
+    for vehicle in (weak_frames >= patience).nonzero()[:, 0].tolist():
+        found = search.wide(vehicle, prior, relocalize_shifts, relocalize_yaw_bins, coarse_factor)
+        window_peak = _peak_position(prior, log_likelihood, vehicle)
+        if bool((window_peak - found[:2].to(window_peak)).abs().max() <= 1.5) and bool(peak_z[vehicle] >= min_peak_z):
+            healthy[vehicle] = True  # the wide search confirms the window's own peak: use the frame
+            continue
+        fresh = _restart(prior, vehicle, found)
+        fresh_likelihood, fresh_score, fresh_z = search.window(fresh, vehicle)
+        # A jump needs a much better match than the window's, in calibrated nats.
+        gain = fresh_likelihood[0].max() - log_likelihood[vehicle].max()
+        if bool(fresh_z[0] >= min_peak_z) and bool(gain >= relocalize_odds):
+            log_prob[vehicle] = normalized(fresh_likelihood)[0]
+            center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
+            best_score[vehicle], peak_z[vehicle], relocalized[vehicle] = fresh_score[0], fresh_z[0], True
+    used = healthy & ~relocalized
+    log_prob = torch.where(used[:, None, None, None], normalized(log_prob + log_likelihood), log_prob)
+    healthy = healthy | relocalized
+    posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
+    pose, covariance = belief_pose(posterior)
+    output = TrackOutput(pose, covariance, healthy, relocalized, best_score, peak_z)
+    return posterior, output, next_health(health, healthy, relocalized, weak_frames, peak_z)
+
+
+class Tracker(nn.Module):
+    """Module form of :func:`track_step`: stores the map, the settings and the running belief (streaming).
+
+    Args:
+        reference: ``(1, 1, Hm, Wm)`` or ``(Hm, Wm)`` map (a non-persistent buffer).
+        variance_model: optional :class:`~enmi_torch.variance.VarianceModel` of the captured images' noise.
+        score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
+            :func:`~enmi_torch.localize`); ``None``: the calibration's score by name, else ``"ecr"``.
+        calibration: optional :class:`Calibration` (sets ``temperature``, ``min_peak_z`` and, without ``score``, the
+            score by name).
+        shifts: belief window radius ``r`` or ``(ry, rx)``.
+        yaw_bins: odd number of yaw bins.
+        yaw_step: yaw bin spacing in degrees.
+        **settings: the other keyword arguments of :func:`track_step` (``motion_noise``, ``temperature``, ...).
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = torch.rand(1, 1, 64, 96, generator=generator) * 256
+        >>> from enmi_torch import ECR
+        >>> tracker = Tracker(reference, score=ECR(bins=16), shifts=4, yaw_bins=1, motion_noise=(0.3, 0.3, 0.1))
+        >>> tracker.start(torch.tensor([[40.0, 30.0, 0.0]]))
+        >>> for x in (42, 44, 46):  # the vehicle drives 2 cells per frame along the map's columns
+        ...     output = tracker(reference[..., 22:38, x - 8 : x + 8], torch.tensor([[2.0, 0.0, 0.0]]), 1.0)
+        >>> output.pose.round().tolist(), bool(output.healthy)
+        ([[46.0, 30.0, 0.0]], True)
+    """
+
+    def __init__(
+        self,
+        reference: Tensor,
+        variance_model: VarianceModel | None = None,
+        *,
+        score: Score | str | None = None,
+        calibration: Calibration | None = None,
+        shifts: int | tuple[int, int] = 8,
+        yaw_bins: int = 5,
+        yaw_step: float = 1.0,
+        **settings,
+    ) -> None:
+        super().__init__()
+        check_floating("reference", reference)
+        if reference.ndim == 2:
+            reference = reference[None, None]
+        self.register_buffer("reference", reference, persistent=False)
+        if variance_model is not None and not isinstance(variance_model, VarianceModel):
+            raise TypeError(f"variance_model must be a VarianceModel or None, got {type(variance_model).__name__}")
+        self.variance_model = variance_model
+        self.shifts = check_shifts(shifts)
+        self.yaw_bins, self.yaw_step = yaw_bins, yaw_step
+        if calibration is not None:
+            if not isinstance(calibration, Calibration):
+                raise TypeError(f"calibration must be a Calibration or None, got {type(calibration).__name__}")
+            settings = {**calibration._asdict(), **settings}
+        if score is not None:
+            settings["score"] = as_score(score)
+        unknown = set(settings) - set(_STEP_SETTINGS)
+        if unknown:
+            raise TypeError(f"Tracker got unknown setting(s) {sorted(unknown)}; known: {list(_STEP_SETTINGS)}")
+        self.settings = settings
+        self.belief: Belief | None = None
+        self.health: Health | None = None
+
+    def start(self, pose: Tensor, std: tuple[float, float, float] | None = None) -> None:
+        """Start (or restart) the filter at ``(B, 3)`` poses ``(x, y, yaw)``: a flat or Gaussian belief."""
+        self.belief = initial_belief(pose, shifts=self.shifts, yaw_bins=self.yaw_bins, yaw_step=self.yaw_step, std=std)
+        self.health = None
+
+    def forward(
+        self,
+        captured: Tensor,
+        odometry: Tensor,
+        variance: Tensor | float | None = None,
+        captured_mask: Tensor | None = None,
+    ) -> TrackOutput:
+        """One frame in, one pose out: :func:`track_step` on the stored belief, which it replaces."""
+        if self.belief is None:
+            raise RuntimeError("Tracker has no belief yet: call start(pose) first")
+        if variance is not None and self.variance_model is not None:
+            raise ValueError("variance must be None when Tracker has a variance_model; pass one or the other")
+        variance = self.variance_model if variance is None else variance
+        self.belief, output, self.health = track_step(
+            self.belief,
+            captured,
+            self.reference,
+            odometry,
+            variance,
+            captured_mask,
+            health=self.health,
+            **self.settings,
+        )
+        return output
+
+
+_STEP_SETTINGS = (
+    "motion_noise",
+    "score",
+    "temperature",
+    "min_peak_z",
+    "max_surprise",
+    "z_drop",
+    "patience",
+    "relocalize_shifts",
+    "relocalize_yaw_bins",
+    "coarse_factor",
+    "relocalize_odds",
+)
+
+
+class _Searcher:
+    """Score surfaces of the captured images over a belief's window and over the wide relocalization window."""
+
+    def __init__(self, captured, reference, variance, captured_mask, score: Score, temperature) -> None:
+        self.captured, self.reference, self.variance, self.mask = captured, reference, variance, captured_mask
+        self.score = score
+        self.temperature = temperature
+        valid = torch.ones_like(captured, dtype=torch.bool)
+        if captured_mask is not None:
+            valid = valid & self._per_vehicle(captured_mask, slice(None)).expand_as(captured)
+        if isinstance(variance, VarianceModel):
+            model_mask = variance.valid_mask(captured)
+            if model_mask is not None:
+                valid = valid & model_mask
+        self.valid_count = valid.flatten(1).sum(1).double()
+
+    def _per_vehicle(self, values, vehicle):
+        """``values`` for vehicle(s) ``vehicle``: a per-vehicle batch is sliced, a shared one kept."""
+        if isinstance(values, Tensor) and values.ndim == 4 and values.shape[0] > 1:
+            return values[vehicle]
+        return values
+
+    def _localize(self, vehicle: int, center: Tensor, yaws: list[float], shifts: int | tuple[int, int], **options):
+        """The one call of :func:`~enmi_torch.localize` (its mask keyword in one place)."""
+        return localize(
+            self.captured[vehicle : vehicle + 1],
+            self.reference,
+            self._per_vehicle(self.variance, slice(vehicle, vehicle + 1)),
+            shifts=shifts,
+            center=center.reshape(1, 2),
+            yaws=yaws,
+            captured_mask=self._per_vehicle(self.mask, slice(vehicle, vehicle + 1)),
+            score=self.score,
+            **options,
+        )
+
+    def window(self, belief: Belief, only: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Log-likelihood ``(B, Y, Sy, Sx)`` over the belief's window, best score ``(B,)`` and its robust z-score."""
+        vehicles = range(belief.log_prob.shape[0]) if only is None else [only]
+        likelihoods, scores, z_scores = [], [], []
+        yaws = belief.yaws()
+        for vehicle in vehicles:
+            surface = self._localize(vehicle, belief.center[vehicle], yaws[vehicle].tolist(), belief.radius).surface
+            surface = finite_floor(surface[0].double())
+            likelihoods.append(surface * self.valid_count[vehicle] / self.temperature)
+            scores.append(surface.max())
+            z_scores.append(peak_z_score(surface))
+        return torch.stack(likelihoods), torch.stack(scores), torch.stack(z_scores)
+
+    def wide(self, vehicle: int, belief: Belief, shifts: int, yaw_bins: int, coarse_factor: int) -> Tensor:
+        """``(3,)`` pose ``(x, y, yaw)`` of the best match over the wide window around the belief's centre."""
+        offsets = (torch.arange(yaw_bins, dtype=torch.float64) - yaw_bins // 2) * belief.yaw_step
+        yaws = (belief.yaw_center[vehicle].cpu() + offsets).tolist()
+        found = self._localize(
+            vehicle, belief.center[vehicle], yaws, shifts, coarse_factor=coarse_factor, min_overlap=0.5
+        )
+        pose = found.pose[0].double()
+        center = belief.center[vehicle].double()
+        return torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]])
+
+
+def _restart(belief: Belief, vehicle: int, pose: Tensor) -> Belief:
+    """The belief with vehicle ``vehicle``'s window moved to ``pose`` (yaw on the belief's yaw lattice)."""
+    center, yaw_center = belief.center.clone(), belief.yaw_center.clone()
+    center[vehicle] = torch.stack([pose[1], pose[0]]).round().long().to(center.device)
+    steps = ((pose[2].to(yaw_center.device) - yaw_center[vehicle]) / belief.yaw_step).round()
+    yaw_center[vehicle] = yaw_center[vehicle] + steps * belief.yaw_step
+    return belief._replace(center=center, yaw_center=yaw_center)
+
+
+def _peak_position(belief: Belief, log_likelihood: Tensor, vehicle: int) -> Tensor:
+    """``(2,)`` ``(x, y)`` of the best cell of a vehicle's log-likelihood on the belief's grid."""
+    _, rows, cols = log_likelihood.shape[1:]
+    rest = int(log_likelihood[vehicle].flatten().argmax()) % (rows * cols)
+    row, col = divmod(rest, cols)
+    radius_y, radius_x = belief.radius
+    center = belief.center[vehicle].double()
+    return torch.stack([center[1] + col - radius_x, center[0] + row - radius_y])
