@@ -43,6 +43,7 @@ from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.localization.peak import Localization, _read_peak, _separated_peaks
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.scores import ECR, Score, as_score
+from enmi_torch.scores.ecr import cheap_value_range
 from enmi_torch.variance.base import VarianceModel, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
@@ -473,7 +474,8 @@ class _Search:
             captured, variance, valid = self._rotations(sample, self.yaws)
             exact = self.samples[sample]
             # The cheap stage: few bins over the window's values, with their own default model variance.
-            cheap_score = exact.replace(bins=cheap_bins, value_range=_spread(window, window_valid), model_variance=None)
+            cheap_range = cheap_value_range(window, window_valid)
+            cheap_score = exact.replace(bins=cheap_bins, value_range=cheap_range, model_variance=None)
             cheap_fn = cheap_score._rough_surface
             cheap = self._surface(sample, captured, variance, valid, window, window_valid, min_overlap, cheap_fn)
             scorer = functools.partial(
@@ -481,6 +483,7 @@ class _Search:
                 rotations=(captured, variance, valid),
                 window=(window, window_valid),
                 min_overlap=min_overlap,
+                cheap=cheap,
             )
             surfaces.append(rescore_peaks(cheap, scorer, _CANDIDATES, _MAX_CANDIDATES, complete_best=True))
         return torch.stack(surfaces)
@@ -560,12 +563,3 @@ class _Search:
         full[(sample, yaw_indices, *region)] = fine
         evaluated[(sample, yaw_indices, *region)] = True
         return True
-
-
-def _spread(window: Tensor, window_valid: Tensor) -> tuple[float, float]:
-    """The 2nd to 98th percentile of the window's valid cells: the cheap stage's few bins split the map's values."""
-    values = window[window_valid].float()
-    if values.numel() == 0:
-        return (0.0, 1.0)
-    low, high = torch.quantile(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
-    return (low, high) if high > low else (low, low + 1.0)

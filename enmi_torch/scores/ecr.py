@@ -98,6 +98,21 @@ def default_model_variance(bins: int, value_range: tuple[float, float]) -> float
     return bin_width(bins, value_range) ** 2 / 12
 
 
+def cheap_value_range(window: Tensor, window_valid: Tensor) -> tuple[float, float]:
+    """The 2nd to 98th percentile of a map window's valid cells: the range over which a cheap stage's few bins split it.
+
+    Example:
+        >>> window = torch.arange(101.0).reshape(1, 1, 1, 101)
+        >>> cheap_value_range(window, window >= 0)
+        (2.0, 98.0)
+    """
+    values = window[window_valid].float()
+    if values.numel() == 0:
+        return (0.0, 1.0)
+    low, high = torch.quantile(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
+    return (low, high) if high > low else (low, low + 1.0)
+
+
 def check_model_variance(model_variance, bins: int, value_range: tuple[float, float]) -> float:
     """``model_variance`` as a float >= 0; ``None`` gives :func:`default_model_variance`."""
     if model_variance is None:
@@ -449,15 +464,17 @@ class ECR(Score):
         with torch.no_grad():
             return _ecr_surface(inputs, tau2, self.bins, self.value_range, exact_counts=False)
 
-    def _placement_scores(self, placements: Tensor, *, rotations, window, min_overlap: float) -> Tensor:
+    def _placement_scores(self, placements: Tensor, *, rotations, window, min_overlap: float, cheap: Tensor) -> Tensor:
         """Exact ECR ``(P,)`` of the rotated captured images at placements ``(P, 3)`` (yaw index, row, column).
 
         As :func:`ecr_surface` and the search's surfaces score them: weights ``1 / (variance + tau^2)`` over the
         captured valid pixels, values centred on each rotation's weighted mean, ``-inf`` below ``min_overlap`` or for
         a rotation without a valid pixel. ``rotations``: the captured images, variances and masks ``(Y, 1, h, w)``;
-        ``window``: the reference window and its mask ``(1, 1, Hw, Ww)``. Per shift, one matrix product of the
-        rotations' count, weight and weighted-value planes with the one-hot reference bins under the image (unmapped
-        cells in a bin left out) gives the per-bin sums: several times faster on the CPU than scattering every pixel.
+        ``window``: the reference window and its mask ``(1, 1, Hw, Ww)``; ``cheap``: the search's cheap surface
+        ``(Y, Sy, Sx)`` (``-inf`` below ``min_overlap``), unused with a fixed model variance. Per shift, one matrix
+        product of the rotations' count, weight and weighted-value planes with the one-hot reference bins under the
+        image (unmapped cells in a bin left out) gives the per-bin sums: several times faster on the CPU than
+        scattering every pixel.
         """
         captured, variance, valid = rotations
         reference, reference_valid = window
