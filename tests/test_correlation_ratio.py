@@ -169,9 +169,9 @@ def test_ecr_loss_agrees_with_function_and_its_variance_model():
     ("kwargs", "message"),
     [
         ({"variance": None}, "variance must be"),
-        ({"model_variance": -1.0}, "model_variance must be a number >= 0"),
+        ({"model_variance": -1.0}, "model_variance must be 'estimate', a number >= 0"),
         ({"model_variance": math.inf}, "model_variance must be finite"),
-        ({"model_variance": "auto"}, "model_variance must be a number"),
+        ({"model_variance": "auto"}, "model_variance must be 'estimate', a number"),
         ({"variance": -1.0}, "variance"),
         ({"bins": 1}, "bins"),
     ],

@@ -294,7 +294,7 @@ def _invalid_localize_cases(gravel_map):
         ({"score": lambda: ECR(reliability=True)}, TypeError, "unexpected keyword argument 'reliability'"),
         ({"score": lambda: ECR(em_steps=2)}, TypeError, "unexpected keyword argument 'em_steps'"),
         ({"score": "ecr", "variance": None}, ValueError, "variance must be given for score 'ecr'"),
-        ({"score": lambda: ECR(model_variance=-1.0)}, ValueError, "model_variance must be a number >= 0"),
+        ({"score": lambda: ECR(model_variance=-1.0)}, ValueError, "model_variance must be 'estimate', a number >= 0"),
         ({"score": lambda: ENMI(model_variance=1.0)}, TypeError, "unexpected keyword argument 'model_variance'"),
         ({"score": "mi"}, ValueError, "score must be a Score or one of"),
         ({"captured_mask": torch.zeros(32, 32, dtype=torch.bool)}, ValueError, "captured_mask selects no pixel"),

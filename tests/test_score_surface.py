@@ -301,7 +301,7 @@ def test_direct_surface_checks_its_score_and_variance():
         direct_surface(ENMI(), local, window)
     with pytest.raises(ValueError, match="variance must be given for score 'ecr', got None"):
         direct_surface("ecr", local, window)
-    with pytest.raises(ValueError, match="model_variance must be a number >= 0"):
+    with pytest.raises(ValueError, match="model_variance must be 'estimate', a number >= 0"):
         ecr_surface(local, window, variance, model_variance=-2.0)
     with pytest.raises(ValueError, match="variance must be a number or a tensor"):
         ecr_surface(local, window, None)

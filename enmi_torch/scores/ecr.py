@@ -22,6 +22,27 @@ instead of a full unit of histogram weight, which is what makes the per-pixel va
 With one variance for all pixels, ``ECR = eta^2 Var[v] / (2 (sigma^2 + tau^2)) - (K_occ - 1) / (2 n)`` with
 ``eta^2`` the classic correlation ratio (Pearson, Roche et al. 1998) of the captured image given the reference bins.
 
+The model variance ``tau^2`` is what a bin of the map leaves unexplained: the quantisation, ``bin_width^2 / 12``, where
+the map explains the captured image up to the sensor noise; hundreds to thousands of grey levels^2 where the scene
+changed (shadows, cars, another date, another modality). Too small a ``tau^2`` trusts the quiet pixels far more than
+the misfit allows, and a per-pixel variance then loses to a uniform one (``data_tools/yardstick/scene_change.py``).
+``model_variance="estimate"`` estimates it from the data, one ``tau^2`` per captured image, by restricted maximum
+likelihood (REML: the likelihood of the residuals about the fitted bin means, which does not take the ``K_occ``
+fitted means for evidence against ``tau^2``), at least ``bin_width^2 / 12``:
+
+* on aligned pairs (:func:`ecr`, :func:`ecr_loss`): at the given alignment (each candidate reference its own), without
+  gradient; the score is ECR with that ``tau^2`` (differentiable in ``captured`` and ``variance`` as before);
+* over every placement (:func:`ecr_surface`): at the best placement of a cheap first pass (:data:`FIRST_PASS_BINS`
+  bins over the window's 2nd to 98th percentile, as the two-stage search's first stage) among the placements that
+  overlap at least half the captured image; the surface is ECR with that ``tau^2`` at every placement. Each captured
+  image of a batch has its own (in :func:`~enmi_torch.localize`: each yaw);
+* in the two-stage search: at the best placement of its cheap stage, per yaw.
+
+REML by Fisher scoring: with ``w_n = 1 / (sigma_n^2 + tau^2)``, ``r_n`` the residuals about the weighted bin means and
+``W_j`` the bins' weight sums, the score ``U = (sum w^2 r^2 - sum w + sum_j sum_{n in j} w_n^2 / W_j) / 2`` over the
+information ``I = sum w^2 / 2`` moves ``tau^2`` from the moment estimate (the residual variance about the plain bin
+means less the mean noise variance) until it settles. With ``response="linear"`` the fitted means are ``a + b r``.
+
 Over every placement (:func:`ecr_surface`) ECR needs, per reference bin, the count, the weight sum ``W_j`` and the
 weighted value sum ``S_j`` of the captured pixels over it: three FFT correlations of captured planes with each bin's
 indicator plane (:mod:`enmi_torch.placement`).
@@ -64,6 +85,11 @@ class BinSums(NamedTuple):
 
 
 RESPONSES = ("binned", "linear")
+MODEL_VARIANCE_ESTIMATE = "estimate"
+# Bins of the cheap first pass whose best placement a surface's estimated tau^2 is read at (the two-stage search's).
+FIRST_PASS_BINS = 4
+# Fisher scoring stops when tau^2 moves by less than this fraction, or after this many steps (it takes a few).
+_FISHER_TOLERANCE, _FISHER_STEPS = 1e-10, 32
 
 
 def linear_llr(
@@ -113,15 +139,171 @@ def cheap_value_range(window: Tensor, window_valid: Tensor) -> tuple[float, floa
     return (low, high) if high > low else (low, low + 1.0)
 
 
-def check_model_variance(model_variance, bins: int, value_range: tuple[float, float]) -> float:
-    """``model_variance`` as a float >= 0; ``None`` gives :func:`default_model_variance`."""
+def check_model_variance(model_variance, bins: int, value_range: tuple[float, float]) -> float | str:
+    """``model_variance`` checked: ``"estimate"``, a number >= 0 as a float, ``None`` as its default_model_variance."""
     if model_variance is None:
         return default_model_variance(bins, value_range)
+    if model_variance == MODEL_VARIANCE_ESTIMATE:
+        return MODEL_VARIANCE_ESTIMATE
     if isinstance(model_variance, bool) or not isinstance(model_variance, (int, float)) or not model_variance >= 0:
-        raise ValueError(f"model_variance must be a number >= 0 or None, got {model_variance!r}")
+        raise ValueError(f"model_variance must be 'estimate', a number >= 0 or None, got {model_variance!r}")
     if model_variance == float("inf"):
         raise ValueError("model_variance must be finite, got inf")
     return float(model_variance)
+
+
+def _per_bin(values: Tensor, cells: Tensor, bins: int) -> Tensor:
+    """Sums of ``values`` ``(S, N)`` over the bins ``cells`` ``(S, N)`` of each row: ``(S, bins)``."""
+    return values.new_zeros(values.shape[0], bins).scatter_add_(1, cells, values)
+
+
+def _binned_fit(cells: Tensor, bins: int):
+    """The weighted fit of one mean per reference bin ``cells`` ``(S, N)``, for :func:`_reml_model_variance`."""
+
+    def fit(values: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        weight_sums = _per_bin(weight, cells, bins)
+        occupied = weight_sums > 0
+        safe = torch.where(occupied, weight_sums, 1.0)
+        residual = values - (_per_bin(weight * values, cells, bins) / safe).gather(1, cells)
+        trace = torch.where(occupied, _per_bin(weight.square(), cells, bins) / safe, 0.0).sum(1)
+        return residual, trace, occupied.sum(1)
+
+    return fit
+
+
+def _affine_fit(reference: Tensor):
+    """The weighted fit of ``a + b r`` on the reference values ``r`` ``(S, N)``, for :func:`_reml_model_variance`."""
+
+    def fit(values: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        total = weight.sum(1, keepdim=True).clamp_min(torch.finfo(weight.dtype).tiny)
+        # Centred on its weighted mean the reference is orthogonal to the constant: X'WX is diagonal.
+        centred = reference - (weight * reference).sum(1, keepdim=True) / total
+        spread = (weight * centred.square()).sum(1, keepdim=True)
+        sloped = spread > 64 * torch.finfo(weight.dtype).eps * (weight * reference.square()).sum(1, keepdim=True)
+        safe = torch.where(sloped, spread, 1.0)
+        slope = torch.where(sloped, (weight * centred * values).sum(1, keepdim=True) / safe, 0.0)
+        residual = values - (weight * values).sum(1, keepdim=True) / total - slope * centred
+        squared = weight.square()
+        trace = (
+            squared.sum(1) / total[:, 0]
+            + torch.where(sloped, (squared * centred.square()).sum(1, keepdim=True) / safe, 0.0)[:, 0]
+        )
+        return residual, trace, 1 + sloped[:, 0].long()
+
+    return fit
+
+
+def _reml_model_variance(values: Tensor, noise: Tensor, valid: Tensor, fit, floor: float) -> Tensor:
+    """REML ``tau^2`` ``(S,)`` of ``S`` rows of ``N`` pixels (float64): Fisher scoring, at least ``floor``.
+
+    ``values``, ``noise`` (``sigma_n^2``) and ``valid`` (bool) are ``(S, N)``; ``fit(values, weight)`` gives the
+    residuals about the weighted fit, ``tr((X' W X)^-1 X' W^2 X)`` and the number of fitted parameters, ``(S,)``
+    each. A row with no more valid pixels than fitted parameters gives ``floor``.
+    """
+    mask = valid.to(values.dtype)
+    count = mask.sum(1)
+    residual, _, fitted = fit(values, mask)
+    moment = (mask * residual.square()).sum(1) / (count - fitted).clamp_min(1)
+    tau2 = (moment - (mask * noise).sum(1) / count.clamp_min(1)).clamp_min(floor)
+    for _ in range(_FISHER_STEPS):
+        weight = mask / (noise + tau2[:, None])
+        residual, trace, _ = fit(values, weight)
+        squared = weight.square()
+        score = 0.5 * ((squared * residual.square()).sum(1) - weight.sum(1) + trace)
+        information = 0.5 * squared.sum(1).clamp_min(torch.finfo(values.dtype).tiny)
+        updated = (tau2 + score / information).clamp_min(floor)
+        settled = bool(((updated - tau2).abs() <= _FISHER_TOLERANCE * updated).all())
+        tau2 = updated
+        if settled:
+            break
+    return torch.where(count > fitted, tau2, floor)
+
+
+def _estimated_model_variance(
+    captured: Tensor,
+    reference: Tensor,
+    noise: Tensor,
+    valid: Tensor,
+    bins: int,
+    value_range: tuple[float, float],
+    response: str,
+) -> Tensor:
+    """REML ``tau^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: values, reference, ``sigma^2``, bool valid."""
+    with torch.no_grad():
+        values, reference, noise = (part.detach().to(torch.float64) for part in (captured, reference, noise))
+        # Centred values keep the sums of squares free of cancellation; the residuals do not depend on it.
+        values = values - (values * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
+        if response == "linear":
+            fit = _affine_fit(torch.where(valid, reference, 0.0))
+        else:
+            fit = _binned_fit(hard_bin_index(reference, bins, value_range), bins)
+        return _reml_model_variance(values, noise, valid, fit, default_model_variance(bins, value_range))
+
+
+def _aligned_model_variance(inputs, response: str) -> Tensor:
+    """The estimated ``tau^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, one per candidate and sample."""
+    shape = inputs.reference.shape
+    valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
+    if inputs.valid is not None:
+        valid = valid & inputs.valid
+    flat = (part.expand(shape).reshape(-1, shape[-1]) for part in (inputs.captured, inputs.reference, inputs.variance))
+    tau2 = _estimated_model_variance(*flat, valid.reshape(-1, shape[-1]), inputs.bins, inputs.value_range, response)
+    return tau2.view(shape[:-1])
+
+
+def _first_pass(inputs: SurfaceInputs) -> Tensor:
+    """The cheap first pass's ECR ``(B, Sy, Sx)``, ``-inf`` where less than half the captured image overlaps.
+
+    :data:`FIRST_PASS_BINS` bins over each window's 2nd to 98th percentile (:func:`cheap_value_range`), their default
+    model variance, the occupied bins read from the weight sums (as the two-stage search's first stage). Where no
+    placement overlaps half the image, those of the largest overlap count.
+    """
+    windows, batch = inputs.reference.shape[0], inputs.captured.shape[0]
+    groups = [slice(None)] if windows == 1 else [slice(sample, sample + 1) for sample in range(batch)]
+    scores = []
+    for group in groups:
+        window, window_valid = inputs.reference[group][:1], inputs.reference_valid[group][:1]
+        value_range = cheap_value_range(window, window_valid)
+        part = SurfaceInputs(
+            inputs.captured[group], window, inputs.captured_valid[group], window_valid, inputs.variance[group]
+        )
+        tau2 = default_model_variance(FIRST_PASS_BINS, value_range)
+        surface = _ecr_surface(part, tau2, FIRST_PASS_BINS, value_range, exact_counts=False)
+        half = 0.5 * part.captured_valid.sum((-2, -1)).to(surface.overlap.dtype)
+        needed = torch.minimum(half, surface.overlap.amax((-2, -1))).clamp_min(1)[:, None, None]
+        scores.append(torch.where(surface.overlap >= needed - 0.5, surface.score, -math.inf))
+    return torch.cat(scores)
+
+
+def _model_variance_at_peaks(
+    inputs: SurfaceInputs, scores: Tensor, bins: int, value_range: tuple[float, float], response: str
+) -> Tensor:
+    """``tau^2`` ``(B,)`` float64 estimated at each captured image's best placement in ``scores`` ``(B, Sy, Sx)``.
+
+    A captured image without a finite score gets the floor, ``bin_width^2 / 12``.
+    """
+    batch, height, width = inputs.captured.shape
+    device = inputs.captured.device
+    peak = scores.flatten(1).argmax(1)
+    rows = (peak // scores.shape[-1])[:, None, None] + torch.arange(height, device=device)[:, None]
+    cols = (peak % scores.shape[-1])[:, None, None] + torch.arange(width, device=device)
+    window = torch.arange(batch, device=device) if inputs.reference.shape[0] > 1 else peak.new_zeros(batch)
+    under = (window[:, None, None], rows, cols)
+    found = torch.isfinite(scores.flatten(1).amax(1))[:, None, None]
+    valid = inputs.captured_valid & inputs.reference_valid[under] & found
+    flat = (part.reshape(batch, -1) for part in (inputs.captured, inputs.reference[under], inputs.variance, valid))
+    return _estimated_model_variance(*flat, bins, value_range, response)
+
+
+def _surface_model_variance(
+    inputs: SurfaceInputs, model_variance, bins: int, value_range: tuple[float, float], response: str
+) -> float | Tensor:
+    """A surface's ``tau^2``: the fixed number, or the estimate per captured image ``(B, 1, 1)`` (compute dtype)."""
+    tau2 = check_model_variance(model_variance, bins, value_range)
+    if tau2 != MODEL_VARIANCE_ESTIMATE:
+        return tau2
+    estimate = _model_variance_at_peaks(inputs, _first_pass(inputs), bins, value_range, response)
+    return estimate.to(inputs.captured.dtype)[:, None, None]
 
 
 def ecr_from_bin_sums(sums: BinSums) -> Tensor:
@@ -162,7 +344,7 @@ def ecr(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    model_variance: float | None = None,
+    model_variance: float | str | None = None,
     valid_mask: Tensor | None = None,
     response: str = "binned",
 ) -> Tensor:
@@ -175,7 +357,8 @@ def ecr(
             ``(1, 1, H, W)`` or ``(B, 1, H, W)``.
         bins: number of equal-width bins the reference is cut into, over ``value_range``.
         value_range: ``(low, high)`` of the reference bins.
-        model_variance: ``tau^2 >= 0`` added to every pixel's variance (see the module docstring); ``None`` for
+        model_variance: ``tau^2 >= 0`` added to every pixel's variance (see the module docstring); ``"estimate"``:
+            estimated from each pair at this alignment (:func:`ecr_model_variance`); ``None`` for
             ``bin_width^2 / 12``.
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
         response: the sensor's response to the map: ``"binned"`` (one mean per reference bin: any function,
@@ -189,7 +372,8 @@ def ecr(
         log-likelihood ratio less its mean for pure noise.
 
     Convention:
-        Differentiable in ``captured`` and ``variance`` (the reference is hard-binned).
+        Differentiable in ``captured`` and ``variance`` (the reference is hard-binned; an estimated ``tau^2`` is held
+        fixed).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -206,6 +390,8 @@ def ecr(
     )
     tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
     check_option("response", response, RESPONSES)
+    if tau2 == MODEL_VARIANCE_ESTIMATE:
+        tau2 = _aligned_model_variance(inputs, response).to(inputs.captured.dtype)[..., None]
     if response == "linear":
         score = _linear_ecr(inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight)
         return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
@@ -214,6 +400,44 @@ def ecr(
     )
     score = ecr_from_bin_sums(sums)
     return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
+
+
+def ecr_model_variance(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    model_variance: float | str | None = "estimate",
+    valid_mask: Tensor | None = None,
+    response: str = "binned",
+) -> Tensor:
+    """The model variance ``tau^2`` :func:`ecr` adds with these arguments, ``(B,)`` (``(C, B)`` for candidates).
+
+    ``"estimate"``: the REML estimate of each pair at its alignment (see the module docstring); a number or ``None``:
+    that number (``bin_width^2 / 12``) for every pair. Arguments as :func:`ecr`'s; float64, without gradient.
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = torch.rand(2, 1, 128, 128, generator=generator, dtype=torch.float64) * 256
+        >>> noise, misfit = torch.randn(2, 2, 1, 128, 128, generator=generator, dtype=torch.float64)
+        >>> captured = reference + 10 * noise + 20 * misfit  # sigma^2 = 100, tau^2 = 400
+        >>> ecr_model_variance(captured, reference, 100.0, bins=64).round()
+        tensor([403., 411.], dtype=torch.float64)
+    """
+    check_variance_given(variance)
+    check_floating("captured", captured)
+    inputs = _prepare(
+        captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
+    )
+    tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
+    check_option("response", response, RESPONSES)
+    if tau2 == MODEL_VARIANCE_ESTIMATE:
+        tau2 = _aligned_model_variance(inputs, response)
+    else:
+        tau2 = torch.full(inputs.reference.shape[:-1], tau2, dtype=torch.float64, device=inputs.captured.device)
+    return tau2 if inputs.with_candidates else tau2[0]
 
 
 def bin_sums(
@@ -276,7 +500,7 @@ def ecr_surface(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    model_variance: float | None = None,
+    model_variance: float | str | None = None,
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
     response: str = "binned",
@@ -295,7 +519,8 @@ def ecr_surface(
             or ``(B, 1, h, w)``.
         bins: number of equal-width reference bins over ``value_range``.
         value_range: ``(low, high)``; reference values outside are clipped into the edge bins.
-        model_variance: ``tau^2`` (see :func:`ecr`); ``None`` for ``bin_width^2 / 12``.
+        model_variance: ``tau^2`` (see :func:`ecr`); ``"estimate"``: one per captured image, estimated at the best
+            placement of a cheap first pass (:func:`ecr_surface_model_variance`); ``None`` for ``bin_width^2 / 12``.
         captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
         reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
         response: ``"binned"`` or ``"linear"`` (see :func:`ecr`; the linear response
@@ -304,8 +529,9 @@ def ecr_surface(
     Returns:
         :class:`Surface`; ``score[b, u, v]`` equals
         ``ecr(captured[b], reference[b, :, u:u + h, v:v + w], variance,
-        valid_mask=captured_mask & reference_mask[...])``;
-        0 where nothing overlaps.
+        valid_mask=captured_mask & reference_mask[...], model_variance=tau2[b])``, ``tau2`` the fixed number or
+        :func:`ecr_surface_model_variance`'s estimate (one for every placement of an image); 0 where nothing
+        overlaps.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -318,25 +544,66 @@ def ecr_surface(
     check_variance_given(variance)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
-    model_variance = check_model_variance(model_variance, bins, value_range)
+    check_model_variance(model_variance, bins, value_range)
     inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance)
     check_option("response", response, RESPONSES)
     check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():
+        model_variance = _surface_model_variance(inputs, model_variance, bins, value_range, response)
         if response == "linear":
             return _linear_ecr_surface(inputs, model_variance)
         return _ecr_surface(inputs, model_variance, bins, value_range)
 
 
+def ecr_surface_model_variance(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    bins: int = 32,
+    value_range: tuple[float, float] = (0.0, 256.0),
+    model_variance: float | str | None = "estimate",
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
+    response: str = "binned",
+) -> Tensor:
+    """The model variance ``tau^2`` :func:`ecr_surface` adds with these arguments, ``(B,)`` float64.
+
+    ``"estimate"``: per captured image, the REML estimate at the best placement of the cheap first pass (see the module
+    docstring); a number or ``None``: that number (``bin_width^2 / 12``) for every image. Arguments as
+    :func:`ecr_surface`'s.
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = torch.rand(1, 1, 80, 80, generator=generator, dtype=torch.float64) * 256
+        >>> noise, misfit = torch.randn(2, 1, 1, 64, 64, generator=generator, dtype=torch.float64)
+        >>> captured = reference[..., 5:69, 9:73] + 10 * noise + 20 * misfit  # sigma^2 = 100, tau^2 = 400
+        >>> ecr_surface_model_variance(captured, reference, 100.0, bins=64).round()
+        tensor([424.], dtype=torch.float64)
+    """
+    check_variance_given(variance)
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance)
+    check_option("response", response, RESPONSES)
+    with torch.no_grad():
+        tau2 = _surface_model_variance(inputs, model_variance, bins, value_range, response)
+    if isinstance(tau2, Tensor):
+        return tau2.to(torch.float64).flatten()
+    return torch.full((inputs.captured.shape[0],), tau2, dtype=torch.float64, device=inputs.captured.device)
+
+
 def _ecr_surface(
     inputs: SurfaceInputs,
-    model_variance: float,
+    model_variance: float | Tensor,
     bins: int,
     value_range: tuple[float, float],
     *,
     exact_counts: bool = True,
 ) -> Surface:
     """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes.
+
+    ``model_variance``: a number, or one per captured image ``(B, 1, 1)``.
 
     With ``exact_counts=False`` (the two-stage search's cheap stage) and a reference without masked cells the per-bin
     counts are not correlated (two thirds of the correlations): a bin counts as occupied where its weight sum exceeds
@@ -372,7 +639,7 @@ def _ecr_surface(
     return Surface(torch.stack(scores), torch.stack(overlaps))
 
 
-def _linear_ecr_surface(inputs: SurfaceInputs, model_variance: float) -> Surface:
+def _linear_ecr_surface(inputs: SurfaceInputs, model_variance: float | Tensor) -> Surface:
     """ECR of the increasing affine response at every placement: weighted sums from correlations of planes."""
     valid = inputs.captured_valid.to(inputs.captured.dtype)
     weight = valid / (inputs.variance + model_variance)
@@ -410,7 +677,9 @@ class ECR(Score):
     Args:
         bins: number of equal-width reference bins over ``value_range``.
         value_range: ``(low, high)`` of the reference bins.
-        model_variance: ``tau^2 >= 0`` added to every pixel's variance; ``None`` for ``bin_width^2 / 12``.
+        model_variance: ``tau^2 >= 0`` added to every pixel's variance; ``"estimate"``: estimated from the data (per
+            aligned pair; per captured image for a surface: see :mod:`~enmi_torch.scores.ecr`); ``None`` for
+            ``bin_width^2 / 12``.
         response: ``"binned"`` (one mean per reference bin, any response) or ``"linear"`` (increasing affine).
 
     Example:
@@ -430,7 +699,7 @@ class ECR(Score):
         *,
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
-        model_variance: float | None = None,
+        model_variance: float | str | None = None,
         response: str = "binned",
     ) -> None:
         bins = check_bins(bins)
@@ -450,6 +719,37 @@ class ECR(Score):
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
         return ecr_loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction, **self._options)
 
+    def model_variance_of(
+        self, captured: Tensor, reference: Tensor, variance: Tensor | float, *, valid_mask: Tensor | None = None
+    ) -> Tensor:
+        """The ``tau^2`` added on aligned pairs, ``(B,)`` or ``(C, B)`` float64: :func:`ecr_model_variance`."""
+        return ecr_model_variance(captured, reference, variance, valid_mask=valid_mask, **self._options)
+
+    def surface_model_variance(
+        self,
+        captured: Tensor,
+        reference: Tensor,
+        variance: Tensor | float,
+        *,
+        captured_mask: Tensor | None = None,
+        reference_mask: Tensor | None = None,
+    ) -> Tensor:
+        """The ``tau^2`` this score's surface adds, ``(B,)`` float64: :func:`ecr_surface_model_variance`."""
+        masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
+        return ecr_surface_model_variance(captured, reference, variance, **masks, **self._options)
+
+    def _pair_scorer(self, inputs: SurfaceInputs):
+        """:func:`~enmi_torch.scores.direct_surface`'s pair score: ECR with the surface's ``tau^2`` of each sample."""
+        tau2 = _surface_model_variance(inputs, self.model_variance, self.bins, self.value_range, self.response)
+        if not isinstance(tau2, Tensor):
+            return super()._pair_scorer(inputs)
+        samples = [self.replace(model_variance=float(value)) for value in tau2.flatten().tolist()]
+
+        def pair_score(sample: int, captured: Tensor, section: Tensor, variance: Tensor | None, valid: Tensor):
+            return samples[sample](captured, section, variance, valid_mask=valid)[0]
+
+        return pair_score
+
     def _rough_surface(self, captured, reference, variance, captured_mask, reference_mask) -> Surface:
         """:meth:`surface` with the occupied bins read from the weight sums: the two-stage search's first stage.
 
@@ -460,8 +760,8 @@ class ECR(Score):
         if self.response != "binned":
             raise ValueError(f"the rough ECR surface needs response='binned', got {self.response!r}")
         inputs = check_inputs(captured, reference, captured_mask, reference_mask, self.value_range, variance)
-        tau2 = check_model_variance(self.model_variance, self.bins, self.value_range)
         with torch.no_grad():
+            tau2 = _surface_model_variance(inputs, self.model_variance, self.bins, self.value_range, self.response)
             return _ecr_surface(inputs, tau2, self.bins, self.value_range, exact_counts=False)
 
     def _placement_scores(self, placements: Tensor, *, rotations, window, min_overlap: float, cheap: Tensor) -> Tensor:
@@ -471,7 +771,8 @@ class ECR(Score):
         captured valid pixels, values centred on each rotation's weighted mean, ``-inf`` below ``min_overlap`` or for
         a rotation without a valid pixel. ``rotations``: the captured images, variances and masks ``(Y, 1, h, w)``;
         ``window``: the reference window and its mask ``(1, 1, Hw, Ww)``; ``cheap``: the search's cheap surface
-        ``(Y, Sy, Sx)`` (``-inf`` below ``min_overlap``), unused with a fixed model variance. Per shift, one matrix
+        ``(Y, Sy, Sx)`` (``-inf`` below ``min_overlap``): an estimated ``tau^2`` is read at each rotation's best
+        placement there (the floor for a rotation without a finite one). Per shift, one matrix
         product of the rotations' count, weight and weighted-value planes with the one-hot reference bins under the
         image (unmapped cells in a bin left out) gives the per-bin sums: several times faster on the CPU than
         scattering every pixel.
@@ -483,6 +784,15 @@ class ECR(Score):
         bins, value_range = self.bins, self.value_range
         tau2 = check_model_variance(self.model_variance, bins, value_range)
         yaws, yaw_index = torch.unique(placements[:, 0], return_inverse=True)  # only the rotations rescored
+        if tau2 == MODEL_VARIANCE_ESTIMATE:
+            rotated = SurfaceInputs(
+                captured[yaws, 0].to(dtype),
+                reference[:, 0].to(dtype),
+                valid[yaws, 0],
+                reference_valid[:, 0],
+                variance[yaws, 0].to(dtype),
+            )
+            tau2 = _model_variance_at_peaks(rotated, cheap[yaws], bins, value_range, self.response).to(dtype)[:, None]
         valid = valid[yaws, 0].flatten(1).to(dtype)
         weight = valid / (variance[yaws, 0].to(dtype).flatten(1) + tau2)
         values = captured[yaws, 0].to(dtype).flatten(1)

@@ -240,7 +240,11 @@ def test_scores_pickle_with_their_options():
         (lambda: ECR(bins=1), ValueError, "bins must be an int >= 2"),
         (lambda: ECR(bins=8.0), TypeError, "bins must be an int >= 2, got float"),
         (lambda: ECR(value_range=(3.0, 1.0)), ValueError, "value_range must be finite with low < high"),
-        (lambda: ECR(model_variance=-1.0), ValueError, "model_variance must be a number >= 0 or None, got -1.0"),
+        (
+            lambda: ECR(model_variance=-1.0),
+            ValueError,
+            "model_variance must be 'estimate', a number >= 0 or None, got -1",
+        ),
         (lambda: ECR(response="quadratic"), ValueError, r"response must be one of \['binned', 'linear'\]"),
         (lambda: ECR(kernel="mass"), TypeError, "unexpected keyword argument 'kernel'"),
         (lambda: ECR(32), TypeError, "positional"),
