@@ -173,16 +173,21 @@ def test_brick_is_more_ambiguous_than_gravel():
     assert margins[0] < margins[1]
 
 
-def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map):
+@pytest.mark.parametrize("model_variance", [None, "estimate"])
+def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map, model_variance):
     local = _noisy(_cut(gravel_map, 91, 66, yaw=3.0), 3.0)
-    options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": ECR(bins=16)}
+    score = ECR(bins=16, model_variance=model_variance)
+    options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": score}
     exhaustive = localize(local, gravel_map, 9.0, **options)
     coarse = localize(local, gravel_map, 9.0, coarse_factor=4, **options)
-    torch.testing.assert_close(coarse.pose, exhaustive.pose)
-    assert coarse.pose[0].round().tolist() == [-14.0, 11.0, 3.0]
+    assert coarse.pose[0].round().tolist() == exhaustive.pose[0].round().tolist() == [-14.0, 11.0, 3.0]
     evaluated = torch.isfinite(coarse.surface)
     assert 0 < evaluated.sum() < evaluated.numel() / 3
-    torch.testing.assert_close(coarse.surface[evaluated], exhaustive.surface[evaluated])
+    if model_variance is None:
+        # With a fixed tau^2 the fine surfaces are the exhaustive one where evaluated (an estimated tau^2 is read in
+        # each fine window).
+        torch.testing.assert_close(coarse.pose, exhaustive.pose)
+        torch.testing.assert_close(coarse.surface[evaluated], exhaustive.surface[evaluated])
 
 
 def test_variance_model_and_its_valid_mask_are_used(gravel_map):
@@ -528,6 +533,9 @@ def _two_stage_case(gravel_map, seed):
 @pytest.mark.parametrize("seed", range(3))
 def test_two_stage_search_equals_the_exhaustive_search_where_it_rescored_and_finds_its_argmax(gravel_map, seed):
     local, variance, options = _two_stage_case(gravel_map, seed)
+    # A fixed tau^2: min_overlap=0.97 leaves out placements where the exhaustive surface may read an estimated one
+    # (tests/scores/test_ecr_model_variance.py checks the estimate at the default min_overlap).
+    options["score"] = options["score"].replace(model_variance=None)
     exhaustive = localize(local, gravel_map, variance, **options)
     two_stage = localize(local, gravel_map, variance, search="two_stage", cheap_bins=4, **options)
     rescored = torch.isfinite(two_stage.surface)

@@ -97,7 +97,8 @@ def localize(
         coarse_factor: ``1`` searches every shift exhaustively. ``f > 1`` searches first on images averaged over
             ``f x f`` cells (variance divided by ``f^2``), keeps the ``coarse_peaks`` best separated coarse
             candidates and searches every shift within ``f`` cells of each at full resolution (at its yaw and the
-            two next ones): for windows much larger than the captured image.
+            two next ones): for windows much larger than the captured image. Each of these surfaces reads ECR's
+            estimated model variance in its own window.
         coarse_peaks: coarse candidates refined when ``coarse_factor > 1``.
         resample: how the captured image, its variance and mask are rotated for a yaw: ``"nearest"`` (default: every
             pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
@@ -110,7 +111,8 @@ def localize(
             shift, yaw) neighbourhoods of its best 4 peaks; while the exact best lies by a peak of the lower half of
             that cheap ranking, the number of peaks doubles (up to 64), then the exact best's own neighbourhood is
             completed for the sub-cell fit. Rescored candidates score as in the exhaustive surface (up to
-            round-off), the others are ``-inf`` in ``surface``. It misses the exhaustive argmax when the cheap score
+            round-off; with ECR's estimated model variance, read at each yaw's cheap peak, when ``cheap_bins=4`` and
+            ``min_overlap <= 0.5``, else it may be read elsewhere), the others are ``-inf`` in ``surface``. It misses the exhaustive argmax when the cheap score
             ranks that peak below the ones it rescored and the doubling has stopped
             (``data_tools/benchmarks/bench_search.py`` measures how often: rarely, at extreme noise).
         cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.

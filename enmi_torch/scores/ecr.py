@@ -3,10 +3,10 @@
 Model: the sensor sees a function of the map, blurred by noise whose variance is known per pixel. A captured pixel
 ``v_n`` over a reference pixel in bin ``j_n`` is ``v_n ~ N(mu_{j_n}, sigma_n^2 + tau^2)``, one unknown mean per
 reference bin (any response, monotonic or not), ``sigma_n^2`` the pixel's noise variance (analytic or learned) and
-``tau^2`` the model variance (what a bin of the map does not explain; by default the spread of an amplitude
-uniform in a bin, ``bin_width^2 / 12``). The alternative is one mean for all pixels (captured independent of the
-map). With weights ``w_n = 1 / (sigma_n^2 + tau^2)`` and per-bin sums ``W_j = sum w_n``, ``S_j = sum w_n v_n``, the
-maximised log-likelihood ratio is
+``tau^2`` the model variance (what a bin of the map does not explain; by default estimated from the data, see below,
+at least the spread of an amplitude uniform in a bin, ``bin_width^2 / 12``). The alternative is one mean for all
+pixels (captured independent of the map). With weights ``w_n = 1 / (sigma_n^2 + tau^2)`` and per-bin sums
+``W_j = sum w_n``, ``S_j = sum w_n v_n``, the maximised log-likelihood ratio is
 
     ``LLR = (sum_j S_j^2 / W_j - S^2 / W) / 2`` (``S``, ``W`` the sums over all bins),
 
@@ -26,9 +26,9 @@ The model variance ``tau^2`` is what a bin of the map leaves unexplained: the qu
 the map explains the captured image up to the sensor noise; hundreds to thousands of grey levels^2 where the scene
 changed (shadows, cars, another date, another modality). Too small a ``tau^2`` trusts the quiet pixels far more than
 the misfit allows, and a per-pixel variance then loses to a uniform one (``data_tools/yardstick/scene_change.py``).
-``model_variance="estimate"`` estimates it from the data, one ``tau^2`` per captured image, by restricted maximum
-likelihood (REML: the likelihood of the residuals about the fitted bin means, which does not take the ``K_occ``
-fitted means for evidence against ``tau^2``), at least ``bin_width^2 / 12``:
+``model_variance="estimate"`` (the default) estimates it from the data, one ``tau^2`` per captured image, by
+restricted maximum likelihood (REML: the likelihood of the residuals about the fitted bin means, which does not take
+the ``K_occ`` fitted means for evidence against ``tau^2``), at least ``bin_width^2 / 12``:
 
 * on aligned pairs (:func:`ecr`, :func:`ecr_loss`): at the given alignment (each candidate reference its own), without
   gradient; the score is ECR with that ``tau^2`` (differentiable in ``captured`` and ``variance`` as before);
@@ -344,7 +344,7 @@ def ecr(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    model_variance: float | str | None = None,
+    model_variance: float | str | None = "estimate",
     valid_mask: Tensor | None = None,
     response: str = "binned",
 ) -> Tensor:
@@ -357,9 +357,9 @@ def ecr(
             ``(1, 1, H, W)`` or ``(B, 1, H, W)``.
         bins: number of equal-width bins the reference is cut into, over ``value_range``.
         value_range: ``(low, high)`` of the reference bins.
-        model_variance: ``tau^2 >= 0`` added to every pixel's variance (see the module docstring); ``"estimate"``:
-            estimated from each pair at this alignment (:func:`ecr_model_variance`); ``None`` for
-            ``bin_width^2 / 12``.
+        model_variance: ``tau^2 >= 0`` added to every pixel's variance (see the module docstring); ``"estimate"``
+            (the default): estimated from each pair at this alignment (:func:`ecr_model_variance`); ``None`` for
+            ``bin_width^2 / 12`` (the default before the estimate).
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
         response: the sensor's response to the map: ``"binned"`` (one mean per reference bin: any function,
             monotonic or not; the default) or ``"linear"`` (``a + b r`` with ``b > 0``, the reference values
@@ -380,8 +380,8 @@ def ecr(
         >>> reference = torch.rand(1, 1, 16, 16, generator=generator) * 256
         >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator)
         >>> ecr(captured, torch.stack([reference, reference.roll(1, -1)]), 64.0, bins=8)
-        tensor([[17.4752],
-                [ 0.4031]])
+        tensor([[ 1.7013e+01],
+                [-2.1812e-03]])
     """
     check_variance_given(variance)
     check_floating("captured", captured)
@@ -500,7 +500,7 @@ def ecr_surface(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    model_variance: float | str | None = None,
+    model_variance: float | str | None = "estimate",
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
     response: str = "binned",
@@ -519,8 +519,9 @@ def ecr_surface(
             or ``(B, 1, h, w)``.
         bins: number of equal-width reference bins over ``value_range``.
         value_range: ``(low, high)``; reference values outside are clipped into the edge bins.
-        model_variance: ``tau^2`` (see :func:`ecr`); ``"estimate"``: one per captured image, estimated at the best
-            placement of a cheap first pass (:func:`ecr_surface_model_variance`); ``None`` for ``bin_width^2 / 12``.
+        model_variance: ``tau^2`` (see :func:`ecr`); ``"estimate"`` (the default): one per captured image,
+            estimated at the best placement of a cheap first pass (:func:`ecr_surface_model_variance`); ``None`` for
+            ``bin_width^2 / 12``.
         captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
         reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
         response: ``"binned"`` or ``"linear"`` (see :func:`ecr`; the linear response
@@ -665,7 +666,7 @@ def ecr_loss(
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> ecr_loss(image, image, 1.0, bins=4), ecr_loss(image, image.mT, 1.0, bins=4)
-        (tensor(-7.3843), tensor(-0.3736))
+        (tensor(-5.9062), tensor(0.0703))
     """
     check_option("reduction", reduction, REDUCTIONS)
     return reduce_loss(-ecr(captured, reference, variance, **options), reduction)
@@ -677,9 +678,9 @@ class ECR(Score):
     Args:
         bins: number of equal-width reference bins over ``value_range``.
         value_range: ``(low, high)`` of the reference bins.
-        model_variance: ``tau^2 >= 0`` added to every pixel's variance; ``"estimate"``: estimated from the data (per
-            aligned pair; per captured image for a surface: see :mod:`~enmi_torch.scores.ecr`); ``None`` for
-            ``bin_width^2 / 12``.
+        model_variance: ``tau^2 >= 0`` added to every pixel's variance; ``"estimate"`` (the default): estimated from
+            the data (per aligned pair; per captured image for a surface: see :mod:`~enmi_torch.scores.ecr`);
+            ``None`` for ``bin_width^2 / 12`` (the default before the estimate).
         response: ``"binned"`` (one mean per reference bin, any response) or ``"linear"`` (increasing affine).
 
     Example:
@@ -688,7 +689,7 @@ class ECR(Score):
         >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator)
         >>> score = ECR(bins=8)
         >>> score(captured, reference, 64.0), score.loss(captured, reference, 64.0)
-        (tensor([17.4752]), tensor(-17.4752))
+        (tensor([17.0125]), tensor(-17.0125))
     """
 
     name = "ecr"
@@ -699,7 +700,7 @@ class ECR(Score):
         *,
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
-        model_variance: float | str | None = None,
+        model_variance: float | str | None = "estimate",
         response: str = "binned",
     ) -> None:
         bins = check_bins(bins)
