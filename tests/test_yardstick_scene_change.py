@@ -34,6 +34,13 @@ def test_noise_only_trials_cut_the_captured_image_at_the_truth(yardstick):
     assert bool((shifts.abs() < yardstick.RADIUS).all()) and len({tuple(s) for s in shifts.tolist()}) > 1
 
 
+def test_nonmonotonic_trials_are_the_map_through_the_response(yardstick):
+    trials = yardstick.make_trials("nonmonotonic", 3, 5)
+    for index in range(3):
+        expected = 255 * (2 * _crop(trials, index, 64) / 255 - 1).abs() ** 0.8
+        torch.testing.assert_close(trials.clean[index, 0], expected)
+
+
 def test_changed_trials_share_poses_and_differ_from_the_map(yardstick):
     same, changed = yardstick.make_trials("same", 4, 3), yardstick.make_trials("occluders@0.5", 4, 3)
     assert torch.equal(same.truth, changed.truth) and torch.equal(same.window, changed.window)
@@ -59,32 +66,65 @@ def test_real_pairs_are_read_from_their_folders(yardstick, tmp_path):
         torch.testing.assert_close(trials.clean[index, 0], 255 - _crop(trials, index, 64))
 
 
-@pytest.mark.parametrize("case", ["fog@0.5", "tone@2", "tone", "tone@0"])
+@pytest.mark.parametrize("case", ["fog@0.5", "tone@2", "tone", "tone@0", "monotonic"])
 def test_bad_cases_are_refused(yardstick, case):
     with pytest.raises(ValueError, match="case"):
         yardstick.parse_case(case)
 
 
 def test_a_tiny_run_writes_its_tables(yardstick, tmp_path, capsys):
-    methods = ["ECR true", "ECR uniform x1", "ECR uniform x4", "NMI", "ECR est cheap"]
+    methods = ["ECR true", "ECR today", "ECR uniform x1", "ECR uniform x4", "NMI", "ECR learned"]
     output = tmp_path / "run"
+    learned = tmp_path / "mask.npy"
+    np.save(learned, np.full((64, 64), 900.0, dtype=np.float32))
     argv = ["--trials", "2", "--cases", "same", "tone@0.5", "--sensors", "camera-like", "--levels", "60"]
-    argv += ["--same-levels", "--methods", *methods, "--output", str(output), "--data", str(tmp_path / "none")]
+    argv += ["--noise-only-sensors", "paper-camera", "--same-levels", "--methods", *methods]
+    argv += ["--learned-mask", str(learned), "--output", str(output), "--data", str(tmp_path / "none")]
     yardstick.main(argv)
     with (output / "results.csv").open() as file:
         rows = list(csv.DictReader(file))
     assert len(rows) == 2 * len(methods)
+    assert {(row["case"], row["sensor"]) for row in rows} == {("same", "paper-camera"), ("tone@0.5", "camera-like")}
     assert all(len(row["outcomes"]) == 2 and set(row["outcomes"]) <= {"0", "1"} for row in rows)
-    assert all(len(row["tau2"].split()) == (2 if row["method"] == "ECR est cheap" else 0) for row in rows)
+    assert all(len(row["tau2"].split()) == (2 if row["method"] in ("ECR true", "ECR learned") else 0) for row in rows)
     report = (output / "report.md").read_text()
     assert "| tone@0.5 | camera-like | 60 |" in report and "ECR best uniform" in report
+    assert "ECR learned against ECR true" in report and "| ECR true | scene change |" in report
     capsys.readouterr()
     yardstick.main(["--report", "--output", str(output)])
     assert capsys.readouterr().out.strip() == report.strip()
 
 
+def test_methods_are_score_objects_with_their_variances(yardstick):
+    from enmi_torch import ECR
+    from enmi_torch.scores.ecr import default_model_variance
+
+    assert yardstick.METHODS["ECR true"] == (ECR(bins=32), "true")
+    assert ECR(bins=32).model_variance == "estimate"
+    assert yardstick.METHODS["ECR today"] == (ECR(bins=32, model_variance=default_model_variance(32, (0, 256))), "true")
+    assert yardstick.METHODS["ECR uniform x0.25"] == (ECR(bins=32), 0.25)
+    assert "ECR learned" not in yardstick.DEFAULT_METHODS
+
+
+def test_real_folders_split_each_dataset_in_halves(yardstick, tmp_path):
+    for dataset, count in (("alpha", 3), ("beta", 2)):
+        for index in range(count):
+            folder = tmp_path / "another-date" / f"{dataset}-{index}"
+            folder.mkdir(parents=True)
+            np.save(folder / "reference.npy", np.zeros((90, 90), np.float32))
+            np.save(folder / "captured.npy", np.zeros((90, 90), np.float32))
+    names = lambda half: [f.name for f in yardstick.pair_folders(tmp_path, "another-date", half)]  # noqa: E731
+    assert names("even") == ["alpha-0", "alpha-2", "beta-0"] and names("odd") == ["alpha-1", "beta-1"]
+    assert sorted(names("even") + names("odd")) == names("all")
+
+
 def test_command_line_mistakes_exit_with_2(yardstick, tmp_path, capsys):
-    for argv in (["--cases", "fog@1"], ["--trials", "1"], ["--cases", "real:nowhere", "--data", str(tmp_path)]):
+    for argv in (
+        ["--cases", "fog@1"],
+        ["--trials", "1"],
+        ["--cases", "real:nowhere", "--data", str(tmp_path)],
+        ["--methods", "ECR learned"],
+    ):
         with pytest.raises(SystemExit) as exit_info:
             yardstick.main([*argv, "--output", str(tmp_path / "out")])
         assert exit_info.value.code == 2

@@ -37,7 +37,13 @@ MODULES = {
     "placement/planes": SURFACE_TESTS,
     "placement/information": SURFACE_TESTS,
     "scores/base": ["tests/scores/test_score_objects.py"],
-    "scores/ecr": ["tests/test_correlation_ratio.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_localize.py"],
+    "scores/ecr": [
+        "tests/test_correlation_ratio.py",
+        "tests/scores/test_ecr_model_variance.py",
+        *SURFACE_TESTS,
+        "tests/test_losses.py",
+        "tests/test_localize.py",
+    ],
     "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_budget.py"],
     "scores/nmi": [
         "tests/test_information.py",

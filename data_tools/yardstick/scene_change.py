@@ -7,41 +7,35 @@ cell of the truth on both axes.
 
 Cases:
 
-* ``same``: the captured image is the map itself (noise only, today's yardstick);
+* noise only: ``same`` (the captured image is the map itself, as ``yardstick.py``) and ``nonmonotonic`` (the map
+  through ``yardstick.py``'s non-monotonic response, ``255 |2 v / 255 - 1|^0.8``);
 * ``<change>@<strength>``: the map window changed by :mod:`enmi_torch.data.scene_change` (``illumination``,
   ``shadows``, ``occluders``, ``tone``, ``resample_blur``, ``warp``, or ``mixed``: all of them) before the captured
-  image is cut from it; maps are scikit-image's photographs of ``data_tools/yardstick.py`` (one drawn per trial);
+  image is cut from it; maps are the photographs of ``yardstick.py`` (one drawn per trial);
 * ``real:<case>/<dataset>``: real pairs from ``--data DIR`` (``DIR/<case>/<dataset>-<id>/reference.npy`` and
   ``captured.npy``, grey levels in [0, 255], co-registered; one pair of the dataset drawn per trial; ``real:<case>``:
-  all its datasets), when the folder is there; ``data.json`` lists the pair folders each case drew from.
+  all its datasets), when the folder is there; ``data.json`` lists the pair folders each case drew from
+  (``--real-folders even`` / ``odd``: every other folder of each dataset, for masks learned on the other half).
 
-Sensors: ``camera-like`` (far rows ~100x noisier) and ``lidar-like`` (~100x at the corners), the profiles of
-``data_tools/yardstick.py``, scaled so that the mean noise standard deviation is the level. Levels per case and sensor:
-the hardest level where some information score (ECR true, ECR uniform, ENMI uniform, NMI) still succeeds half the time
-(``L50``, from a calibration pass on trials of their own, recorded in ``calibration.json``) and ``L50 / 4``; the
-noise-only case also at ``--same-levels``.
+Sensors: ``camera-like`` (far rows ~100x noisier), ``lidar-like`` (~100x at the corners) and, for the noise-only
+cases, ``paper-camera`` (the paper's road camera, unseen cells left out): the profiles of ``yardstick.py``, scaled so
+that the mean noise standard deviation over the valid pixels is the level. Levels per case and sensor: the hardest
+level where some information score (ECR true, ECR uniform, ENMI uniform, NMI) still succeeds half the time (``L50``,
+from a calibration pass on trials of their own, recorded in ``calibration.json``) and ``L50 / 4``; the noise-only
+cases also at ``--same-levels``; or ``--levels`` for every cell.
 
-Methods (32 bins; the table :data:`METHODS` says which score with which variance): ECR with the true per-pixel
-variance and today's ``tau^2``; ECR and ENMI with one uniform variance, the true map's mean times 1/16, 1/4, 1, 4, 16
-(``uniform mean`` is x1, ``best uniform`` the best of the five per cell, an oracle); ENMI true; NMI; NCC; ECR true with
-``model_variance`` 1024 and 4096; and ECR true with ``tau^2`` estimated from the data (prototypes in
-``enmi_torch/_model_variance.py``):
+Methods (32 bins; :data:`METHODS` says which score with which variance): ``ECR true`` (the default
+``ECR()``: its model variance ``tau^2`` estimated from the data, with the true per-pixel variance); ``ECR today``
+(``tau^2`` fixed at ``bin_width^2 / 12``, the default before the estimate); ``ECR tau 1024`` / ``4096``; ECR and
+ENMI with one uniform variance, the true map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best
+uniform`` the best of the five per cell, an oracle); ``ECR linear true`` (``response="linear"``); ENMI true; NMI;
+NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask`` (a ``(64, 64)`` ``.npy`` variance
+map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the pairs of
+``data_tools/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
 
-* ``ECR est <first>``: one ``tau^2`` per captured image (REML) from the residuals at the best placement of a first
-  pass (``cheap``: the two-stage search's 4-bin stage; ``uniform``; ``default``: today's surface; ``r2``: a second
-  round; ``oracle``: at the true placement), then the surface rescored with it;
-* ``ECR profile 6`` / ``3``: ``tau^2`` maximised per placement by profile likelihood on 6 or 3 planes;
-* ``ECR per-bin``: one ``tau_j^2`` per reference bin;
-* ``ECR local <kind>``: one ``tau_n^2`` per captured pixel from the residuals at the first pass's peak, smoothed
-  (``fisher``: Fisher-weighted Gaussian moments, 3 px; ``smooth``, ``eb``, ``student``; ``i2``: means re-estimated;
-  ``c8``: 8 candidate peaks chosen by likelihood; ``oracle``: at the true placement).
-
-The default ``--methods`` are :data:`DEFAULT_METHODS` (the controls, the pooled and local estimates, the profile and
-the oracles; ~13 minutes for 100 trials on 2 cores); ``--methods all`` runs every one.
-
-Writes ``results.csv`` (outcomes per trial as bits, and the estimated ``tau^2`` per trial for the estimators),
-``calibration.json``, ``data.json`` and ``report.md`` into ``--output`` (refusing files git tracks), and prints the
-report.
+Writes ``results.csv`` (outcomes per trial as bits, and the estimated ``tau^2`` per trial for ``ECR true`` and ``ECR
+learned``), ``calibration.json``, ``data.json`` and ``report.md`` into ``--output`` (refusing files git tracks), and
+prints the report.
 
     python data_tools/yardstick/scene_change.py --trials 12 --cases same tone@1 --output /tmp/sc   # a minute or two
     python data_tools/yardstick/scene_change.py --trials 100 --jobs 2                            # the full table
@@ -57,7 +51,6 @@ import math
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
@@ -65,34 +58,37 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from enmi_torch import _model_variance as model_variance
+from enmi_torch import ECR, ENMI, NCC, NMI
 from enmi_torch._files import read_npy
 from enmi_torch.data.scene_change import CHANGES, scene_change
-from enmi_torch.localization.surface import ecr_surface, enmi_surface, ncc_surface, nmi_surface
+from enmi_torch.scores.ecr import default_model_variance
 
 
 def _noise_only_yardstick():
-    """Today's yardstick (profiles, maps, success rule), imported from its file: ``data_tools/yardstick.py``."""
-    here = Path(__file__).resolve().parent
-    for path in (here / "noise_only.py", here.parent / "yardstick.py"):
-        if path.exists():
-            spec = importlib.util.spec_from_file_location("_noise_only_yardstick", path)
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-            return module
-    raise FileNotFoundError(f"today's yardstick not found beside {here} (noise_only.py or ../yardstick.py)")
+    """Today's noise-only yardstick (maps, profiles, response, success rule), imported from ``yardstick.py`` beside."""
+    path = Path(__file__).resolve().parent / "yardstick.py"
+    spec = importlib.util.spec_from_file_location("_noise_only_yardstick", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 NOISE_ONLY = _noise_only_yardstick()
 LOCAL, RADIUS, BINS = NOISE_ONLY.LOCAL, NOISE_ONLY.RADIUS, NOISE_ONLY.BINS
+VALUE_RANGE = (0.0, 256.0)
 SPAN = LOCAL + 2 * RADIUS
-SENSORS = ("camera-like", "lidar-like")
+SENSORS = ("camera-like", "lidar-like", "paper-camera")
+NOISE_ONLY_CASES = ("same", "nonmonotonic")
 KINDS = (*CHANGES, "mixed")
 CASES = ("same", *(f"{kind}@{strength}" for kind in CHANGES for strength in (0.5, 1)), "mixed@0.25", "mixed@0.35")
+# Cases run after --data's real ones: each case's seed is its position, so those before keep the seeds of earlier runs.
+LATER_CASES = ("nonmonotonic",)
 GRID = (1 / 16, 1 / 4, 1.0, 4.0, 16.0)
 CALIBRATION_LEVELS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 2048.0)
 CALIBRATION_METHODS = ("ECR true", "ECR uniform x1", "ENMI uniform x1", "NMI")
 CHUNK = 25  # trials per surface call: memory stays small
+# Today's fixed model variance: the spread of an amplitude uniform in one of the 32 bins.
+TODAY = default_model_variance(BINS, VALUE_RANGE)
 
 
 class Context(NamedTuple):
@@ -101,138 +97,53 @@ class Context(NamedTuple):
     local: torch.Tensor  # (T, 1, LOCAL, LOCAL) float32 noisy captured images
     window: torch.Tensor  # (T, 1, SPAN, SPAN) float32 map windows
     variance: torch.Tensor  # (1, 1, LOCAL, LOCAL) float32 true noise variance
-    mean: float  # the true variance's mean
+    mean: float  # the true variance's mean over the valid pixels
     truth: torch.Tensor  # (T, 2) true placement (row, col)
-
-
-def _score(surface) -> tuple[torch.Tensor, None]:
-    return surface.score, None
-
-
-def _ecr(factor: float | None = None, tau2: float | None = None):
-    """ECR with the true variance (``factor`` None) or the uniform ``mean * factor``; ``tau2`` its model variance."""
-
-    def method(context: Context):
-        variance = context.variance if factor is None else context.mean * factor
-        return _score(ecr_surface(context.local, context.window, variance, bins=BINS, model_variance=tau2))
-
-    return method
-
-
-def _enmi(factor: float | None = None):
-    def method(context: Context):
-        variance = context.variance if factor is None else context.mean * factor
-        return _score(enmi_surface(context.local, context.window, variance, bins=BINS))
-
-    return method
-
-
-def _estimated(**options):
-    """ECR true with ``tau^2`` per captured image (``oracle=True``: estimated at the true placement)."""
-    return lambda context: _estimated_call(context, options)
-
-
-def _estimated_call(context: Context, options: dict):
-    options = dict(options)
-    placements = context.truth if options.pop("oracle", False) else None
-    surface, tau2 = model_variance.ecr_estimated_surface(
-        context.local, context.window, context.variance, bins=BINS, placements=placements, **options
-    )
-    return surface.score, tau2
-
-
-def _profile(factors: tuple[float, ...]):
-    def method(context: Context):
-        surface, tau2 = model_variance.ecr_profile_surface(
-            context.local, context.window, context.variance, bins=BINS, factors=factors
-        )
-        return surface.score, tau2
-
-    return method
-
-
-def _per_bin(context: Context):
-    surface, tau2 = model_variance.ecr_bin_variance_surface(context.local, context.window, context.variance, bins=BINS)
-    return surface.score, tau2
-
-
-def _local(oracle: bool = False, **options):
-    def method(context: Context):
-        placements = context.truth if oracle else None
-        surface, tau2 = model_variance.ecr_local_surface(
-            context.local, context.window, context.variance, bins=BINS, placements=placements, **options
-        )
-        return surface.score, tau2
-
-    return method
+    mask: torch.Tensor | None  # (1, 1, LOCAL, LOCAL) bool valid pixels, None when all are
+    learned: torch.Tensor | None  # (1, 1, LOCAL, LOCAL) float32 learned variance mask
 
 
 def _factor_name(factor: float) -> str:
     return f"x{factor:g}"
 
 
-# The plumbing in one table: which score with which variance (the lead ports it to the score objects).
-METHODS: dict[str, Callable[[Context], tuple[torch.Tensor, torch.Tensor | None]]] = {
-    "ECR true": _ecr(),
-    **{f"ECR uniform {_factor_name(factor)}": _ecr(factor) for factor in GRID},
-    "ENMI true": _enmi(),
-    **{f"ENMI uniform {_factor_name(factor)}": _enmi(factor) for factor in GRID},
-    "NMI": lambda context: _score(nmi_surface(context.local, context.window, bins=BINS)),
-    "NCC": lambda context: _score(ncc_surface(context.local, context.window)),
-    "ECR tau 1024": _ecr(tau2=1024.0),
-    "ECR tau 4096": _ecr(tau2=4096.0),
-    "ECR est cheap": _estimated(first="cheap"),
-    "ECR est cheap r2": _estimated(first="cheap", rounds=2),
-    "ECR est uniform": _estimated(first="uniform"),
-    "ECR est default": _estimated(first="default"),
-    "ECR est oracle": _estimated(oracle=True),
-    "ECR profile 6": _profile((1.0, 1 / 4, 1 / 16, 1 / 64, 1 / 256, 1 / 1024)),
-    "ECR profile 3": _profile((1.0, 1 / 16, 1 / 256)),
-    "ECR per-bin": _per_bin,
-    "ECR local smooth": _local(kind="smooth", scale=3.0),
-    "ECR local smooth r2": _local(kind="smooth", scale=3.0, rounds=2),
-    "ECR local student": _local(kind="student", scale=4.0),
-    "ECR local fisher": _local(kind="fisher", scale=3.0),
-    "ECR local fisher i2": _local(kind="fisher", scale=3.0, iterations=2),
-    "ECR local fisher s2": _local(kind="fisher", scale=2.0),
-    "ECR local fisher s5": _local(kind="fisher", scale=5.0),
-    "ECR local smooth i2": _local(kind="smooth", scale=3.0, iterations=2),
-    "ECR local eb": _local(kind="eb", scale=3.0),
-    "ECR local fisher c3": _local(kind="fisher", scale=3.0, candidates=3),
-    "ECR local fisher c8 pooled": _local(kind="fisher", scale=3.0, candidates=8, select="pooled"),
-    "ECR local fisher default": _local(kind="fisher", scale=3.0, first="default"),
-    "ECR local fisher cheap8": _local(kind="fisher", scale=3.0, first="cheap8"),
-    "ECR local fisher uniform": _local(kind="fisher", scale=3.0, first="uniform"),
-    "ECR local fisher c8": _local(kind="fisher", scale=3.0, candidates=8),
-    "ECR local fisher i2 c8": _local(kind="fisher", scale=3.0, iterations=2, candidates=8),
-    "ECR local fisher c8 default": _local(kind="fisher", scale=3.0, candidates=8, first="default"),
-    "ECR local fisher oracle": _local(oracle=True, kind="fisher", scale=3.0),
-    "ECR local fisher i2 oracle": _local(oracle=True, kind="fisher", scale=3.0, iterations=2),
-    "ECR local eb i2": _local(kind="eb", scale=3.0, iterations=2),
-    "ECR local eb s5": _local(kind="eb", scale=5.0),
-    "ECR local eb s2": _local(kind="eb", scale=2.0),
+# Which score with which variance: "true" (the sensor's map), "learned" (--learned-mask), a factor of the true map's
+# mean (one uniform variance), or None (a score without a variance).
+METHODS: dict[str, tuple] = {
+    "ECR true": (ECR(bins=BINS), "true"),
+    "ECR today": (ECR(bins=BINS, model_variance=TODAY), "true"),
+    "ECR learned": (ECR(bins=BINS), "learned"),
+    **{f"ECR uniform {_factor_name(factor)}": (ECR(bins=BINS), factor) for factor in GRID},
+    "ECR linear true": (ECR(bins=BINS, response="linear"), "true"),
+    "ENMI true": (ENMI(bins=BINS), "true"),
+    **{f"ENMI uniform {_factor_name(factor)}": (ENMI(bins=BINS), factor) for factor in GRID},
+    "NMI": (NMI(bins=BINS), None),
+    "NCC": (NCC(), None),
+    "ECR tau 1024": (ECR(bins=BINS, model_variance=1024.0), "true"),
+    "ECR tau 4096": (ECR(bins=BINS, model_variance=4096.0), "true"),
 }
-DEFAULT_METHODS = (
-    "ECR true",
-    *(f"ECR uniform {_factor_name(factor)}" for factor in GRID),
-    "ENMI true",
-    *(f"ENMI uniform {_factor_name(factor)}" for factor in GRID),
-    "NMI",
-    "NCC",
-    "ECR tau 1024",
-    "ECR tau 4096",
-    "ECR est cheap",
-    "ECR est oracle",
-    "ECR profile 6",
-    "ECR local fisher",
-    "ECR local eb",
-    "ECR local fisher c8",
-    "ECR local fisher oracle",
-)
+DEFAULT_METHODS = tuple(method for method in METHODS if method != "ECR learned")
+# Methods whose estimated tau^2 is recorded per trial.
+ESTIMATED = ("ECR true", "ECR learned")
 # Columns of the report: the grids collapse into their mean and their best (picked per cell after the fact).
 DERIVED = {"ECR uniform mean": "ECR uniform x1", "ENMI uniform mean": "ENMI uniform x1"}
 BEST = {"ECR best uniform": "ECR uniform ", "ENMI best uniform": "ENMI uniform "}
 CONTROLS = ("ECR uniform mean", "ECR best uniform", "ENMI best uniform", "NMI", "NCC")
+CANDIDATES = ("ECR true", "ECR learned", "ECR today")
+SHOWN = (
+    "ECR true",
+    "ECR learned",
+    "ECR today",
+    "ECR uniform mean",
+    "ECR best uniform",
+    "ECR linear true",
+    "ENMI true",
+    "ENMI best uniform",
+    "NMI",
+    "NCC",
+    "ECR tau 1024",
+    "ECR tau 4096",
+)
 
 
 class Trials(NamedTuple):
@@ -246,11 +157,14 @@ class Trials(NamedTuple):
 
 def parse_case(case: str) -> tuple[str, float]:
     """``(kind, strength)`` of a case name: ``same`` -> ``("same", 0)``, ``tone@0.5``, ``real:another-date``."""
-    if case == "same" or case.startswith("real:"):
+    if case in NOISE_ONLY_CASES or case.startswith("real:"):
         return case, 0.0
     kind, _, strength = case.partition("@")
     if kind not in KINDS or not strength:
-        raise ValueError(f"case must be 'same', 'real:<folder>' or '<change>@<strength>' with change in {KINDS}")
+        raise ValueError(
+            f"case must be one of {list(NOISE_ONLY_CASES)}, 'real:<folder>' or '<change>@<strength>' with change in "
+            f"{list(KINDS)}, got {case!r}"
+        )
     value = float(strength)
     if not 0 < value <= 1:
         raise ValueError(f"the strength of case {case!r} must be in (0, 1]")
@@ -268,8 +182,15 @@ def dataset_of(folder: Path) -> str:
     return folder.name.rsplit("-", 1)[0]
 
 
-def pair_folders(data: Path, name: str) -> list[Path]:
-    """The pair folders of ``name``: ``<case>`` (all of ``data/<case>/``) or ``<case>/<dataset>``."""
+REAL_FOLDERS = ("all", "even", "odd")
+
+
+def pair_folders(data: Path, name: str, half: str = "all") -> list[Path]:
+    """The pair folders of ``name``: ``<case>`` (all of ``data/<case>/``) or ``<case>/<dataset>``.
+
+    ``half``: ``"all"``, or ``"even"`` / ``"odd"``: the folders at even / odd positions of each dataset's sorted list
+    (a split of the places: a mask learned on one half, measured on the other).
+    """
     case, _, dataset = name.partition("/")
     if not (data / case).is_dir():
         raise ValueError(f"--data: no folder {data / case} for case 'real:{name}'")
@@ -281,25 +202,33 @@ def pair_folders(data: Path, name: str) -> list[Path]:
         and (path / "captured.npy").exists()
         and (not dataset or dataset_of(path) == dataset)
     ]
+    if half != "all":
+        position: dict[str, int] = {}
+        kept = []
+        for path in folders:
+            index = position[dataset_of(path)] = position.get(dataset_of(path), -1) + 1
+            if index % 2 == (0 if half == "even" else 1):
+                kept.append(path)
+        folders = kept
     if not folders:
-        raise ValueError(f"--data: no pair folder for case 'real:{name}' under {data / case}")
+        raise ValueError(f"--data: no pair folder for case 'real:{name}' under {data / case} ({half} folders)")
     return folders
 
 
-def real_pairs(data: Path, name: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The ``(reference, captured)`` grey arrays of :func:`pair_folders`, those at least the window's size."""
+def real_pairs(data: Path, name: str, half: str = "all", size: int = SPAN) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ``(reference, captured)`` grey arrays of :func:`pair_folders`, those at least ``size`` on each side."""
     pairs = []
-    for folder in pair_folders(data, name):
+    for folder in pair_folders(data, name, half):
         reference = read_npy(folder / "reference.npy", "--data").astype(np.float64)
         captured = read_npy(folder / "captured.npy", "--data").astype(np.float64)
         if reference.ndim == 3:
             reference, captured = reference.mean(-1), captured.mean(-1)
         if reference.shape != captured.shape:
             raise ValueError(f"--data: {folder} holds reference {reference.shape} and captured {captured.shape}")
-        if min(reference.shape) >= SPAN:
+        if min(reference.shape) >= size:
             pairs.append((reference, captured))
     if not pairs:
-        raise ValueError(f"--data: no pair of at least {SPAN} x {SPAN} for case 'real:{name}'")
+        raise ValueError(f"--data: no pair of at least {size} x {size} for case 'real:{name}'")
     return pairs
 
 
@@ -314,12 +243,12 @@ def real_cases(data: Path | None) -> list[str]:
     return names
 
 
-def make_trials(case: str, trials: int, seed: int, data: Path | None = None) -> Trials:
+def make_trials(case: str, trials: int, seed: int, data: Path | None = None, half: str = "all") -> Trials:
     """The trials of one case: poses, scene changes and noise draws, a function of ``(case, trials, seed)``."""
     kind, strength = parse_case(case)
     generator = torch.Generator().manual_seed(seed)
     if kind.startswith("real:"):
-        sources = [(torch.from_numpy(r), torch.from_numpy(c)) for r, c in real_pairs(data, kind[5:])]
+        sources = [(torch.from_numpy(r), torch.from_numpy(c)) for r, c in real_pairs(data, kind[5:], half)]
     else:
         maps = [NOISE_ONLY.map_image(name) for name in NOISE_ONLY.MAPS]
         sources = [(image, image) for image in maps]
@@ -331,7 +260,9 @@ def make_trials(case: str, trials: int, seed: int, data: Path | None = None) -> 
         shift = torch.randint(-RADIUS + 1, RADIUS, (2,), generator=generator)
         window = reference[top : top + SPAN, left : left + SPAN]
         scene = captured[top : top + SPAN, left : left + SPAN]
-        if kind not in ("same",) and not kind.startswith("real:"):
+        if kind == "nonmonotonic":
+            scene = NOISE_ONLY.respond(scene, "nonmonotonic")
+        elif kind != "same" and not kind.startswith("real:"):
             kinds = tuple(CHANGES) if kind == "mixed" else (kind,)
             scene = scene_change(scene, seed * 100003 + trial, strength, kinds=kinds)
         row, col = (shift + RADIUS).tolist()
@@ -344,29 +275,45 @@ def make_trials(case: str, trials: int, seed: int, data: Path | None = None) -> 
     )
 
 
-def _contexts(trials: Trials, sensor: str, level: float):
+def _contexts(trials: Trials, sensor: str, level: float, learned: torch.Tensor | None = None):
     unit, valid = NOISE_ONLY.variance_profile(sensor)
-    if not bool(valid.all()):
-        raise ValueError(f"sensor {sensor!r} leaves cells out; the scene-change yardstick needs full images")
     variance = (level**2 * unit)[None, None]
-    local = (trials.clean + trials.draws * variance.sqrt()).float()
-    mean = float(variance.mean())
+    local = (trials.clean + trials.draws * variance.sqrt()).where(valid, 0.0).float()
+    mean = float(variance[0, 0][valid].mean())
+    mask = None if bool(valid.all()) else valid[None, None]
     for start in range(0, local.shape[0], CHUNK):
         part = slice(start, start + CHUNK)
-        yield Context(local[part], trials.window[part].float(), variance.float(), mean, trials.truth[part])
+        window = trials.window[part].float()
+        yield Context(local[part], window, variance.float(), mean, trials.truth[part], mask, learned)
 
 
-def run_methods(trials: Trials, sensor: str, level: float, methods) -> dict[str, tuple[torch.Tensor, list]]:
-    """Per method: success per trial (bool ``(T,)``) and the estimated ``tau^2`` per trial (empty when none)."""
+def _variance(context: Context, kind):
+    """The variance a method gives its score: the true map, the learned mask, a uniform one or none."""
+    if kind == "true":
+        return context.variance
+    if kind == "learned":
+        if context.learned is None:
+            raise ValueError("method 'ECR learned' needs --learned-mask")
+        return context.learned
+    return None if kind is None else context.mean * kind
+
+
+def run_methods(trials: Trials, sensor: str, level: float, methods, learned=None) -> dict[str, tuple]:
+    """Per method: success per trial (bool ``(T,)``) and the estimated ``tau^2`` per trial (empty when not kept)."""
     torch.set_num_threads(1)
     success = {method: [] for method in methods}
     tau2 = {method: [] for method in methods}
-    for context in _contexts(trials, sensor, level):
+    for context in _contexts(trials, sensor, level, learned):
         for method in methods:
-            score, estimate = METHODS[method](context)
-            success[method].append(NOISE_ONLY._outcomes(score, context.truth)[0])
-            if estimate is not None:
-                tau2[method] += [float(value) for value in estimate]
+            score, kind = METHODS[method]
+            variance = _variance(context, kind)
+            surface = score.surface(context.local, context.window, variance, captured_mask=context.mask)
+            success[method].append(NOISE_ONLY._outcomes(surface.score, context.truth)[0])
+            if method in ESTIMATED:
+                estimate = score.surface_model_variance(
+                    context.local, context.window, variance, captured_mask=context.mask
+                )
+                tau2[method] += estimate.tolist()
     return {method: (torch.cat(success[method]), tau2[method]) for method in methods}
 
 
@@ -402,12 +349,12 @@ def calibrate(case: str, sensor: str, trials: int, seed: int, data: Path | None)
     return {"case": case, "sensor": sensor, "L50": level, "bracketed": bracketed, "best_rates": best}
 
 
-def run_cell(case, sensor, levels, trials, seed, data, methods) -> list:
+def run_cell(case, sensor, levels, trials, seed, data, methods, half="all", learned=None) -> list:
     """Rows ``(case, sensor, level, method, successes, trials, outcomes, tau2s)`` of one case and sensor."""
-    generated = make_trials(case, trials, seed, data)
+    generated = make_trials(case, trials, seed, data, half)
     rows = []
     for level in levels:
-        for method, (success, tau2) in run_methods(generated, sensor, level, methods).items():
+        for method, (success, tau2) in run_methods(generated, sensor, level, methods, learned).items():
             bits = "".join("1" if value else "0" for value in success.tolist())
             tau_text = " ".join(f"{value:.4g}" for value in tau2)
             rows.append((case, sensor, level, method, int(success.sum()), trials, bits, tau_text))
@@ -443,32 +390,23 @@ def cell_outcomes(rows: list) -> dict:
     return cells
 
 
+def group_of(case: str) -> str:
+    """The cell's group: noise only, controlled change or real pairs."""
+    if case in NOISE_ONLY_CASES:
+        return "noise only"
+    return "real pairs" if case.startswith("real:") else "controlled change"
+
+
 def _rate(bits: np.ndarray) -> str:
     rate = bits.mean()
     return f"{rate:.2f} ± {math.sqrt(rate * (1 - rate) / len(bits)):.2f}"
 
 
-def report(rows: list, calibration: list, candidates: list[str]) -> str:
-    """The markdown report: success tables, paired claims of each candidate against the controls, ``tau^2``."""
+def report(rows: list, calibration: list) -> str:
+    """The markdown report: success tables, groups, paired claims of the candidates against the controls, ``tau^2``."""
     cells = cell_outcomes(rows)
     keys = list(cells)
-    shown = [
-        method
-        for method in (
-            "ECR true",
-            *candidates,
-            "ECR uniform mean",
-            "ECR best uniform",
-            "ENMI true",
-            "ENMI best uniform",
-            "NMI",
-            "NCC",
-            "ECR tau 1024",
-            "ECR tau 4096",
-        )
-        if any(method in cells[key] for key in keys)
-    ]
-    shown = list(dict.fromkeys(shown))
+    shown = [method for method in SHOWN if any(method in cells[key] for key in keys)]
     lines = []
     if calibration:
         lines += ["## Calibration: L50 per case and sensor (best of " + ", ".join(CALIBRATION_METHODS) + ")", ""]
@@ -494,43 +432,88 @@ def report(rows: list, calibration: list, candidates: list[str]) -> str:
                 text += f" ({cells[key][method + ' factor']})"
             texts.append(text)
         lines.append(f"| {key[0]} | {key[1]} | {key[2]:g} | " + " | ".join(texts) + " |")
-    lines += ["", "## Pooled over all cells: successes (of trials)", ""]
-    lines += ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
-    totals = [sum(int(cells[key][m].sum()) for key in keys if m in cells[key]) for m in shown]
-    counts = [sum(len(cells[key][m]) for key in keys if m in cells[key]) for m in shown]
-    lines.append("| " + " | ".join(f"{total} ({count})" for total, count in zip(totals, counts, strict=True)) + " |")
-    lines += ["", "## Paired differences: cells where the candidate is more than 1 SE below a control", ""]
-    lines += ["| candidate | " + " | ".join(CONTROLS) + " |", "|---|" + "---|" * len(CONTROLS)]
+    lines += ["", "## Mean success per group of cells (pooled successes of all trials in the last row)", ""]
+    lines += ["| group | cells | " + " | ".join(shown) + " |", "|---|---|" + "---|" * len(shown)]
+    for group in ("noise only", "controlled change", "real pairs"):
+        members = [key for key in keys if group_of(key[0]) == group]
+        if members:
+            means = [
+                f"{np.mean([cells[key][m].mean() for key in members if m in cells[key]]):.3f}"
+                if any(m in cells[key] for key in members)
+                else ""
+                for m in shown
+            ]
+            lines.append(f"| {group} | {len(members)} | " + " | ".join(means) + " |")
+    totals = [
+        f"{sum(int(cells[key][m].sum()) for key in keys if m in cells[key])} of "
+        f"{sum(len(cells[key][m]) for key in keys if m in cells[key])}"
+        for m in shown
+    ]
+    lines.append(f"| pooled | {len(keys)} | " + " | ".join(totals) + " |")
+    lines += ["", "## Paired differences: ECR true (estimated tau^2) minus ECR today, all trials of each group", ""]
+    for group in ("noise only", "controlled change", "real pairs", "all"):
+        members = [key for key in keys if group == "all" or group_of(key[0]) == group]
+        pairs = [(cells[key]["ECR true"], cells[key]["ECR today"]) for key in members if "ECR today" in cells[key]]
+        if pairs and all("ECR true" in cells[key] for key in members):
+            mean, error = _paired(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]))
+            lines.append(f"- {group} ({len(pairs)} cells): {mean:+.4f} ± {error:.4f}")
+    lines += ["", "## Paired differences: cells where a candidate is more than 1 SE below a control", ""]
+    lines += ["| candidate | cells | " + " | ".join(CONTROLS) + " |", "|---|---|" + "---|" * len(CONTROLS)]
     failures_text = []
-    for candidate in ["ECR true", *candidates]:
-        if not any(candidate in cells[key] for key in keys):
-            continue
-        counts_text = []
-        for control in CONTROLS:
-            judged = [key for key in keys if candidate in cells[key] and control in cells[key]]
-            failures = []
-            for key in judged:
-                mean, error = _paired(cells[key][candidate], cells[key][control])
-                if mean < -error - 1e-12:
-                    failures.append(f"{key[0]}/{key[1]}/{key[2]:g}: {mean:+.2f} ± {error:.2f}")
-            counts_text.append(f"{len(judged) - len(failures)}/{len(judged)}")
-            if failures:
-                failures_text.append(f"- {candidate} vs {control}: " + "; ".join(failures))
-        lines.append(f"| {candidate} | " + " | ".join(counts_text) + " |")
+    for candidate in CANDIDATES:
+        for scope, inside in (("scene change", lambda case: case not in NOISE_ONLY_CASES), ("noise only", None)):
+            judged_keys = [
+                key
+                for key in keys
+                if candidate in cells[key] and (inside(key[0]) if inside else key[0] in NOISE_ONLY_CASES)
+            ]
+            if not judged_keys:
+                continue
+            counts_text = []
+            for control in CONTROLS:
+                judged = [key for key in judged_keys if control in cells[key]]
+                failures = []
+                for key in judged:
+                    mean, error = _paired(cells[key][candidate], cells[key][control])
+                    if mean < -error - 1e-12:
+                        mark = " (> 2 SE)" if mean < -2 * error - 1e-12 else ""
+                        failures.append(f"{key[0]}/{key[1]}/{key[2]:g}: {mean:+.2f} ± {error:.2f}{mark}")
+                counts_text.append(f"{len(judged) - len(failures)}/{len(judged)}")
+                if failures:
+                    failures_text.append(f"- {candidate} vs {control} ({scope}): " + "; ".join(failures))
+            lines.append(f"| {candidate} | {scope} | " + " | ".join(counts_text) + " |")
     lines += ["", "(within 1 SE or above / cells judged)", "", *failures_text]
+    if any("ECR learned" in cells[key] for key in keys):
+        lines += ["", "## ECR learned against ECR true (the analytic map) and ECR with a uniform variance", ""]
+        for control in ("ECR true", "ECR today", "ECR uniform mean", "ECR best uniform"):
+            judged = [key for key in keys if "ECR learned" in cells[key] and control in cells[key]]
+            below = []
+            for key in judged:
+                mean, error = _paired(cells[key]["ECR learned"], cells[key][control])
+                if mean < -error - 1e-12:
+                    below.append(f"{key[0]}/{key[1]}/{key[2]:g}: {mean:+.2f} ± {error:.2f}")
+            everything = _paired(
+                np.concatenate([cells[key]["ECR learned"] for key in judged]),
+                np.concatenate([cells[key][control] for key in judged]),
+            )
+            lines.append(
+                f"- minus {control}: {everything[0]:+.4f} ± {everything[1]:.4f} over all trials; within 1 SE or above "
+                f"in {len(judged) - len(below)}/{len(judged)} cells"
+                + (f" (below: {'; '.join(below)})" if below else "")
+            )
     lines += ["", "## Noise only, camera-like: candidate minus ECR uniform mean (needs >= 2 SE at high noise)", ""]
     for key in keys:
-        if key[0] == "same" and key[1] == "camera-like":
-            for candidate in ["ECR true", *candidates]:
+        if key[0] in NOISE_ONLY_CASES and key[1] == "camera-like":
+            for candidate in ("ECR true", "ECR today"):
                 if candidate in cells[key] and "ECR uniform mean" in cells[key]:
                     mean, error = _paired(cells[key][candidate], cells[key]["ECR uniform mean"])
                     verdict = "yes" if mean > 0 and mean >= 2 * error else "no"
                     lines.append(
-                        f"- sigma {key[2]:g}, {candidate}: {mean:+.2f} ± {error:.2f} "
+                        f"- {key[0]}, sigma {key[2]:g}, {candidate}: {mean:+.2f} ± {error:.2f} "
                         f"({mean / max(error, 1e-12):.1f} SE): {verdict}"
                     )
     lines += ["", "## Estimated tau^2: median (25 %, 75 %) over the trials", ""]
-    estimators = sorted({row[3] for row in rows if row[7]})
+    estimators = [method for method in ESTIMATED if any(row[3] == method and row[7] for row in rows)]
     lines += ["| case | sensor | sigma | " + " | ".join(estimators) + " |", "|---|---|---|" + "---|" * len(estimators)]
     tau_table = {(row[0], row[1], float(row[2]), row[3]): row[7] for row in rows if row[7]}
     for key in keys:
@@ -566,6 +549,16 @@ def read_rows(path: Path) -> list:
         ]
 
 
+def read_learned_mask(path: Path) -> torch.Tensor:
+    """A ``(LOCAL, LOCAL)`` ``.npy`` variance map, > 0 and finite everywhere, as ``(1, 1, LOCAL, LOCAL)`` float32."""
+    mask = read_npy(path, "--learned-mask").astype(np.float64)
+    if mask.shape != (LOCAL, LOCAL):
+        raise ValueError(f"--learned-mask must be a ({LOCAL}, {LOCAL}) variance map, got shape {mask.shape}")
+    if not (np.isfinite(mask).all() and (mask > 0).all()):
+        raise ValueError(f"--learned-mask must be finite and > 0 at every pixel, {path} is not")
+    return torch.from_numpy(mask).float()[None, None]
+
+
 class _InProcess:
     """``ProcessPoolExecutor``'s ``submit`` run in this process (``--jobs 1``: nothing to pickle, easy to profile)."""
 
@@ -588,8 +581,20 @@ def main(argv=None) -> None:
         epilog=__doc__.split("\n\n", 1)[1],
     )
     parser.add_argument("--trials", type=int, default=100, help="paired trials per cell (default 100)")
-    parser.add_argument("--cases", nargs="+", default=None, help=f"cases (default: {' '.join(CASES)} and --data's)")
-    parser.add_argument("--sensors", nargs="+", choices=SENSORS, default=list(SENSORS))
+    parser.add_argument(
+        "--cases",
+        nargs="+",
+        default=None,
+        help=f"cases (default: {' '.join(CASES)}, --data's, {' '.join(LATER_CASES)})",
+    )
+    parser.add_argument("--sensors", nargs="+", choices=SENSORS, default=["camera-like", "lidar-like"])
+    parser.add_argument(
+        "--noise-only-sensors",
+        nargs="+",
+        choices=SENSORS,
+        default=list(SENSORS),
+        help="sensors of the noise-only cases",
+    )
     parser.add_argument("--levels", nargs="+", type=float, default=None, help="mean noise sigmas (skip calibration)")
     parser.add_argument("--same-levels", nargs="*", type=float, default=[240.0, 480.0], help="extra levels, noise only")
     parser.add_argument("--calibration", type=Path, default=None, help="a calibration.json of an earlier run")
@@ -597,7 +602,11 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--methods", nargs="+", choices=[*METHODS, "all"], default=list(DEFAULT_METHODS), help="methods, or 'all'"
     )
+    parser.add_argument("--learned-mask", type=Path, default=None, help="(64, 64) .npy variance map for ECR learned")
     parser.add_argument("--data", type=Path, default=Path("/work/data/scene_change"), help="real pairs, if present")
+    parser.add_argument(
+        "--real-folders", choices=REAL_FOLDERS, default="all", help="all pair folders, or every other one per dataset"
+    )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (one torch thread each)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=Path("runs/yardstick_scene_change"), help="output folder")
@@ -606,37 +615,48 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.trials < 2 or args.jobs < 1 or args.calibration_trials < 2:
         parser.error(f"--trials, --calibration-trials >= 2 and --jobs >= 1, got {args.trials}, {args.jobs}")
-    candidates = [
-        method for method in METHODS if method.startswith(("ECR est", "ECR profile", "ECR per-bin", "ECR local"))
-    ]
-    results, tau_path = args.output / "results.csv", args.output / "tau.csv"
-    calibration_path, report_path = args.output / "calibration.json", args.output / "report.md"
+    methods = list(METHODS) if "all" in args.methods else list(dict.fromkeys(args.methods))
+    results, calibration_path = args.output / "results.csv", args.output / "calibration.json"
+    report_path, data_path = args.output / "report.md", args.output / "data.json"
     if args.report:
         if not results.exists():
             parser.error(f"--output: {results} does not exist; run without --report first")
         calibration = json.loads(calibration_path.read_text()) if calibration_path.exists() else []
-        print(report(read_rows(results), calibration, candidates))
+        print(report(read_rows(results), calibration))
         return
+    learned = None
+    if "ECR learned" in methods:
+        if args.learned_mask is None:
+            parser.error("--methods: 'ECR learned' needs --learned-mask")
+        try:
+            learned = read_learned_mask(args.learned_mask)
+        except (OSError, ValueError) as error:
+            parser.error(str(error))
     data = args.data if args.data.is_dir() else None
-    cases = args.cases or [*CASES, *real_cases(data)]
+    cases = args.cases or [*CASES, *real_cases(data), *LATER_CASES]
     for case in cases:
         try:
             parse_case(case)
             if case.startswith("real:"):
                 if data is None:
                     raise ValueError(f"case {case!r} needs --data, and {args.data} is not a folder")
-                pair_folders(data, case[5:])
+                pair_folders(data, case[5:], args.real_folders)
         except ValueError as error:
             parser.error(f"--cases: {error}")
-    data_path = args.output / "data.json"
-    _check_untracked([results, tau_path, calibration_path, report_path, data_path])
+    _check_untracked([results, calibration_path, report_path, data_path])
     args.output.mkdir(parents=True, exist_ok=True)
     used = {
-        case: [str(folder) for folder in pair_folders(data, case[5:])] for case in cases if case.startswith("real:")
+        case: [str(folder) for folder in pair_folders(data, case[5:], args.real_folders)]
+        for case in cases
+        if case.startswith("real:")
     }
     data_path.write_text(json.dumps(used, indent=1))
     start = time.perf_counter()
-    units = [(case, sensor) for case in cases for sensor in args.sensors]
+    units = [
+        (case, sensor)
+        for case in cases
+        for sensor in (args.noise_only_sensors if case in NOISE_ONLY_CASES else args.sensors)
+    ]
     case_seed = {case: args.seed * 1000 + index for index, case in enumerate(cases)}
     calibration = []
     with ProcessPoolExecutor(args.jobs) if args.jobs > 1 else _InProcess() as pool:
@@ -670,10 +690,21 @@ def main(argv=None) -> None:
             else:
                 l50 = next(entry["L50"] for entry in calibration if (entry["case"], entry["sensor"]) == (case, sensor))
                 levels = [float(f"{l50 / 4:.2g}"), l50]
-            if case == "same":
-                levels = sorted(set(levels) | set(args.same_levels))
+                if case in NOISE_ONLY_CASES:
+                    levels = sorted(set(levels) | set(args.same_levels))
             futures.append(
-                pool.submit(run_cell, case, sensor, levels, args.trials, case_seed[case], data, tuple(args.methods))
+                pool.submit(
+                    run_cell,
+                    case,
+                    sensor,
+                    levels,
+                    args.trials,
+                    case_seed[case],
+                    data,
+                    tuple(methods),
+                    args.real_folders,
+                    learned,
+                )
             )
         rows = []
         for done, future in enumerate(futures, 1):
@@ -687,7 +718,7 @@ def main(argv=None) -> None:
         writer = csv.writer(file)
         writer.writerow(["case", "sensor", "mean_sigma", "method", "successes", "trials", "outcomes", "tau2"])
         writer.writerows(rows)
-    text = report(rows, calibration, candidates)
+    text = report(rows, calibration)
     report_path.write_text(text)
     print(text)
     print(
