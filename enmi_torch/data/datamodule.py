@@ -86,6 +86,8 @@ class PairDataModule(LightningDataModule):
         if root is None:
             check_option("flavour", flavour, FLAVOURS)
             truth = make_truth(flavour, (check_positive_int("size", size),) * 2, noise_std)
+            check_positive_int("train_pairs", train_pairs)
+            check_positive_int("val_pairs", val_pairs)
             options = {"gain_std": gain_std, "offset_std": offset_std}
             self.train_set: Dataset = SyntheticPairs(truth, train_pairs, seed=2 * seed, **options)
             self.val_set: Dataset = SyntheticPairs(truth, val_pairs, seed=2 * seed + 1, **options)

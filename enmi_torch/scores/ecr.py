@@ -304,7 +304,10 @@ def ecr_surface(
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     model_variance = check_model_variance(model_variance, bins, value_range)
-    inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance)
+    binned = None if response == "linear" else bins  # the map is binned: refuse one that all falls in one bin
+    inputs = check_inputs(
+        captured, reference, captured_mask, reference_mask, value_range, variance, reference_bins=binned
+    )
     check_option("response", response, RESPONSES)
     check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():
@@ -444,7 +447,9 @@ class ECR(Score):
         """
         if self.response != "binned":
             raise ValueError(f"the rough ECR surface needs response='binned', got {self.response!r}")
-        inputs = check_inputs(captured, reference, captured_mask, reference_mask, self.value_range, variance)
+        inputs = check_inputs(
+            captured, reference, captured_mask, reference_mask, self.value_range, variance, reference_bins=self.bins
+        )
         tau2 = check_model_variance(self.model_variance, self.bins, self.value_range)
         with torch.no_grad():
             return _ecr_surface(inputs, tau2, self.bins, self.value_range, exact_counts=False)
