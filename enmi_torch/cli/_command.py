@@ -6,7 +6,7 @@ import argparse
 import difflib
 import re
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import NoReturn
 
 # Exceptions that mean "the input or the options are wrong" (the library's checks, missing or unreadable files).
@@ -54,6 +54,14 @@ def dashed_aliases(argv: Sequence[str], names: Sequence[str]) -> list[str]:
         option, equals, value = argument.partition("=")
         rewritten.append(aliases.get(option, option) + equals + value if option in aliases else argument)
     return rewritten
+
+
+def with_flag_names(message: str, flags: Mapping[str, str]) -> str:
+    """``message`` with the parameter it starts with named as the flag the user typed (``count``: ``--pairs``)."""
+    match = re.match(r"(\w+)\b", message)
+    if match and match.group(1) in flags:
+        return flags[match.group(1)] + message[match.end() :]
+    return message
 
 
 def plain_parser_message(message: str, known: Sequence[str] = ()) -> str:

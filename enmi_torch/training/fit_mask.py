@@ -11,7 +11,6 @@ import contextlib
 import copy
 import json
 import logging
-import re
 import time
 import warnings
 from collections.abc import Sequence
@@ -24,7 +23,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from enmi_torch._files import load_plain_torch
 from enmi_torch._resources import config_file
-from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text
+from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
 from enmi_torch.training.localization_figure import METHOD_LABELS, held_out_order
 from enmi_torch.training.logger import next_version, run_name
@@ -391,7 +390,7 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
     except MisconfigurationException as error:  # Lightning's word for a bad option (devices, strategy, ...)
         raise ValueError(str(error)) from error
     except (ValueError, TypeError, FileNotFoundError) as error:
-        message = flag_names(str(error), cli_config_keys())
+        message = with_flag_names(str(error), cli_config_keys())
         if message == str(error):
             raise
         raise type(error)(message) from error
@@ -419,11 +418,3 @@ def cli_config_keys() -> dict[str, str]:
             if name != "self":
                 flags.setdefault(name, f"--{group}.{name}")
     return flags
-
-
-def flag_names(message: str, flags: dict[str, str]) -> str:
-    """``message`` with the parameter it starts with named as the flag the user types (``root`` -> ``--data.root``)."""
-    match = re.match(r"(\w+)\b", message)
-    if match and match.group(1) in flags:
-        return flags[match.group(1)] + message[match.end() :]
-    return message
