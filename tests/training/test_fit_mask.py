@@ -144,7 +144,13 @@ def test_dashboards_open_on_the_answer(tmp_path):
     assert start.hparams["epochs"].number_value == 2 and not any(name.startswith("_") for name in start.hparams)
 
 
-class SlowValidation(Callback):
+class SlowEpochs(Callback):
+    """0.3 s of training in each epoch's first batch, 0.5 s in each validation."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if batch_idx == 0:
+            time.sleep(0.3)
+
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
         time.sleep(0.5)
 
@@ -162,10 +168,26 @@ def test_training_speed_leaves_validation_out():
         num_sanity_val_steps=0,
         check_val_every_n_epoch=1,
         enable_checkpointing=False,
-        callbacks=[SlowValidation()],
+        callbacks=[SlowEpochs()],
     )
     trainer.fit(model, datamodule=datamodule)
-    assert len(model.epoch_seconds) == 2 and max(model.epoch_seconds) < 0.4  # each epoch held a 0.5 s validation
+    assert len(model.epoch_seconds) == 2
+    assert all(0.3 <= seconds < 0.7 for seconds in model.epoch_seconds), model.epoch_seconds  # training counted only
+
+
+def test_held_out_sets_scale_the_noise_of_the_central_crop():
+    model = MaskFitModule(shape=(40, 44), localization_shift=2, localization_crop=16, localization_noise=(1, 4))
+    generator = torch.Generator().manual_seed(0)
+    prior = torch.rand(3, 1, 40, 44, generator=generator, dtype=torch.float64) * 256
+    local = prior + torch.randn(3, 1, 40, 44, generator=generator, dtype=torch.float64)
+    sets = model.held_out_sets(local, prior, torch.ones_like(local, dtype=torch.bool))
+    assert list(sets) == ["noise_x1", "noise_x4"]
+    window = (..., slice(10, 30), slice(12, 32))  # 16 + 2 x 2 around the centre of 40 x 44
+    for name, factor in (("noise_x1", 1.0), ("noise_x4", 4.0)):
+        set_local, set_prior, variance_factor = sets[name]
+        torch.testing.assert_close(set_prior, prior[window])
+        torch.testing.assert_close(set_local - set_prior, factor * (local - prior)[window])
+        assert variance_factor == factor**2
 
 
 @pytest.mark.parametrize(
@@ -374,6 +396,15 @@ def test_an_error_comes_alone_before_any_of_lightnings_lines(tmp_path):
     )
     assert completed.returncode == 2 and completed.stdout == ""
     assert completed.stderr == "enmi-fit-mask: error: --data.train_pairs must be an int >= 1, got 0\n"
+    completed = subprocess.run(  # a good run prints Lightning's lines after all
+        [sys.executable, str(ROOT / "train" / "fit_mask.py"), "--config", SMOKE, "--model.localization_pairs", "0"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert completed.returncode == 0 and "Seed set to 0" in completed.stderr and "GPU available" in completed.stderr
 
 
 def test_debug_shows_the_exception(tmp_path):
