@@ -19,8 +19,8 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_only
 
 LAYOUT_TAG = "custom_scalars__config__"
-# The hyperparameters that tell runs apart, listed first in the HParams tab.
-FIRST = ("form", "smoothness", "match_intensity", "train_pairs", "size", "noise_std", "lr")
+# The hyperparameters that tell runs apart, shown in the HParams tab.
+SHOWN = ("form", "smoothness", "match_intensity", "train_pairs", "size", "noise_std", "lr")
 
 
 def run_name(root: str | None, flavour: str) -> str:
@@ -132,16 +132,15 @@ class MaskLogger(TensorBoardLogger):
     def log_final_metrics(self, metrics: Sequence[str], leading: Mapping[str, Any] | None = None) -> None:
         """The hyperparameters with these metric tags: the HParams tab shows each tag's last logged value.
 
-        ``leading``: hyperparameters listed first (the data, the epochs), before the others in the order of
-        ``FIRST``; Lightning's private entries (``_instantiator``) are left out.
+        The hyperparameters are ``leading`` (the data, the epochs) and those of ``SHOWN`` (the ones that tell runs
+        apart; TensorBoard lists them by name and ticks the first few): every other one is in the run's
+        ``hparams.yaml`` and ``config.yaml``.
         """
         from torch.utils.tensorboard.summary import hparams
 
         stored = self._sanitize_params(_flatten_dict(_convert_params(dict(self.hparams))))
-        stored = {key: value for key, value in stored.items() if not key.startswith("_")}
         params = dict(leading or {})
-        params.update({key: stored[key] for key in FIRST if key in stored and key not in params})
-        params.update({key: value for key, value in stored.items() if key not in params})
+        params.update({key: stored[key] for key in SHOWN if key in stored and key not in params})
         experiment, start, end = hparams(params, dict.fromkeys(metrics, 0.0))
         writer = self.experiment._get_file_writer()
         for summary in (experiment, start, end):

@@ -141,7 +141,11 @@ def test_dashboards_open_on_the_answer(tmp_path):
         for method, rate in rates.items():
             assert last[f"localization/{held_out}/{method}"] == pytest.approx(rate, abs=1e-6)
     assert start.hparams["data"].string_value == "lidar" and start.hparams["form"].string_value == "pixel"
-    assert start.hparams["epochs"].number_value == 2 and not any(name.startswith("_") for name in start.hparams)
+    assert start.hparams["epochs"].number_value == 2
+    assert set(start.hparams) == {"data", "epochs", "form", "smoothness", "match_intensity", "train_pairs", "size"} | {
+        "noise_std",
+        "lr",
+    }
 
 
 class SlowEpochs(Callback):
