@@ -60,12 +60,12 @@ def localization_figure(rates: Mapping[str, Mapping[str, float]], pairs: int, *,
     axis.imshow(shares, cmap="RdYlGn", vmin=0.0, vmax=1.0, aspect="auto")
     for (row, column), share in np.ndenumerate(shares):
         if np.isfinite(share):
-            axis.text(column, row, f"{share:.2f}", ha="center", va="center", fontsize=FONT - 3)
-    axis.set_xticks(range(len(sets)), [name.replace("_x", " x") for name in sets], fontsize=FONT - 3)
+            axis.text(column, row, f"{share:.2f}", ha="center", va="center", fontsize=FONT - 1)
+    axis.set_xticks(range(len(sets)), [name.replace("_x", " x") for name in sets], fontsize=FONT - 1)
     axis.xaxis.tick_top()
-    axis.set_yticks(range(len(methods)), [METHOD_LABELS.get(method, method) for method in methods], fontsize=FONT - 4)
+    axis.set_yticks(range(len(methods)), [METHOD_LABELS.get(method, method) for method in methods], fontsize=FONT - 2)
     axis.tick_params(length=0)
     stderr = 0.5 / max(pairs, 1) ** 0.5
     heading = f"share of {pairs} held-out pairs located (standard error at most {stderr:.2f})"
-    figure.suptitle(f"{title}\n{heading}" if title else heading, fontsize=FONT - 4)
+    figure.suptitle(f"{title}\n{heading}" if title else heading, fontsize=FONT - 3)
     return figure
