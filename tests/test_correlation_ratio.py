@@ -233,7 +233,7 @@ def test_a_map_that_falls_in_one_bin_is_refused_where_ecr_bins_it():
     for surface in (lambda: ecr_surface(captured, reference, 1e-4), lambda: ECR().surface(captured, reference, 1e-4)):
         with pytest.raises(ValueError, match=r"reference varies .* one of the 32 bins of value_range=\(0\.0, 256\.0\)"):
             surface()
-    with pytest.raises(ValueError, match="reference varies"):  # the two-stage search's rough ECR surface too
+    with pytest.raises(ValueError, match="reference varies"):  # the two-stage search bins the map too
         localize(captured, reference, 1e-4, shifts=4, yaws=[-1.0, 0.0, 1.0], search="two_stage")
     fixed = ecr_surface(captured, reference, 1e-4, value_range=(0.0, 1.0))
     assert int(fixed.score[0].argmax()) == 4 * 9 + 4  # the true placement, (4, 4) of 9 x 9

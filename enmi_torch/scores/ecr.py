@@ -447,9 +447,7 @@ class ECR(Score):
         """
         if self.response != "binned":
             raise ValueError(f"the rough ECR surface needs response='binned', got {self.response!r}")
-        inputs = check_inputs(
-            captured, reference, captured_mask, reference_mask, self.value_range, variance, reference_bins=self.bins
-        )
+        inputs = check_inputs(captured, reference, captured_mask, reference_mask, self.value_range, variance)
         tau2 = check_model_variance(self.model_variance, self.bins, self.value_range)
         with torch.no_grad():
             return _ecr_surface(inputs, tau2, self.bins, self.value_range, exact_counts=False)
