@@ -196,8 +196,11 @@ def check_resolved_by_bins(
         )
 
 
-def check_finite_where(name: str, values: Tensor, valid: Tensor | None) -> None:
-    """Raise ``ValueError`` if ``values`` holds NaN or inf at a valid position (a value check)."""
+def check_finite_where(name: str, values: Tensor, valid: Tensor | None, mask_name: str = "valid_mask") -> None:
+    """Raise ``ValueError`` if ``values`` holds NaN or inf at a valid position (a value check).
+
+    ``mask_name``: the argument the caller's user gives ``valid`` as, named in the message.
+    """
     if not _values_checked(values):
         return
     bad = ~torch.isfinite(values)
@@ -206,8 +209,8 @@ def check_finite_where(name: str, values: Tensor, valid: Tensor | None) -> None:
     if bool(bad.any()):
         count = int(bad.sum())
         raise ValueError(
-            f"{name} must be finite where valid_mask is True, got {count} NaN/inf value(s); "
-            "mask them out with valid_mask"
+            f"{name} must be finite where {mask_name} is True, got {count} NaN/inf value(s); "
+            f"mask them out with {mask_name}"
         )
 
 

@@ -111,7 +111,7 @@ def read_image(path: str | Path, source: str) -> np.ndarray:
             with Image.open(path) as opened:
                 if opened.mode not in ("L", "I;16", "I;16B", "I", "1"):
                     raise ValueError(f"expected a single-channel (grey) PNG, got mode {opened.mode}")
-                image = np.asarray(opened)
+                image = np.array(opened)  # a writable copy: torch.as_tensor warns on a read-only array
         except ImportError as error:
             raise ValueError(f"{named}: reading PNG needs Pillow (pip install -e '.[train]')") from error
         except Exception as error:  # every decoder failure becomes one message naming the file

@@ -49,15 +49,16 @@ _TABLE_CELLS = 1 << 20
 def joint_histogram(
     captured: Tensor,
     reference: Tensor,
+    variance: Tensor | float | None = None,
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    captured_variance: Tensor | float | None = None,
     valid_mask: Tensor | None = None,
     kernel: str | None = None,
     reference_kernel: str = "hard",
     log_prior: Tensor | None = None,
     pixel_weight: Tensor | None = None,
+    captured_variance: Tensor | float | None = None,
 ) -> Tensor:
     """Joint histogram (counts) of a captured image and a reference image, ``(B, bins, bins)``.
 
@@ -67,12 +68,12 @@ def joint_histogram(
             ``(C, *captured.shape)``: each captured image is then histogrammed against each candidate, its pixel
             weights computed once (the costly part of the likelihood kernels), and the result is
             ``(C, B, bins, bins)``.
+        variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
+            ``(1, 1, H, W)`` or ``(B, 1, H, W)`` (likewise for the other layouts). Required by the likelihood
+            kernels ``"mass"``/``"density"``, refused by the others. The third argument, as in every score.
         bins: number of equal-width amplitude bins, >= 2.
         value_range: ``(low, high)`` covered by the bins; values outside are clipped into the edge bins.
-        captured_variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
-            ``(1, 1, H, W)`` or ``(B, 1, H, W)`` (likewise for the other layouts). Required by the likelihood
-            kernels ``"mass"``/``"density"``, refused by the others.
-        valid_mask: bool, same broadcasting as ``captured_variance``; ``False`` pixels are left out (they may hold
+        valid_mask: bool, same broadcasting as ``variance``; ``False`` pixels are left out (they may hold
             NaN). ``None`` keeps every pixel.
         kernel: how a captured pixel spreads its unit weight over the bins: ``"hard"``, ``"triangular"``, ``"xu"``
             (Parzen windows, see :func:`~enmi_torch.binning.parzen_weights`) or ``"mass"``, ``"density"``
@@ -83,8 +84,9 @@ def joint_histogram(
         log_prior: optional log prior of the amplitude per bin, ``(bins,)`` or ``(B, bins)``, for the likelihood
             kernels (MAP weights). Not differentiated.
         pixel_weight: optional weight >= 0 of each captured pixel (e.g.
-            :func:`~enmi_torch.binning.reliability_weights`), broadcast like ``captured_variance``: a valid pixel adds
+            :func:`~enmi_torch.binning.reliability_weights`), broadcast like ``variance``: a valid pixel adds
             this total weight instead of 1. Not differentiated; takes the dense (autograd) path.
+        captured_variance: the former name of ``variance`` (keyword only), still accepted.
 
     Returns:
         Counts ``(B, bins, bins)`` (``(C, B, bins, bins)`` for candidates): captured bins on axis -2, reference
@@ -98,7 +100,7 @@ def joint_histogram(
             :func:`~enmi_torch.set_memory_budget` or :func:`~enmi_torch.memory_budget`.
 
     Convention:
-        Gradients flow to ``captured`` and ``captured_variance`` for the differentiable kernels and to
+        Gradients flow to ``captured`` and ``variance`` for the differentiable kernels and to
         ``reference`` for soft reference kernels. With a hard reference and a likelihood kernel the histogram is
         accumulated in chunks by a custom autograd function that never stores the ``(B, N, bins)`` weights.
 
@@ -112,9 +114,11 @@ def joint_histogram(
         tensor([[[0., 2.],
                  [2., 0.]]])
     """
-    inputs = _prepare(
-        captured, reference, bins, value_range, captured_variance, valid_mask, kernel, reference_kernel, log_prior
-    )
+    if captured_variance is not None:
+        if variance is not None:
+            raise TypeError("joint_histogram takes variance or its former name captured_variance, got both")
+        variance = captured_variance
+    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, kernel, reference_kernel, log_prior)
     if pixel_weight is not None:
         inputs = with_pixel_weight(inputs, pixel_weight, captured)
     return _joint_histogram(inputs)

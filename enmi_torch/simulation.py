@@ -34,6 +34,18 @@ from enmi_torch.information import _nmi_from_entropies, entropies
 from enmi_torch.scores.enmi import enmi
 from enmi_torch.scores.nmi import nmi
 
+__all__ = [
+    "PAPER_ROW_COUNTS",
+    "SCORES",
+    "ErrorRates",
+    "RoadTiles",
+    "Trials",
+    "count_errors",
+    "draw_trials",
+    "error_rates",
+    "road_tiles",
+]
+
 PAPER_ROW_COUNTS = (5, 5, 7, 7, 9, 9, 11, 13)
 """Tiles per row of the paper's Fig. SimRoadImage, nearest row first (66 tiles)."""
 

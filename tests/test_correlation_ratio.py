@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import BinSums, ECRLoss, ecr, ecr_from_bin_sums
+from enmi_torch import ECR, BinSums, ECRLoss, ecr, ecr_from_bin_sums, ecr_surface, localize
 from enmi_torch.scores.ecr import default_model_variance
 from enmi_torch.variance import ConstantVariance
 
@@ -225,3 +225,17 @@ def test_linear_response_equals_weighted_least_squares_and_ignores_inverted_cont
 def test_default_model_variance_is_the_bin_quantisation_variance():
     assert default_model_variance(32, (0.0, 256.0)) == pytest.approx(64 / 12)
     assert default_model_variance(16, (-8.0, 8.0)) == pytest.approx(1 / 12)
+
+
+def test_a_map_that_falls_in_one_bin_is_refused_where_ecr_bins_it():
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(1, 1, 24, 24, generator=generator)  # [0, 1] against the default (0, 256)
+    captured = reference[..., 4:20, 4:20] + 0.01 * torch.randn(1, 1, 16, 16, generator=generator)
+    for surface in (lambda: ecr_surface(captured, reference, 1e-4), lambda: ECR().surface(captured, reference, 1e-4)):
+        with pytest.raises(ValueError, match=r"reference varies .* one of the 32 bins of value_range=\(0\.0, 256\.0\)"):
+            surface()
+    with pytest.raises(ValueError, match="reference varies"):  # the two-stage search bins the map too
+        localize(captured, reference, 1e-4, shifts=4, yaws=[-1.0, 0.0, 1.0], search="two_stage")
+    fixed = ecr_surface(captured, reference, 1e-4, value_range=(0.0, 1.0))
+    assert int(fixed.score[0].argmax()) == 4 * 9 + 4  # the true placement, (4, 4) of 9 x 9
+    ecr_surface(captured, reference, 1e-4, response="linear")  # the linear response bins nothing

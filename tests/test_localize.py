@@ -1,5 +1,10 @@
 import json
 import math
+import re
+import subprocess
+import sys
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +18,8 @@ from enmi_torch.localization.peak import Localization, _quadratic_peak
 from enmi_torch.localization.search import Localizer, _rotated, localize
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.variance import ConstantVariance, VarianceModel
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -717,3 +724,48 @@ def test_command_line_builds_the_score_from_its_flags_and_keeps_the_old_one(grav
         capsys, [*files, "--variance", "4", "--value-range", "5", "1"]
     )
     assert "--score-option takes KEY=VALUE" in _one_line_error(capsys, [*files, "--score-option", "kernel"])
+
+
+def test_command_line_hints_work_as_written(gravel_map, tmp_path, capsys):
+    """The [0, 1] hint's --value-range parses and fixes the run; a PNG reads without torch's read-only warning."""
+    from PIL import Image
+
+    unit = gravel_map[0, 0].numpy() / 255.0
+    np.save(tmp_path / "map.npy", unit)
+    np.save(tmp_path / "local.npy", unit[64:96, 64:96])
+    files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy"), "--variance", "0.001"]
+    for score in ("ecr", "enmi"):  # ECR bins the map, ENMI the captured image: both refuse one bin, name the flag
+        error = _one_line_error(capsys, [*files, "--score", score, "--shifts", "4", "--center", "80", "80"])
+        hint = re.search(r"\(e\.g\. (--value-range [^ ]+ [^ ]+) for", error)
+        assert hint is not None, error
+        report = _command([*files, "--score", score, "--shifts", "4", "--center", "80", "80", *hint.group(1).split()])
+        assert (round(report["dx"]), round(report["dy"])) == (0, 0)
+        capsys.readouterr()
+    Image.fromarray(gravel_map[0, 0].numpy().astype(np.uint8)).save(tmp_path / "map.png")
+    Image.fromarray(gravel_map[0, 0, 64:96, 64:96].numpy().astype(np.uint8)).save(tmp_path / "local.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # torch warns on a read-only array: none here
+        _command(["--map", str(tmp_path / "map.png"), "--local", str(tmp_path / "local.png"), "--variance", "4"])
+
+
+def test_command_line_example_names_the_files_the_example_writer_makes(tmp_path):
+    from enmi_torch.localization.cli import _EPILOG
+
+    tool = ROOT / "data_tools" / "yardstick" / "localization_benchmark.py"
+    completed = subprocess.run(
+        [sys.executable, str(tool), "--example", str(tmp_path)], capture_output=True, text=True, timeout=300
+    )
+    assert completed.returncode == 0, completed.stderr
+    named = set(re.findall(r"runs/example/(\w+\.npy)", _EPILOG))
+    assert named and named <= {path.name for path in tmp_path.iterdir()}
+
+
+def test_a_nan_is_refused_naming_the_mask_argument_of_the_function(gravel_map):
+    local = _cut(gravel_map, 80, 80).clone()
+    local[..., 3, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"captured must be finite where captured_mask is True.*with captured_mask"):
+        localize(local, gravel_map, 9.0, shifts=4, center=(80, 80))
+    reference = gravel_map.clone()
+    reference[..., 80, 80] = float("nan")
+    with pytest.raises(ValueError, match="reference must be finite where reference_mask is True"):
+        localize(_cut(gravel_map, 80, 80), reference, 9.0, shifts=4, center=(80, 80))

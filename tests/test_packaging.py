@@ -1,11 +1,17 @@
 """The package's install surface: the core without the training extra, one version, the doctest fixture outside."""
 
+import os
+import shutil
 import subprocess
 import sys
+import zipfile
 from importlib import metadata
 from pathlib import Path
 
+import pytest
+
 import enmi_torch
+from enmi_torch._resources import config_dir, config_file
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,3 +54,86 @@ def test_the_version_is_defined_once():
 
 def test_the_installed_package_holds_no_test_fixture():
     assert not (Path(enmi_torch.__file__).parent / "conftest.py").exists()
+
+
+def test_every_package_folder_is_listed_and_configs_install_from_the_top_level_folder():
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11 and later
+    settings = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = {".".join(path.parent.relative_to(ROOT).parts) for path in (ROOT / "enmi_torch").rglob("__init__.py")}
+    listed = set(settings["packages"])
+    assert folders <= listed, f"add {sorted(folders - listed)} to [tool.setuptools] packages in pyproject.toml"
+    assert settings["package-dir"] == {"enmi_torch.configs": "configs"}
+    assert not (ROOT / "enmi_torch" / "configs").exists()  # one copy: the top-level configs/
+    shipped = {f"{package}:{pattern}" for package, patterns in settings["package-data"].items() for pattern in patterns}
+    for path in (ROOT / "configs").rglob("*"):
+        if path.is_file() and path.suffix in (".yaml", ".csv"):
+            folder = path.parent.relative_to(ROOT / "configs").parts
+            package = ".".join(("enmi_torch", "configs", *folder))
+            assert f"{package}:*{path.suffix}" in shipped, f"{path} is not shipped as package data"
+
+
+def test_default_configs_are_the_clones_in_a_source_tree():
+    assert config_dir() == ROOT / "configs"
+    assert config_file("camera/paper.yaml") == ROOT / "configs" / "camera" / "paper.yaml"
+    with pytest.raises(FileNotFoundError, match=r"'nothing\.yaml' is missing"):
+        config_file("nothing.yaml")
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    pytest.importorskip("build")
+    folder = tmp_path_factory.mktemp("wheel")
+    source = folder / "source"  # a copy of the tracked files: no build/ left over from another build
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    for name in files:
+        if (ROOT / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, source / name)
+    command = [
+        sys.executable,
+        "-m",
+        "build",
+        "--wheel",
+        "--no-isolation",
+        "--outdir",
+        str(folder / "dist"),
+        str(source),
+    ]
+    subprocess.run(command, capture_output=True, text=True, check=True, timeout=300)
+    return next((folder / "dist").glob("enmi_torch-*.whl"))
+
+
+def test_the_wheel_ships_the_configs_inside_the_package(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for name in (
+        "fit_mask.yaml",
+        "fit_mask_smoke.yaml",
+        "paper_simulation.yaml",
+        "paper_points.csv",
+        "camera/paper.yaml",
+    ):
+        assert f"enmi_torch/configs/{name}" in names
+    assert not any(name.startswith(("configs/", "tests/", "data_tools/", "train/")) for name in names)
+
+
+@pytest.mark.slow
+def test_the_installed_wheel_runs_its_commands_from_another_folder(wheel, tmp_path):
+    """Installed (no clone on the path), the commands find their default configs in the package."""
+    target = tmp_path / "site"
+    install = [sys.executable, "-m", "pip", "install", "--no-deps", "--quiet", "--target", str(target), str(wheel)]
+    subprocess.run(install, check=True, capture_output=True, timeout=300)
+    environment = {**os.environ, "PYTHONPATH": str(target), "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}
+    script = (
+        "import sys, enmi_torch\n"
+        "from enmi_torch._resources import config_dir\n"
+        "from enmi_torch.cli.reproduce_paper import main\n"
+        "print(enmi_torch.__file__, config_dir())\n"
+        "main(['--scores', '[nmi]', '--trials', '20', '--output-dir', 'paper'])\n"
+    )
+    completed = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=300
+    )
+    assert completed.returncode == 0, completed.stderr
+    package, configs = completed.stdout.splitlines()[0].split()
+    assert Path(package).is_relative_to(target) and Path(configs) == target / "enmi_torch" / "configs"
+    assert (tmp_path / "paper" / "paper_simulation.png").is_file()

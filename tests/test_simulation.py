@@ -306,7 +306,7 @@ def test_extract_paper_points_reads_the_plot_part():
 
 
 def test_committed_paper_points_are_the_papers_plot():
-    with (REPO / "data_tools" / "paper" / "paper_points.csv").open(newline="") as handle:
+    with (REPO / "configs" / "paper_points.csv").open(newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == 141
     noise_powers = [float(row["noise_power"]) for row in rows]
@@ -323,7 +323,7 @@ def test_full_figure_against_the_papers_points(paper_tiles):
     about a smooth curve with a standard deviation of about 0.013 (a 100,000-trial run puts 10 of them more than
     0.03 from the converged curve), so NMI is held to 0.03 at 125 of the 141 points and to 0.045 at all.
     """
-    with (REPO / "data_tools" / "paper" / "paper_points.csv").open(newline="") as handle:
+    with (REPO / "configs" / "paper_points.csv").open(newline="") as handle:
         rows = list(csv.DictReader(handle))
     paper = {key: torch.tensor([float(row[key]) for row in rows], dtype=torch.float64) for key in rows[0]}
     result = error_rates(paper_tiles.area, paper["noise_power"], trials=10_000, scores=["nmi", "enmi_mass"])

@@ -7,7 +7,7 @@ Runs the default configuration (configs/fit_mask.yaml) in this process, logging 
 
 - before: the pairs drawn again whenever they are read (``--data.keep_pairs false``, every epoch), lane markings
   painted over the whole patch width, and every validation's localization dashboard scoring all its methods (the
-  earlier ``_paint_marking`` and ``MaskFitModule._localize``, kept below as references);
+  earlier ``_paint_marking``, kept below as the reference, and ``MaskFitModule._fixed`` scoring every time);
 - after: the default, pairs generated once in ``setup()`` and kept, markings painted on the columns they touch, and
   the methods that do not depend on the mask (true map, NMI, NCC) scored at the first validation only.
 
@@ -16,10 +16,11 @@ mask errors) are equal both ways.
 
 The two alternate within each round (the order swaps from round to round); the script prints each fit as it ends,
 the median of the per-round ratios before / after of the whole fit (data set-up, statistics pass, epochs,
-validations) and of its parts: the epochs without validation, and the epochs that end in a validation (the
-dashboard's whole-image localization searches), and whether the two learned masks are identical (bit for bit) in
-every round. Wall times swing with the machine's other work; the CPU time of the process (the fit with its command
-line parsing and outputs, one torch thread: nothing spins) is the steadier measure on a shared machine.
+validations) and of its parts: the training epochs (validations left out), and the rest (set-up, the statistics
+pass and the validations: the dashboard's whole-image localization searches), and whether the two learned masks
+are identical (bit for bit) in every round. Wall times swing with the machine's other work; the CPU time of the
+process (the fit with its command line parsing and outputs, one torch thread: nothing spins) is the steadier
+measure on a shared machine.
 """
 
 from __future__ import annotations
@@ -38,9 +39,8 @@ import numpy as np
 import torch
 
 from enmi_torch.data import gravel_texture, synthetic
-from enmi_torch.scores import ECR, ENMI, NCC, NMI
 from enmi_torch.training.fit_mask import fit_mask
-from enmi_torch.training.mask_module import MaskFitModule, localization_trials
+from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.variance import LearnedVariance
 
 TARGET_SECONDS = 120.0
@@ -64,49 +64,20 @@ def paint_marking_whole_width(patch: np.ndarray, rng: np.random.Generator, rows:
     patch += coverage * (paint - patch)
 
 
-def localize_every_method(self, local, prior, valid, index) -> None:
-    """The earlier ``MaskFitModule._localize``: every method scored at every validation."""
-    room = self.hparams.localization_pairs - self._trials * self.trainer.world_size
-    if room <= 0:
-        return
-    take = min(local.shape[0], -(-room // self.trainer.world_size))
-    local, prior, valid = local[:take], prior[:take], valid[:take]
-    bins, value_range = self.hparams.bins, tuple(self.hparams.value_range)
-    variance_scores = (ECR(bins=bins, value_range=value_range), ENMI(bins=bins, value_range=value_range))
-    with torch.no_grad():
-        learned = self.mask.variance_map().to(local.device)
-        usable = valid & self.mask.valid_mask(local)
-        variances = {"learned": learned}
-        truth = self.truth
-        if truth is not None:
-            usable = usable & truth.valid.to(local.device)
-            variances["analytic"] = truth.variance.to(local.device)
-        variances["uniform"] = float(learned[self.mask.valid].mean())
-        results = localization_trials(
-            local,
-            prior,
-            usable,
-            variances,
-            max_shift=self.hparams.localization_shift,
-            scores=(*variance_scores, NMI(bins=bins, value_range=value_range), NCC()),
-            uniform_grid=tuple(self.hparams.localization_grid),
-            grid_score=variance_scores[1],
-        )
-    for name, (hits, z_sum) in results.items():
-        self._hits[name] = self._hits.get(name, 0) + hits
-        self._z_sums[name] = self._z_sums.get(name, 0.0) + z_sum
-    self._trials += take
+def score_every_time(self, key, compute):
+    """The earlier dashboard: the methods that do not depend on the mask scored again at every validation."""
+    return compute()
 
 
 @contextmanager
 def before_change():
     """The earlier painting and dashboard, for the ``before`` runs."""
-    painting, localize = synthetic._paint_marking, MaskFitModule._localize
-    synthetic._paint_marking, MaskFitModule._localize = paint_marking_whole_width, localize_every_method
+    painting, fixed = synthetic._paint_marking, MaskFitModule._fixed
+    synthetic._paint_marking, MaskFitModule._fixed = paint_marking_whole_width, score_every_time
     try:
         yield
     finally:
-        synthetic._paint_marking, MaskFitModule._localize = painting, localize
+        synthetic._paint_marking, MaskFitModule._fixed = painting, fixed
 
 
 def run_fit(args: argparse.Namespace, keep_pairs: bool) -> tuple[dict, torch.Tensor]:
@@ -144,12 +115,10 @@ def main(argv: list[str] | None = None) -> None:
     gravel_texture()  # read once before the clock starts, for both ways
     for name in ("lightning.pytorch", "lightning.fabric"):  # progress lines, not Lightning's notices
         logging.getLogger(name).setLevel(logging.WARNING)
-    every = max(1, args.epochs // 2)
     parts = (
         "whole fit",
-        "epochs without validation",
-        "epochs with validation",
-        "rest (set-up, statistics pass)",
+        "training epochs (validation left out)",
+        "the rest (set-up, statistics pass, validations)",
         "CPU time of the process",
     )
     seconds: dict[str, dict[str, list[float]]] = {way: {part: [] for part in parts} for way in ("before", "after")}
@@ -167,15 +136,14 @@ def main(argv: list[str] | None = None) -> None:
             else:
                 summary, masks[way] = run_fit(args, keep_pairs=True)
             summaries[way] = summary
-            epochs = summary["train_epoch_seconds"]
-            validated = sum(seconds for epoch, seconds in enumerate(epochs, start=1) if epoch % every == 0)
+            training = sum(summary["train_epoch_seconds"])  # the epochs' training time, validations left out
             cpu = time.process_time() - cpu_start
-            times = (summary["seconds"], sum(epochs) - validated, validated, summary["seconds"] - sum(epochs), cpu)
+            times = (summary["seconds"], training, summary["seconds"] - training, cpu)
             for part, value in zip(parts, times, strict=True):
                 seconds[way][part].append(value)
             print(
-                f"fit {times[0]:.1f} s (epochs without validation {times[1]:.1f} s, with validation {times[2]:.1f} "
-                f"s, rest {times[3]:.1f} s; {time.perf_counter() - start:.1f} s with outputs, CPU {cpu:.1f} s; "
+                f"fit {times[0]:.1f} s (training epochs {times[1]:.1f} s, set-up, statistics and validations "
+                f"{times[2]:.1f} s; {time.perf_counter() - start:.1f} s with outputs, CPU {cpu:.1f} s; "
                 f"load average {os.getloadavg()[0]:.1f})",
                 flush=True,
             )

@@ -1,6 +1,6 @@
 """Time per N0 point of the paper simulation's scores, three ways, against the point's kernel floor.
 
-    python data_tools/benchmarks/bench_paper_simulation.py [--trials 10000] [--repeats 5] [--chunk_trials 96] \
+    python data_tools/benchmarks/bench_paper_simulation.py [--trials 10000] [--repeats 5] [--chunk-trials 96] \
         [--threads 1]
 
 One "point" is ``trials`` trials of the paper's 66 tiles at one N0, each trial scoring the truth and the candidate
@@ -18,7 +18,7 @@ on every trial:
 
 The floor is the elementwise work NMI + ENMI (mass) cannot avoid at one point, timed in the same rounds: one ``erf``
 over the ``(T, 66, 31)`` standardised interior bin edges and one ``log`` over the ``(T, 2, 32, 32)`` joint
-probabilities, each one call on whole tensors; a second floor makes the same calls in chunks of ``--chunk_trials``
+probabilities, each one call on whole tensors; a second floor makes the same calls in chunks of ``--chunk-trials``
 trials (cache-resident, no page faults), a bound nothing but arithmetic adds to. Prints Markdown tables: ms per
 point for each score and way, the ratios (medians of the per-round ratios), the whole figure's projection (141
 points, one core, no workers), and NMI + ENMI (mass) against the floors. The full run's wall time is what
@@ -108,7 +108,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--trials", type=int, default=10_000)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--chunk_trials", type=int, default=96)
+    parser.add_argument("--chunk-trials", type=int, default=96)
+    parser.add_argument("--chunk_trials", type=int, dest="chunk_trials", help=argparse.SUPPRESS)  # the former name
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

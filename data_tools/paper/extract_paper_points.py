@@ -1,10 +1,10 @@
-r"""Extract the plotted points of the paper's Fig. simPerformance (committed as ``data_tools/paper/paper_points.csv``).
+r"""Extract the plotted points of the paper's Fig. simPerformance (committed as ``configs/paper_points.csv``).
 
 The figure's data is the pgfplots file ``FiguresNMI/plot.tex``, appended at the end of the paper's source
 (``aspconArXiv.tex``): two ``\addplot coordinates{...}`` blocks, NMI first, ENMI second, over the same N0 values.
 
     python data_tools/paper/extract_paper_points.py path/to/aspconArXiv.tex    # writes runs/paper_points.csv
-    python data_tools/paper/extract_paper_points.py path/to/aspconArXiv.tex --output data_tools/paper/paper_points.csv
+    python data_tools/paper/extract_paper_points.py path/to/aspconArXiv.tex --output configs/paper_points.csv
 """
 
 from __future__ import annotations

@@ -6,12 +6,8 @@ import argparse
 import difflib
 import re
 import sys
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable, Mapping, Sequence
 from typing import NoReturn
-
-# The clone the package was installed from (``pip install -e .``): where the default configs live.
-REPOSITORY = Path(__file__).resolve().parents[2]
 
 # Exceptions that mean "the input or the options are wrong" (the library's checks, missing or unreadable files).
 USER_ERRORS = (ValueError, TypeError, OSError)
@@ -42,9 +38,63 @@ def fail(prog: str, message: str) -> NoReturn:
     raise SystemExit(2)
 
 
+def dashed_aliases(argv: Sequence[str], names: Sequence[str]) -> list[str]:
+    """``argv`` with each option of ``names`` spelt either way accepted: ``--output-dir`` and ``--output_dir``.
+
+    ``names`` are the spellings the parser knows; the other spelling (dashes for underscores or the reverse) is the
+    hidden alias.
+    """
+    aliases = {}
+    for name in names:
+        for other in (name.replace("_", "-"), name.replace("-", "_")):
+            if other != name:
+                aliases[f"--{other}"] = f"--{name}"
+    rewritten = []
+    for argument in argv:
+        option, equals, value = argument.partition("=")
+        rewritten.append(aliases.get(option, option) + equals + value if option in aliases else argument)
+    return rewritten
+
+
+def with_flag_names(message: str, flags: Mapping[str, str]) -> str:
+    """``message`` with the parameter it starts with named as the flag the user typed (``count``: ``--pairs``)."""
+    match = re.match(r"(\w+)\b", message)
+    if match and match.group(1) in flags:
+        return flags[match.group(1)] + message[match.end() :]
+    return message
+
+
+def plain_parser_message(message: str, known: Sequence[str] = ()) -> str:
+    """A jsonargparse message in plain words: the flag the user typed, the types by name, no Union dump.
+
+    ``Parser key "trainer.max_epochs": Does not validate against any of the Union subtypes ... Given value: abc`` ->
+    ``--trainer.max_epochs expects int or null, got 'abc'``. A key is named as the option in ``known`` that spells it
+    (``output_dir``: ``--output-dir`` where the parser knows that one).
+    """
+    message = " ".join(message.split())
+    message = re.sub(r"<class '(?:[\w.]+\.)?(\w+)'>", r"\1", message).replace("NoneType", "null")
+    key = re.match(r'Parser key "([^"]+)":\s*', message)
+    if key is None:
+        return message
+    flag, rest = "--" + key.group(1), message[key.end() :]
+    if flag not in known and flag.replace("_", "-") in known:
+        flag = flag.replace("_", "-")
+    missing = re.search(r"File does not exist: (.*)$", rest)
+    if missing is not None:
+        return f"{flag}: no such file {missing.group(1)}"
+    union = re.search(r"Subtypes: \[([^\]]*)\].*Given value: (.*)$", rest)
+    if union is not None:
+        return f"{flag} expects {' or '.join(union.group(1).split(', '))}, got {union.group(2)!r}"
+    expected = re.match(r"Expected a (\w+)\.? ?(?:Got value: )?(.*)$", rest)
+    if expected is not None:
+        return f"{flag} expects {expected.group(1)}, got {expected.group(2)!r}"
+    return f"{flag}: {rest}"
+
+
 def parser_error(parser: argparse.ArgumentParser, message: str) -> NoReturn:
     """One line for a command-line mistake, with the closest known option for a misspelt one."""
     known = [option for action in parser._actions for option in action.option_strings]
+    message = plain_parser_message(message, known)
     guesses = []
     if "unrecognized arguments" in message:
         for word in message.split(":", 1)[1].split():

@@ -6,8 +6,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from enmi_torch.cli._command import ArgumentParser, run_command
-from enmi_torch.data import SyntheticPairs, make_truth, write_pairs
+from enmi_torch.cli._command import ArgumentParser, run_command, with_flag_names
+from enmi_torch.data import SyntheticPairs, gravel_texture, make_truth, write_pairs
 
 PROG = "enmi-make-pairs"
 DESCRIPTION = f"""\
@@ -21,6 +21,17 @@ examples:
   enmi-fit-mask --data.root runs/pairs"""
 
 
+# The library's parameter names as this command's flags, for its messages.
+FLAGS = {
+    "root": "OUT",
+    "count": "--pairs",
+    "noise_std": "--noise-std",
+    "gain_std": "--gain-std",
+    "offset_std": "--offset-std",
+    "seed": "--seed",
+}
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Console entry point: ``enmi-make-pairs --help``."""
     run_command(PROG, make_pairs, argv)
@@ -29,7 +40,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 def make_pairs(argv: Sequence[str]) -> None:
     """The command with these arguments."""
     parser = ArgumentParser(prog=PROG, description=DESCRIPTION)
-    parser.add_argument("out", help="new (or empty) folder to write")
+    parser.add_argument("out", metavar="OUT", help="new (or empty) folder to write")
     parser.add_argument("--pairs", type=int, default=2000, help="number of pairs")
     parser.add_argument("--flavour", choices=("lidar", "camera"), default="lidar", help="noise field")
     parser.add_argument("--size", type=int, default=128, help="image side in pixels, at most 512")
@@ -39,11 +50,20 @@ def make_pairs(argv: Sequence[str]) -> None:
     parser.add_argument("--format", choices=("npy", "png"), default="npy", help="image files")
     parser.add_argument("--seed", type=int, default=0, help="pairs are a function of (seed, index)")
     args = parser.parse_args(argv)
-    truth = make_truth(args.flavour, (args.size, args.size), args.noise_std)
-    pairs = SyntheticPairs(truth, args.pairs, seed=args.seed, gain_std=args.gain_std, offset_std=args.offset_std)
-    start = time.perf_counter()
-    source = f"enmi-make-pairs {args.flavour} noise_std={args.noise_std} seed={args.seed}"
-    count = write_pairs(args.out, pairs, image_format=args.format, truth=truth, source=source)
+    side = gravel_texture().shape[0]
+    if not 1 <= args.size <= side:
+        raise ValueError(f"--size must be from 1 to {side} (the texture the pairs are cut from), got {args.size}")
+    try:
+        truth = make_truth(args.flavour, (args.size, args.size), args.noise_std)
+        pairs = SyntheticPairs(truth, args.pairs, seed=args.seed, gain_std=args.gain_std, offset_std=args.offset_std)
+        start = time.perf_counter()
+        source = f"enmi-make-pairs {args.flavour} noise_std={args.noise_std} seed={args.seed}"
+        count = write_pairs(args.out, pairs, image_format=args.format, truth=truth, source=source)
+    except (ValueError, TypeError) as error:  # the library names its parameters: name the flags instead
+        message = with_flag_names(str(error), FLAGS)
+        if message == str(error):
+            raise
+        raise type(error)(message) from None
     seconds = time.perf_counter() - start
     megabytes = sum(path.stat().st_size for path in Path(args.out).rglob("*") if path.is_file()) / 2**20
     print(

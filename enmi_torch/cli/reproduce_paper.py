@@ -21,14 +21,15 @@ matplotlib.use("Agg")
 import jsonargparse
 import matplotlib.pyplot as plt
 import torch
+from jsonargparse.typing import Path_fr
 from tqdm import tqdm
 
 from enmi_torch import RoadCamera
-from enmi_torch.cli._command import REPOSITORY, parser_error, run_command
+from enmi_torch._resources import config_file
+from enmi_torch.cli._command import dashed_aliases, parser_error, run_command
 from enmi_torch.simulation import SCORES, ErrorRates, error_rates, road_tiles
 
 PROG = "enmi-reproduce-paper"
-DEFAULT_CONFIG = REPOSITORY / "configs" / "paper_simulation.yaml"
 DESCRIPTION = f"""\
 Reproduce the paper's Fig. simPerformance: the probability of a wrong match against the noise power N0, for NMI
 and for ENMI with three weightings, 10,000 trials at each of the 141 N0 of the paper's plot (about 2 minutes on 2
@@ -37,16 +38,17 @@ CPU cores; --scores '[nmi, enmi_mass]' takes a quarter of that).
 It simulates section "Simulated Performance" with configs/paper_simulation.yaml: 66 road tiles seen by the paper's
 camera, amplitudes N(128, 32^2), an independent candidate, noise variance N0 / A~ per tile. It writes
 paper_simulation.csv (our error rates, their standard errors, the paper's points) and paper_simulation.png (ours
-over the paper's) to --output_dir, and prints the run time and the deviations from the paper as Markdown tables.
+over the paper's) to --output-dir, and prints the run time and the deviations from the paper as Markdown tables.
 
 examples:
   {PROG}                                              # also: python data_tools/reproduce_paper.py
   {PROG} --scores '[nmi, enmi_mass]' --trials 2000    # two curves, fewer trials
-  {PROG} --output_dir data_tools/figures              # regenerate the README's figure and CSV
+  {PROG} --output-dir data_tools/figures              # regenerate the README's figure and CSV
   {PROG} --tensorboard runs/paper_tensorboard         # also log every point and the figure
 
-Every key of the config is an option; relative input paths in it (camera_config, paper_points) are read from the
-repository root. --debug shows the full traceback of an error instead of one line."""
+Every key of the config is an option, its underscores written as dashes (output_dir: --output-dir). Relative paths
+in a config file (camera_config, paper_points) are read from the config file's folder, on the command line from
+the current folder. --debug shows the full traceback of an error instead of one line."""
 
 
 class _Formatter(jsonargparse.DefaultHelpFormatter, argparse.RawDescriptionHelpFormatter):
@@ -75,35 +77,38 @@ STYLES = {
 
 def build_parser() -> jsonargparse.ArgumentParser:
     """The command's options, with configs/paper_simulation.yaml as the defaults."""
+    defaults = config_file("paper_simulation.yaml")
     parser = _Parser(
-        prog=PROG,
-        description=DESCRIPTION,
-        default_config_files=[str(DEFAULT_CONFIG)],
-        formatter_class=_Formatter,
+        prog=PROG, description=DESCRIPTION, default_config_files=[str(defaults)], formatter_class=_Formatter
     )
     parser.add_argument(
         "--config", action=jsonargparse.ActionConfigFile, help="a YAML config like configs/paper_simulation.yaml"
     )
-    parser.add_argument("--camera_config", type=str, default="configs/camera/paper.yaml", help="the road camera")
     parser.add_argument(
-        "--row_counts", type=list[int], default=[5, 5, 7, 7, 9, 9, 11, 13], help="tiles per row, nearest first"
+        "--camera-config", type=Path_fr, default=Path_fr(config_file("camera/paper.yaml")), help="the road camera"
     )
-    parser.add_argument("--tile_size", type=float, default=20.0, help="side of a tile (cm)")
-    parser.add_argument("--nearest_distance", type=float, default=40.0, help="near edge of the nearest row (cm)")
-    parser.add_argument("--amplitude_mean", type=float, default=128.0, help="mean of the tile amplitudes")
-    parser.add_argument("--amplitude_std", type=float, default=32.0, help="standard deviation of the amplitudes")
+    parser.add_argument(
+        "--row-counts", type=list[int], default=[5, 5, 7, 7, 9, 9, 11, 13], help="tiles per row, nearest first"
+    )
+    parser.add_argument("--tile-size", type=float, default=20.0, help="side of a tile (cm)")
+    parser.add_argument("--nearest-distance", type=float, default=40.0, help="near edge of the nearest row (cm)")
+    parser.add_argument("--amplitude-mean", type=float, default=128.0, help="mean of the tile amplitudes")
+    parser.add_argument("--amplitude-std", type=float, default=32.0, help="standard deviation of the amplitudes")
     parser.add_argument("--bins", type=int, default=32, help="equal bins over value_range")
-    parser.add_argument("--value_range", type=tuple[float, float], default=(0.0, 256.0), help="range of the bins")
+    parser.add_argument("--value-range", type=tuple[float, float], default=(0.0, 256.0), help="range of the bins")
     parser.add_argument("--trials", type=int, default=10_000, help="trials per N0")
     parser.add_argument("--seed", type=int, default=0, help="seed of the common random numbers")
     parser.add_argument("--scores", type=list[str], default=list(SCORES), help=f"scores to simulate, of {list(SCORES)}")
     parser.add_argument(
-        "--paper_points", type=str, default="data_tools/paper/paper_points.csv", help="the paper's plotted points (CSV)"
+        "--paper-points",
+        type=Path_fr,
+        default=Path_fr(config_file("paper_points.csv")),
+        help="the paper's plotted points (CSV)",
     )
     parser.add_argument(
-        "--output_dir", type=str, default="runs/paper_simulation", help="folder for the CSV and the figure"
+        "--output-dir", type=str, default="runs/paper_simulation", help="folder for the CSV and the figure"
     )
-    parser.add_argument("--chunk_trials", type=int, default=96, help="trials per scoring call")
+    parser.add_argument("--chunk-trials", type=int, default=96, help="trials per scoring call")
     parser.add_argument("--dtype", type=Literal["float32", "float64"], default="float32", help="precision")
     parser.add_argument("--workers", type=int, default=1, help="N0 points scored at once (threads)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads per worker")
@@ -111,9 +116,19 @@ def build_parser() -> jsonargparse.ArgumentParser:
     return parser
 
 
-def from_repo(path: str) -> Path:
-    """A relative input path, read from the repository root."""
-    return Path(path) if Path(path).is_absolute() else REPOSITORY / path
+# Every option of the config, as the dashed flag's hidden alias (--output_dir for --output-dir).
+CONFIG_KEYS = (
+    "camera_config",
+    "row_counts",
+    "tile_size",
+    "nearest_distance",
+    "amplitude_mean",
+    "amplitude_std",
+    "value_range",
+    "paper_points",
+    "output_dir",
+    "chunk_trials",
+)
 
 
 def read_paper_points(path: Path) -> dict[str, list[float]]:
@@ -226,10 +241,10 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 def reproduce_paper(argv: Sequence[str]) -> None:
     """The command with these arguments."""
-    args = build_parser().parse_args(list(argv))
+    args = build_parser().parse_args(dashed_aliases(argv, [key.replace("_", "-") for key in CONFIG_KEYS]))
     torch.set_num_threads(args.threads)
-    paper = read_paper_points(from_repo(args.paper_points))
-    camera = RoadCamera.from_yaml(from_repo(args.camera_config))
+    paper = read_paper_points(Path(args.paper_points.absolute))
+    camera = RoadCamera.from_yaml(args.camera_config.absolute)
     tiles = road_tiles(camera, args.row_counts, args.tile_size, args.nearest_distance)
     output_dir = Path(args.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Subset
 
 from enmi_torch._checks import check_non_negative_int, check_option, check_positive_int, check_positive_number
 from enmi_torch.data.pairs import PairDataset
-from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs
+from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs, gravel_texture
 from enmi_torch.data.truth import FLAVOURS, VarianceTruth, make_truth
 
 
@@ -85,7 +85,12 @@ class PairDataModule(LightningDataModule):
         self.keep_pairs = keep_pairs
         if root is None:
             check_option("flavour", flavour, FLAVOURS)
-            truth = make_truth(flavour, (check_positive_int("size", size),) * 2, noise_std)
+            side = gravel_texture().shape[0]
+            if check_positive_int("size", size) > side:
+                raise ValueError(f"size must be at most {side} (the texture the pairs are cut from), got {size}")
+            truth = make_truth(flavour, (size, size), noise_std)
+            check_positive_int("train_pairs", train_pairs)
+            check_positive_int("val_pairs", val_pairs)
             options = {"gain_std": gain_std, "offset_std": offset_std}
             self.train_set: Dataset = SyntheticPairs(truth, train_pairs, seed=2 * seed, **options)
             self.val_set: Dataset = SyntheticPairs(truth, val_pairs, seed=2 * seed + 1, **options)

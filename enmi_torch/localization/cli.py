@@ -48,7 +48,7 @@ def _parse_yaws(text: str) -> list[float]:
 _PROG = "enmi-localize"
 _EPILOG = f"""example (files from python data_tools/yardstick/localization_benchmark.py --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
-      --local-mask runs/example/captured_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
+      --local-mask runs/example/local_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
 
 output: one JSON line, for example
   {{"dx": -8.99, "dy": 4.98, "yaw_deg": 2.8, "row": 304.98, "col": 211.01, "score": 1.1127, "margin": 0.5266}}
@@ -214,6 +214,8 @@ def _command(argv: Sequence[str]) -> dict:
         message = str(error)
         if message.startswith("--score-option"):  # it lists the option names as --score-option takes them
             raise
+        # value_range=(0.0, 1.0) as the flag takes it: --value-range 0.0 1.0
+        message = re.sub(r"\bvalue_range=\(([^,()]+), ([^()]+)\)", r"--value-range \1 \2", message)
         for name, option in _OPTION_NAMES.items():
             message = re.sub(rf"\b{name}\b", option, message)
         raise ValueError(message) from error

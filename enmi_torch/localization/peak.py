@@ -13,7 +13,11 @@ from torch import Tensor
 
 
 class Localization(NamedTuple):
-    """The result of :func:`localize`.
+    """The result of :func:`~enmi_torch.localize`: the pose found, its score surface and how sure it is.
+
+    Read the pose as ``result.dx``, ``result.dy`` (map cells along columns and rows) and ``result.yaw`` (degrees,
+    counter-clockwise as displayed), each ``(B,)``; ``result.local_to_map(center, local_shape)`` gives the
+    ``(B, 3, 3)`` transform from local ``(x, y)`` pixels to map ``(x, y)`` cells.
 
     Attributes:
         pose: ``(B, 3)``: ``dx``, ``dy`` (map cells, refined below one cell) and ``yaw`` (degrees, refined below one

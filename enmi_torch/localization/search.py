@@ -37,6 +37,7 @@ from enmi_torch._checks import (
     check_non_negative_int,
     check_option,
     check_positive_int,
+    check_resolved_by_bins,
     check_shifts,
 )
 from enmi_torch._layout import mask_map, variance_map
@@ -475,6 +476,9 @@ class _Search:
             window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
             captured, variance, valid = self._rotations(sample, self.yaws)
             exact = self.samples[sample]
+            # The exact stage bins the map by the score's range, as the exhaustive search: refuse a map in one bin.
+            flat, flat_valid = window.reshape(1, -1), window_valid.reshape(1, -1)
+            check_resolved_by_bins("reference", flat, flat_valid, exact.bins, exact.value_range)
             # The cheap stage: few bins over the window's values, with their own default model variance.
             cheap_range = cheap_value_range(window, window_valid)
             cheap_score = exact.replace(bins=cheap_bins, value_range=cheap_range, model_variance=None)

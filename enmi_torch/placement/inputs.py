@@ -48,11 +48,12 @@ def check_inputs(
     value_range: tuple[float, float],
     variance: Tensor | float | None = None,
     bins: int | None = None,
+    reference_bins: int | None = None,
 ) -> SurfaceInputs:
     """Shapes, masks and values checked; images as ``(B, h, w)`` and ``(Bw, Hw, Ww)`` in the compute dtype.
 
     With ``bins`` (the captured image is binned) a captured image whose values all fall in one bin while varying is
-    refused.
+    refused; with ``reference_bins`` (the reference is binned, as by ECR) a reference image alike.
     """
     batch, height, width = check_captured_in_reference(captured, reference, "Hw, Ww")
     dtype = torch.float64 if captured.dtype == torch.float64 else torch.float32
@@ -61,10 +62,12 @@ def check_inputs(
 
     captured_valid = _mask("captured_mask", captured_mask, captured)
     reference_valid = _mask("reference_mask", reference_mask, reference)
-    check_finite_where("captured", local_flat, captured_valid)
-    check_finite_where("reference", window_flat, reference_valid)
+    check_finite_where("captured", local_flat, captured_valid, "captured_mask")
+    check_finite_where("reference", window_flat, reference_valid, "reference_mask")
     if bins is not None:
         check_resolved_by_bins("captured", local_flat, captured_valid, bins, value_range)
+    if reference_bins is not None:
+        check_resolved_by_bins("reference", window_flat, reference_valid, reference_bins, value_range)
     local_flat = torch.where(captured_valid, local_flat, value_range[0])
     window_flat = torch.where(reference_valid, window_flat, value_range[0])
     variance_flat = None

@@ -546,7 +546,10 @@ def ecr_surface(
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     check_model_variance(model_variance, bins, value_range)
-    inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance)
+    binned = None if response == "linear" else bins  # the map is binned: refuse one that all falls in one bin
+    inputs = check_inputs(
+        captured, reference, captured_mask, reference_mask, value_range, variance, reference_bins=binned
+    )
     check_option("response", response, RESPONSES)
     check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():

@@ -173,19 +173,25 @@ def track_step(
 
 
 class Tracker(nn.Module):
-    """Module form of :func:`track_step`: stores the map, the settings and the running belief (streaming).
+    """A histogram (Bayes) filter over the map: one captured frame and its odometry in, one pose out (streaming).
+
+    It stores the map, the settings and the running belief, and runs :func:`enmi_torch.tracking.track_step` (the
+    function form, one step on an explicit belief) on each frame: ``start(pose)`` sets the first pose, then
+    ``tracker(captured, odometry, variance)`` returns a :class:`~enmi_torch.tracking.TrackOutput` (``pose``,
+    ``covariance``, ``healthy``, ...).
 
     Args:
         reference: ``(1, 1, Hm, Wm)`` or ``(Hm, Wm)`` map (a non-persistent buffer).
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel` of the captured images' noise.
         score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
             :func:`~enmi_torch.localize`); ``None``: the calibration's score by name, else ``"ecr"``.
-        calibration: optional :class:`Calibration` (sets ``temperature``, ``min_peak_z`` and, without ``score``, the
-            score by name).
+        calibration: optional :class:`~enmi_torch.Calibration` (sets ``temperature``, ``min_peak_z`` and, without
+            ``score``, the score by name).
         shifts: belief window radius ``r`` or ``(ry, rx)``.
         yaw_bins: odd number of yaw bins.
         yaw_step: yaw bin spacing in degrees.
-        **settings: the other keyword arguments of :func:`track_step` (``motion_noise``, ``temperature``, ...).
+        **settings: the other keyword arguments of :func:`enmi_torch.tracking.track_step` (``motion_noise``,
+            ``temperature``, ...).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)

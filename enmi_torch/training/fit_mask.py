@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
 import logging
@@ -21,34 +22,38 @@ from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from enmi_torch._files import load_plain_torch
-from enmi_torch.cli._command import REPOSITORY, HelpFormatter, parser_error, plain_text
+from enmi_torch._resources import config_file
+from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
+from enmi_torch.training.localization_figure import METHOD_LABELS, held_out_order
+from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 
 PROG = "enmi-fit-mask"
-DEFAULT_CONFIG = REPOSITORY / "configs" / "fit_mask.yaml"
 # A learned mask farther than this from the paper's empirical mask has not converged yet.
 CONVERGED = 0.05
 
 DESCRIPTION = f"""\
 Learn a per-pixel noise-variance mask from local/prior image pairs, for ENMILoss.
 
-With no arguments it runs configs/fit_mask.yaml: 2,000 synthetic lidar-like 128x128 pairs, 10 epochs (about half a
-minute on 2 CPU cores). It writes the mask (variance_mask.pt, .npy, .png) and summary.json under
-runs/fit_mask/version_N/mask/ of the current folder, TensorBoard dashboards and last.ckpt beside them, and prints
-how close the mask is to the paper's empirical mask and to the true variance. Use the mask with
+With no arguments it runs the default config (configs/fit_mask.yaml): 2,000 synthetic lidar-like 128x128 pairs,
+10 epochs (about half a minute on 2 CPU cores). It writes the mask (variance_mask.pt, .npy, .png) and summary.json
+under runs/fit_mask/<data>_N/mask/ of the current folder (<data>: lidar, camera or the pairs folder's name),
+TensorBoard dashboards and last.ckpt beside them, and prints how close the mask is to the paper's empirical mask
+and to the true variance, and how often each score finds held-out pairs. Use the mask with
 ENMILoss(variance_model=LearnedVariance.load(".../variance_mask.pt")).
 
 examples:
   {PROG}                                         # also: python train/fit_mask.py
   {PROG} --data.flavour camera                   # camera-like synthetic pairs
   {PROG} --data.root PAIRS_FOLDER                # your own pairs (enmi-make-pairs writes the format)
-  {PROG} --ckpt_path runs/fit_mask/version_0/checkpoints/last.ckpt --trainer.max_epochs 20
-  {PROG} --config configs/fit_mask_smoke.yaml    # a few-second smoke run (its errors are not meaningful)
+  {PROG} --ckpt_path runs/fit_mask/lidar_0/checkpoints/last.ckpt --trainer.max_epochs 20
+  {PROG} --trainer.max_epochs 2 --data.train_pairs 64 --data.size 32    # a few-second try (not converged)
 
-Every key of the YAML config is an option (--data.KEY, --model.KEY, --trainer.KEY); the main ones follow, with
-the defaults of configs/fit_mask.yaml. --help_all lists every Lightning Trainer option; --debug shows the full
-traceback of an error instead of one line."""
+Every key of the YAML config is an option, spelt as in the config: --data.KEY, --model.KEY, --trainer.KEY, and
+the run's own keys (--ckpt_path, --output_dir, ...), with dots and underscores, as Lightning's commands spell
+them (the other enmi commands use dashes: --output-dir). The main ones follow, with the default config's values.
+--help_all lists every Lightning Trainer option; --debug shows the full traceback of an error instead of one line."""
 
 # The Trainer options worth listing in the short help, in plain words; --help_all lists them all.
 TRAINER_OPTIONS = {
@@ -62,7 +67,7 @@ PLAIN_HELP = {
     "--config": "a YAML config whose keys are these options (later options override it)",
     "--seed_everything": "seed of the run (true: a random one)",
 }
-HIDDEN = ("--model", "--data", "--model.shape", "--print_config")
+HIDDEN = ("--model", "--data", "--model.shape", "--model.localization_grid", "--print_config")
 GROUP_TITLES = {
     "--trainer": "trainer (--help_all lists every option)",
     "--model": "model: the mask and how it is fitted",
@@ -144,9 +149,15 @@ class FitMaskCLI(LightningCLI):
         parser.add_argument("--help_all", action="help", help="list every option, the Trainer's included")
 
     def before_instantiate_classes(self) -> None:
-        """Show the mask's error in the progress bar (unless the bar is turned off)."""
+        """Name the run by its data (``lidar_0``); show the mask's error in the progress bar (unless turned off)."""
         if self.config["trainer"].get("enable_progress_bar") is not False:
             self.trainer_defaults["callbacks"] = [MaskProgressBar()]
+        logger = self.config["trainer"].get("logger")
+        init_args = getattr(logger, "init_args", None)
+        if init_args is not None and "version" in init_args and init_args.get("version") is None:
+            data = self.config["data"]
+            folder = Path(init_args.get("save_dir") or ".") / (init_args.get("name") or "")
+            init_args.version = next_version(folder, run_name(data["root"], data["flavour"]))
 
 
 class MaskProgressBar(TQDMProgressBar):
@@ -165,6 +176,46 @@ class MaskProgressBar(TQDMProgressBar):
 class _NoTips(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         return "Tip:" not in record.getMessage()
+
+
+class _Held(logging.Filter):
+    """Holds the records its handlers would print, to print them once the options are found good."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[tuple[logging.Handler, logging.LogRecord]] = []
+        self.handler: logging.Handler | None = None
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        self.records.append((self.handler, record))
+        return False
+
+
+@contextlib.contextmanager
+def lightning_chatter_held():
+    """Lightning's set-up lines ("Seed set to 0", "GPU available: ...") printed once the set-up succeeds.
+
+    An error about the options then ends the command alone, not after those lines.
+    """
+    holds = []
+    for name in ("lightning.pytorch", "lightning.fabric"):
+        for handler in logging.getLogger(name).handlers:
+            hold = _Held()
+            hold.handler = handler
+            handler.addFilter(hold)
+            holds.append(hold)
+    failed = False
+    try:
+        yield
+    except BaseException:
+        failed = True
+        raise
+    finally:
+        for hold in holds:
+            hold.handler.removeFilter(hold)
+            if not failed:
+                for handler, record in hold.records:
+                    handler.handle(record)
 
 
 def quiet_lightning() -> None:
@@ -232,29 +283,37 @@ def write_outputs(
         "learned_pixels": int(model.mask.valid.sum()),
         "errors": model.mask_errors(),
         "localization_pairs": min(model.hparams.localization_pairs, len(datamodule.val_set)),
-        "localization": {
-            key.split("/", 1)[1]: float(value) for key, value in metrics.items() if key.startswith("localization/")
-        },
-        "localization_z": {
-            key.split("/", 1)[1]: float(value) for key, value in metrics.items() if key.startswith("localization_z/")
-        },
+        "localization": _by_set(metrics, "localization/"),
+        "localization_z": _by_set(metrics, "localization_z/"),
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
 
-def _localization_lines(rates: dict[str, float], pairs: int) -> list[str]:
-    """The share of held-out pairs each score located, one line for ECR, one for ENMI, NMI and NCC."""
+def _by_set(metrics: dict, prefix: str) -> dict[str, dict[str, float]]:
+    """``{"<prefix><set>/<method>": value}`` as ``{set: {method: value}}``."""
+    nested: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        if key.startswith(prefix) and key.count("/") == 2:
+            held_out, method = key[len(prefix) :].split("/")
+            nested.setdefault(held_out, {})[method] = float(value)
+    return nested
 
-    def group(score: str) -> str:
-        names = sorted(name for name in rates if name.startswith(f"{score}_"))
-        return ", ".join(f"{name[len(score) + 1 :].replace('_', ' ')} {rates[name]:.3f}" for name in names)
 
-    others = "; ".join(f"{name.upper()} {rates[name]:.3f}" for name in ("nmi", "ncc") if name in rates)
-    return [
-        f"  share of {pairs} held-out pairs located, ECR: {group('ecr')}",
-        f"    ENMI: {group('enmi')}; {others}",
+def _localization_lines(rates: dict[str, dict[str, float]], pairs: int) -> list[str]:
+    """A table: the share of held-out pairs each method located (rows), at each noise level (columns)."""
+    sets = held_out_order(rates)
+    methods = [method for method in METHOD_LABELS if any(method in rates[name] for name in sets)]
+    stderr = 0.5 / pairs**0.5
+    header = "".join(f"{name.replace('_x', ' x'):>11}" for name in sets)
+    lines = [
+        f"  held-out pairs located within one pixel, share of {pairs} (standard error at most {stderr:.2f}):",
+        f"    {'':<26}{header}",
     ]
+    for method in methods:
+        cells = "".join(f"{rates[name][method]:>11.3f}" if method in rates[name] else f"{'-':>11}" for name in sets)
+        lines.append(f"    {METHOD_LABELS[method]:<26}{cells}")
+    return lines
 
 
 def print_summary(summary: dict) -> None:
@@ -288,38 +347,53 @@ def print_summary(summary: dict) -> None:
     print("\n".join(lines))
 
 
+# The run's own keys, also accepted with dashes as the other commands spell their options.
+RUN_KEYS = ("ckpt_path", "output_dir", "overwrite", "torch_threads", "help_all")
+
+
 def fit_mask(argv: Sequence[str]) -> dict | None:
     """Run the command with these arguments; returns the summary on the main process (``None`` on the others)."""
-    if not DEFAULT_CONFIG.is_file():
-        raise FileNotFoundError(f"{DEFAULT_CONFIG} is missing: run from a clone installed with pip install -e .")
+    default_config = config_file("fit_mask.yaml")
     quiet_lightning()
-    arguments = list(argv)
+    arguments = dashed_aliases(argv, RUN_KEYS)
     try:
-        cli = FitMaskCLI(
-            MaskFitModule,
-            PairDataModule,
-            run=False,
-            args=arguments,
-            parser_class=FitMaskParser,
-            parser_kwargs={
-                "prog": PROG,
-                "default_config_files": [str(DEFAULT_CONFIG)],
-                "full_help": "--help_all" in arguments,
-            },
-            save_config_kwargs={"overwrite": True},
-            auto_configure_optimizers=False,
-        )
-        if cli.config["torch_threads"] is not None:
-            torch.set_num_threads(cli.config["torch_threads"])
-        ckpt_path = cli.config["ckpt_path"]
-        if ckpt_path is not None:
-            check_checkpoint(ckpt_path)
-        if cli.config["output_dir"] is not None:
-            check_output_dir(Path(cli.config["output_dir"]), cli.config["overwrite"])
+        with lightning_chatter_held():
+            cli = FitMaskCLI(
+                MaskFitModule,
+                PairDataModule,
+                run=False,
+                args=arguments,
+                parser_class=FitMaskParser,
+                parser_kwargs={
+                    "prog": PROG,
+                    "default_config_files": [str(default_config)],
+                    "full_help": "--help_all" in arguments,
+                },
+                save_config_kwargs={"overwrite": True},
+                auto_configure_optimizers=False,
+            )
+            if cli.config["torch_threads"] is not None:
+                torch.set_num_threads(cli.config["torch_threads"])
+            ckpt_path = cli.config["ckpt_path"]
+            if ckpt_path is not None:
+                check_checkpoint(ckpt_path)
+            if cli.config["output_dir"] is not None:
+                check_output_dir(Path(cli.config["output_dir"]), cli.config["overwrite"])
+            world = cli.trainer.num_devices * cli.trainer.num_nodes
+            if cli.datamodule.batch_size % world:
+                raise ValueError(
+                    f"--data.batch_size must be divisible by the number of processes {world}, "
+                    f"got {cli.datamodule.batch_size}"
+                )
         start = time.perf_counter()
         cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path, weights_only=True)
     except MisconfigurationException as error:  # Lightning's word for a bad option (devices, strategy, ...)
         raise ValueError(str(error)) from error
+    except (ValueError, TypeError, FileNotFoundError) as error:
+        message = with_flag_names(str(error), cli_config_keys())
+        if message == str(error):
+            raise
+        raise type(error)(message) from error
     seconds = time.perf_counter() - start
     log_dir = cli.trainer.log_dir  # a collective under DDP: every process asks
     if not cli.trainer.is_global_zero:
@@ -332,3 +406,15 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
     )
     print_summary(summary)
     return summary
+
+
+def cli_config_keys() -> dict[str, str]:
+    """The flag of each ``--data.*`` and ``--model.*`` key by its name (``train_pairs``: ``--data.train_pairs``)."""
+    import inspect
+
+    flags = {}
+    for group, target in (("model", MaskFitModule), ("data", PairDataModule)):
+        for name in inspect.signature(target.__init__).parameters:
+            if name != "self":
+                flags.setdefault(name, f"--{group}.{name}")
+    return flags

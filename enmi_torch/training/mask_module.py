@@ -7,15 +7,19 @@ mask's smoothness prior divided by the number of training pairs. Each step's los
 pairs in the process's batch times the pixels per image), so the gradient averaged by DDP over processes equals the
 single-process gradient of the same global batch: the fitted mask does not depend on the number of processes.
 
-Dashboards (TensorBoard): ``train/nll``, ``val/nll``; ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth``,
-``mask/empirical_rel_rms_vs_truth``; ``localization/<method>`` (share of held-out pairs located within one pixel
-by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and ``localization_z/<method>`` (the
-mean z-score of the true shift's score among the others: the margin) for ECR and ENMI with the learned mask
-(``*_learned``), the true field (``*_analytic``, synthetic data) and the uniform controls (``*_uniform``: the learned
-mask's mean; ``enmi_best_uniform``: the best of the mean times ``localization_grid``), hard NMI and NCC (the
-methods that do not depend on the mask, ``*_analytic``, NMI and NCC, are scored at a fit's first validation and
-reused: the same pairs give the same scores);
-``speed/pairs_per_second``; the mask figure; histograms of raw and standardised residuals.
+Dashboards (TensorBoard, written by :class:`~enmi_torch.training.logger.MaskLogger`): ``train/nll`` and ``val/nll``
+(the one loss, per valid pixel); ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth`` and its floor
+``mask/empirical_rel_rms_vs_truth``; ``localization/<held-out set>/<method>`` (share of held-out pairs located
+within one pixel by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and
+``localization_z/<held-out set>/<method>`` (the mean z-score of the true shift's score among the others: the margin)
+for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_analytic``, synthetic data) and the
+uniform controls (``*_uniform``: the learned mask's mean; ``enmi_best_uniform``: the best of the mean times
+``localization_grid``), hard NMI and NCC. The held-out sets are the validation pairs with their residuals
+``local - prior`` scaled by each of ``localization_noise`` (``noise_x16``: 16 times the noise, 256 times the
+variance; every variance map is scaled alike), so that the methods part ways; the methods that do not depend on the
+mask are scored at a fit's first validation and reused (the same pairs give the same scores).
+``speed/pairs_per_second`` (training only, validation left out); the mask figure; histograms of raw and
+standardised residuals.
 """
 
 from __future__ import annotations
@@ -29,12 +33,16 @@ import torch
 from lightning.pytorch import LightningModule
 from torch import Tensor
 
+from enmi_torch._checks import check_option
 from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
+from enmi_torch.training.localization_figure import held_out_order, localization_figure
+from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
+from enmi_torch.variance.learned import FORMS
 
 
 def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
@@ -129,6 +137,8 @@ class MaskFitModule(LightningModule):
         lr: Adam learning rate, annealed to 0 by a cosine over the run.
         localization_pairs: held-out pairs searched per validation (the first ones; 0 turns the search off).
         localization_shift: the shifts searched are ``[-s, s]^2`` pixels.
+        localization_crop: side of the central square searched in each held-out pair (smaller: harder).
+        localization_noise: factors of the held-out noise, one held-out set each (1: as it is).
         localization_grid: factors of the uniform variance tried by the best-uniform ENMI control.
         bins: ECR/ENMI/NMI bins for the localization score.
         value_range: bin range.
@@ -143,8 +153,10 @@ class MaskFitModule(LightningModule):
         analytic_variance: str | None = None,
         match_intensity: bool = False,
         lr: float = 0.05,
-        localization_pairs: int = 32,
-        localization_shift: int = 3,
+        localization_pairs: int = 64,
+        localization_shift: int = 4,
+        localization_crop: int = 32,
+        localization_noise: tuple[float, ...] = (1.0, 16.0, 32.0),
         localization_grid: tuple[float, ...] = (0.25, 4.0),
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
@@ -152,6 +164,11 @@ class MaskFitModule(LightningModule):
         super().__init__()
         # Lists, not tuples: hparams.yaml stays plain YAML (no !!python/tuple tags).
         shape, value_range = [int(size) for size in shape], [float(value) for value in value_range]
+        localization_noise = [float(factor) for factor in localization_noise]
+        if not localization_noise or min(localization_noise) <= 0:
+            raise ValueError(f"localization_noise must be factors > 0, got {localization_noise}")
+        localization_grid = [float(factor) for factor in localization_grid]
+        check_option("form", form, FORMS)  # here, not when the mask is built at the fit's start
         self.save_hyperparameters()
         self.shape = (shape[0], shape[1])
         self.mask: LearnedVariance | None = None
@@ -161,7 +178,7 @@ class MaskFitModule(LightningModule):
         self._z_sums: dict[str, float] = {}
         self._trials = 0
         self._histogram_batch: tuple[Tensor, Tensor] | None = None
-        self._epoch_start, self._epoch_pairs = 0.0, 0
+        self._clock, self._train_seconds, self._epoch_pairs = 0.0, 0.0, 0
         self.epoch_seconds: list[float] = []
         self._figure_pair: tuple[Tensor, Tensor, Tensor] | None = None
         self._fixed_results: dict[tuple, dict[str, tuple[int, float]]] = {}
@@ -239,8 +256,23 @@ class MaskFitModule(LightningModule):
         self.statistics_ready.fill_(True)
 
     def on_fit_end(self) -> None:
-        """Forget the localization results kept between validations."""
+        """Hand the final metrics to HParams; forget the localization results kept between validations."""
         self._fixed_results = {}
+        if isinstance(self.logger, MaskLogger):
+            final = ("localization/", "mask/", "val/nll", "speed/")
+            metrics = [key for key in self.trainer.callback_metrics if key.startswith(final)]
+            held_out = held_out_order({key.split("/")[1] for key in metrics if key.startswith("localization/")})[::-1]
+            rank = {name: index for index, name in enumerate(held_out)}  # the hardest set first
+            metrics.sort(key=lambda key: (not key.startswith("mask/"), rank.get(key.split("/")[1], len(rank)), key))
+            data = self.trainer.datamodule.hparams if self.trainer.datamodule is not None else {}
+            source = data.get("root") or data.get("flavour", "")
+            self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch})
+
+    def on_train_start(self) -> None:
+        """Lay out the Custom Scalars tab: the held-out sets, hardest first, and the mask's errors."""
+        if isinstance(self.logger, MaskLogger):
+            noise = sorted(self.hparams.localization_noise, reverse=True) if self.hparams.localization_pairs else []
+            self.logger.log_layout([f"noise_x{factor:g}" for factor in noise], self.truth is not None)
 
     def _pair(self, batch: dict) -> tuple[Tensor, Tensor, Tensor]:
         local, prior, valid = batch["local"].to(self.device), batch["prior"].to(self.device), batch["valid"]
@@ -278,10 +310,8 @@ class MaskFitModule(LightningModule):
         return loss
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
-        """NLL of a batch (plus the prior's share); logs ``train/nll`` and ``train/loss``."""
-        loss = self._step(batch, "train")
-        self.log("train/loss", loss, batch_size=batch["local"].shape[0])
-        return loss
+        """NLL of a batch (plus the prior's share); logs ``train/nll``, the one training loss on the dashboards."""
+        return self._step(batch, "train")
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         """Held-out NLL and localization hits."""
@@ -294,6 +324,29 @@ class MaskFitModule(LightningModule):
             standardised = residual / self.mask(local).expand_as(local)[keep].sqrt()
         return residual.detach().cpu(), standardised.detach().cpu()
 
+    def held_out_sets(self, local: Tensor, prior: Tensor, valid: Tensor) -> dict[str, tuple[Tensor, Tensor, float]]:
+        """The held-out sets searched at each validation: name -> ``(local, prior, variance factor)``.
+
+        One per factor ``k`` of ``localization_noise``: the residuals ``local - prior`` scaled by ``k`` (the variance by
+        ``k^2``), named ``noise_x<k>``. Each is cropped to the central ``localization_crop`` square plus the search
+        border. Another kind of held-out pairs (scene changes, say) is one more entry.
+        """
+        shift = self.hparams.localization_shift
+        side = min(self.hparams.localization_crop + 2 * shift, *self.shape)
+        top, left = (self.shape[0] - side) // 2, (self.shape[1] - side) // 2
+        window = (..., slice(top, top + side), slice(left, left + side))
+        local, prior = local[window], prior[window]
+        return {
+            f"noise_x{factor:g}": (prior + factor * (local - prior), prior, factor**2)
+            for factor in self.hparams.localization_noise
+        }
+
+    def _fixed(self, key: tuple, compute) -> dict[str, tuple[int, float]]:
+        """``compute()``, once per ``key`` in a fit: the methods that do not depend on the mask."""
+        if key not in self._fixed_results:
+            self._fixed_results[key] = compute()
+        return self._fixed_results[key]
+
     def _localize(self, local: Tensor, prior: Tensor, valid: Tensor, index: Tensor) -> None:
         room = self.hparams.localization_pairs - self._trials * self.trainer.world_size
         if room <= 0:
@@ -302,39 +355,49 @@ class MaskFitModule(LightningModule):
         local, prior, valid = local[:take], prior[:take], valid[:take]
         bins, value_range = self.hparams.bins, tuple(self.hparams.value_range)
         variance_scores = (ECR(bins=bins, value_range=value_range), ENMI(bins=bins, value_range=value_range))
+        shift = self.hparams.localization_shift
         with torch.no_grad():
             learned = self.mask.variance_map().to(local.device)
             usable = valid & self.mask.valid_mask(local)  # the learned pixels are fixed from the fit's start
             truth = self.truth
             if truth is not None:
                 usable = usable & truth.valid.to(local.device)
-            # The true map, NMI and NCC score the same pairs the same way at every validation of a fit: once.
-            key = (tuple(index[:take].tolist()), self.hparams.localization_shift, bins)
-            if key not in self._fixed_results:
-                fixed = {} if truth is None else {"analytic": truth.variance.to(local.device)}
-                self._fixed_results[key] = localization_trials(
-                    local,
-                    prior,
+            sets = self.held_out_sets(local, prior, usable)
+            side = next(iter(sets.values()))[0].shape[-1]
+            top, left = (self.shape[0] - side) // 2, (self.shape[1] - side) // 2
+            window = (..., slice(top, top + side), slice(left, left + side))
+            usable, learned = usable[window], learned[window]
+            uniform = float(learned[torch.isfinite(learned)].mean())
+            for set_name, (set_local, set_prior, factor) in sets.items():
+
+                def fixed(set_local=set_local, set_prior=set_prior, factor=factor):
+                    analytic = {} if truth is None else {"analytic": truth.variance.to(local.device)[window] * factor}
+                    return localization_trials(
+                        set_local,
+                        set_prior,
+                        usable,
+                        analytic,
+                        max_shift=shift,
+                        scores=(*variance_scores, NMI(bins=bins, value_range=value_range), NCC()),
+                    )
+
+                # The true map, NMI and NCC score the same pairs the same way at every validation of a fit: once.
+                key = (set_name, tuple(index[:take].tolist()), shift, bins, side)
+                results = localization_trials(
+                    set_local,
+                    set_prior,
                     usable,
-                    fixed,
-                    max_shift=self.hparams.localization_shift,
-                    scores=(*variance_scores, NMI(bins=bins, value_range=value_range), NCC()),
+                    {"learned": learned * factor, "uniform": uniform * factor},
+                    max_shift=shift,
+                    scores=variance_scores,
+                    uniform_grid=tuple(self.hparams.localization_grid),
+                    grid_score=variance_scores[1],
                 )
-            variances = {"learned": learned, "uniform": float(learned[self.mask.valid].mean())}
-            results = localization_trials(
-                local,
-                prior,
-                usable,
-                variances,
-                max_shift=self.hparams.localization_shift,
-                scores=variance_scores,
-                uniform_grid=tuple(self.hparams.localization_grid),
-                grid_score=variance_scores[1],
-            )
-            results.update(self._fixed_results[key])
-        for name, (hits, z_sum) in results.items():
-            self._hits[name] = self._hits.get(name, 0) + hits
-            self._z_sums[name] = self._z_sums.get(name, 0.0) + z_sum
+                results.update(self._fixed(key, fixed))
+                for method, (hits, z_sum) in results.items():
+                    name = f"{set_name}/{method}"
+                    self._hits[name] = self._hits.get(name, 0) + hits
+                    self._z_sums[name] = self._z_sums.get(name, 0.0) + z_sum
         self._trials += take
 
     # ----- epoch ends: dashboards ---------------------------------------------------------------------------------
@@ -353,13 +416,22 @@ class MaskFitModule(LightningModule):
         return errors
 
     def on_train_epoch_start(self) -> None:
-        """Keep the first batch of the epoch for the residual histograms; start the epoch's clock."""
+        """Keep the first batch of the epoch for the residual histograms; start the epoch's training clock."""
         self._histogram_batch = None
-        self._epoch_start, self._epoch_pairs = time.perf_counter(), 0
+        self._clock, self._train_seconds, self._epoch_pairs = time.perf_counter(), 0.0, 0
+
+    def on_validation_start(self) -> None:
+        """Stop the training clock: the speed is that of training alone."""
+        if not self.trainer.sanity_checking and self.trainer.state.fn == "fit":
+            self._train_seconds += time.perf_counter() - self._clock
+
+    def on_validation_end(self) -> None:
+        """Restart the training clock."""
+        self._clock = time.perf_counter()
 
     def on_train_epoch_end(self) -> None:
-        """Log the mask errors, the training speed and the residual histograms."""
-        seconds = time.perf_counter() - self._epoch_start
+        """Log the mask errors, the training speed (validation left out) and the residual histograms."""
+        seconds = self._train_seconds + time.perf_counter() - self._clock
         self.epoch_seconds.append(seconds)
         self.log("speed/pairs_per_second", self._epoch_pairs / seconds, sync_dist=True)
         for name, value in self.mask_errors().items():
@@ -385,11 +457,13 @@ class MaskFitModule(LightningModule):
         if pairs > 0:
             rates = {name: float(totals[index]) / pairs for index, name in enumerate(names)}
             margins = {name: float(totals[len(names) + index]) / pairs for index, name in enumerate(names)}
-            grid = [name for name in names if name.startswith("enmi_uniform")]
-            best = max(grid, key=lambda name: (rates[name], margins[name]))
-            rates["enmi_best_uniform"], margins["enmi_best_uniform"] = rates[best], margins[best]
-            for name in rates:
-                if name.startswith("enmi_uniform_x"):
+            for set_name in sorted({name.split("/")[0] for name in names}):
+                grid = [name for name in names if name.startswith(f"{set_name}/enmi_uniform")]
+                best = max(grid, key=lambda name: (rates[name], margins[name]))
+                best_name = f"{set_name}/enmi_best_uniform"
+                rates[best_name], margins[best_name] = rates[best], margins[best]
+            for name in sorted(rates):
+                if "/enmi_uniform_x" in name:
                     continue
                 self.log(f"localization/{name}", rates[name], sync_dist=False)
                 if math.isfinite(margins[name]):
@@ -397,6 +471,16 @@ class MaskFitModule(LightningModule):
         if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
             figure = self.figure()
             self.logger.experiment.add_figure("masks", figure, self.global_step)
+            if pairs > 0:
+                nested: dict[str, dict[str, float]] = {}
+                for name, rate in rates.items():
+                    held_out, method = name.split("/")
+                    if not method.startswith("enmi_uniform_x"):
+                        nested.setdefault(held_out, {})[method] = rate
+                shift = self.hparams.localization_shift
+                title = f"epoch {self.current_epoch}: held-out pairs searched within ±{shift} pixels"
+                figure = localization_figure(nested, int(pairs), title=title)
+                self.logger.experiment.add_figure("localization", figure, self.global_step)
 
     def figure(self):
         """The mask figure (learned, empirical, truth, one held-out residual) at the current state."""
@@ -404,14 +488,13 @@ class MaskFitModule(LightningModule):
         truth = self.truth
         residual = masked_residual(*self._figure_pair) if self._figure_pair is not None else None
         errors = self.mask_errors()
-        labels = {
-            "rel_rms_vs_empirical": "learned vs empirical",
-            "rel_rms_vs_truth": "learned vs truth",
-            "empirical_rel_rms_vs_truth": "empirical vs truth",
-        }
-        scores = ", ".join(f"{labels[name]} {100 * value:.2f} %" for name, value in errors.items())
-        source = f"{truth.flavour}-like pairs, " if truth is not None and truth.flavour in FLAVOURS else ""
-        title = f"{source}{self.statistics.count.max()} pairs; relative RMS error: {scores}"
+        scores = f"learned vs empirical {100 * errors['rel_rms_vs_empirical']:.1f} %"
+        if "rel_rms_vs_truth" in errors:
+            floor = errors["empirical_rel_rms_vs_truth"]
+            scores += f", vs truth {100 * errors['rel_rms_vs_truth']:.1f} % (floor {100 * floor:.1f} %)"
+        source = f"{truth.flavour}-like, " if truth is not None and truth.flavour in FLAVOURS else ""
+        pairs = int(self.statistics.count.max())
+        title = f"{source}{pairs} pairs, epoch {self.current_epoch}; relative RMS error:\n{scores}"
         return mask_figure(
             self.mask.variance_map(),
             empirical,

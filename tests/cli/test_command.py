@@ -1,6 +1,6 @@
 import pytest
 
-from enmi_torch.cli._command import ArgumentParser, plain_text, run_command
+from enmi_torch.cli._command import ArgumentParser, dashed_aliases, plain_parser_message, plain_text, run_command
 
 
 def parser() -> ArgumentParser:
@@ -56,3 +56,43 @@ def test_run_command_turns_user_errors_into_one_line_unless_debug(capsys):
 def test_plain_text_drops_docstring_markup():
     assert plain_text(":class:`~enmi_torch.data.PairDataModule` in ``pixel`` form") == "PairDataModule in pixel form"
     assert plain_text("see :mod:`enmi_torch.data.truth`") == "see enmi_torch.data.truth"
+
+
+def test_dashed_aliases_accept_either_spelling_of_an_option():
+    names = ["output-dir", "paper-points"]
+    argv = [
+        "--output_dir",
+        "out",
+        "--paper_points=p.csv",
+        "--output-dir",
+        "x",
+        "--trials",
+        "2",
+        "value_with_underscore",
+    ]
+    assert dashed_aliases(argv, names) == [
+        "--output-dir",
+        "out",
+        "--paper-points=p.csv",
+        "--output-dir",
+        "x",
+        "--trials",
+        "2",
+        "value_with_underscore",
+    ]
+    assert dashed_aliases(["--ckpt-path", "a"], ["ckpt_path"]) == ["--ckpt_path", "a"]
+
+
+def test_parser_messages_in_plain_words_name_the_flag():
+    union = (
+        'Parser key "trainer.max_epochs":\n  Does not validate against any of the Union subtypes\nSubtypes: '
+        "[<class 'int'>, <class 'NoneType'>]\nErrors:\n  - Expected a <class 'int'>\n  - Expected a <class "
+        "'NoneType'>\nGiven value type: <class 'str'>\nGiven value: abc"
+    )
+    assert plain_parser_message(union) == "--trainer.max_epochs expects int or null, got 'abc'"
+    assert plain_parser_message("Parser key \"size\":\n  Expected a <class 'int'>. Got value: x") == (
+        "--size expects int, got 'x'"
+    )
+    missing = "Parser key \"paper_points\":\n  Not of type Path_fr: File does not exist: '/a.csv'"
+    assert plain_parser_message(missing, ["--paper-points"]) == "--paper-points: no such file '/a.csv'"
+    assert plain_parser_message("unrecognized arguments: --x") == "unrecognized arguments: --x"

@@ -20,4 +20,19 @@ def test_refuses_a_folder_with_files_in_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([str(tmp_path), "--pairs", "1"])
     assert exit_info.value.code == 2
-    assert capsys.readouterr().err.startswith("enmi-make-pairs: error: root must be a new or empty folder")
+    assert capsys.readouterr().err.startswith("enmi-make-pairs: error: OUT must be a new or empty folder")
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--size", "600"], "--size must be from 1 to 512"),
+        (["--pairs", "0"], "--pairs must be an int >= 1, got 0"),
+        (["--noise-std", "-1"], "--noise-std must be a finite number > 0, got -1.0"),
+    ],
+)
+def test_mistakes_name_the_flag_typed(tmp_path, capsys, arguments, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(tmp_path / "pairs"), *arguments])
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and error.startswith(f"enmi-make-pairs: error: {message}"), error

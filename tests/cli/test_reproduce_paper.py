@@ -44,3 +44,21 @@ def test_mistakes_end_in_one_line(capsys):
     with pytest.raises(SystemExit):
         main(["--trials", "4", "--scores", "[nmi, mi]"])
     assert capsys.readouterr().err.startswith("enmi-reproduce-paper: error: score must be one of")
+
+
+def test_relative_paths_in_a_config_are_read_from_its_folder_and_flags_use_dashes(tmp_path, monkeypatch, capsys):
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "points.csv").write_text("noise_power,nmi,enmi\n0.01,0.2479,0.0048\n0.02,0.3,0.01\n")
+    (folder / "config.yaml").write_text("paper_points: points.csv\nscores: [nmi]\ntrials: 8\n")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    main(["--config", str(folder / "config.yaml"), "--output-dir", "out"])
+    with (elsewhere / "out" / "paper_simulation.csv").open(newline="") as handle:
+        assert [row["noise_power"] for row in csv.DictReader(handle)] == ["0.01", "0.02"]
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "--output-dir" in text and "--paper-points" in text and "--output_dir" not in text

@@ -1,8 +1,10 @@
 import io
 import json
 import os
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -56,28 +58,19 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     events = EventAccumulator(summary["log_dir"], size_guidance={"images": 0, "histograms": 0, "scalars": 0})
     events.Reload()
     tags = events.Tags()
-    expected_scalars = {
-        "train/nll",
-        "val/nll",
-        "mask/rel_rms_vs_empirical",
-        "mask/rel_rms_vs_truth",
-        "mask/empirical_rel_rms_vs_truth",
-        "localization/ecr_learned",
-        "localization/ecr_analytic",
-        "localization/ecr_uniform",
-        "localization/enmi_learned",
-        "localization/enmi_analytic",
-        "localization/enmi_uniform",
-        "localization/enmi_best_uniform",
-        "localization/nmi",
-        "localization/ncc",
-        "localization_z/ecr_learned",
-        "localization_z/enmi_best_uniform",
-    }
-    assert expected_scalars <= set(tags["scalars"])
-    assert "masks" in tags["images"] and {"residuals/raw", "residuals/standardised"} <= set(tags["histograms"])
+    methods = ["ecr_learned", "ecr_analytic", "ecr_uniform", "enmi_learned", "enmi_analytic", "enmi_uniform"]
+    methods += ["enmi_best_uniform", "nmi", "ncc"]
+    held_out = ["noise_x1", "noise_x16", "noise_x32"]
+    expected_scalars = {"train/nll", "val/nll", "mask/rel_rms_vs_empirical", "mask/rel_rms_vs_truth"}
+    expected_scalars |= {"mask/empirical_rel_rms_vs_truth", "speed/pairs_per_second"}
+    expected_scalars |= {f"localization/{name}/{method}" for name in held_out for method in methods}
+    expected_scalars |= {f"localization_z/{name}/{method}" for name in held_out for method in methods}
+    assert set(tags["scalars"]) - expected_scalars == {"lr-Adam"}  # one training loss, no epoch, no hp_metric
+    assert {"masks", "localization"} <= set(tags["images"]) and {"residuals/raw", "residuals/standardised"} <= set(
+        tags["histograms"]
+    )
     image = events.Images("masks")[-1]
-    assert image.width > 3 * image.height > 0  # panels side by side
+    assert 1.6 < image.width / image.height < 2.2  # the shape of TensorBoard's image card: not shrunk on it
     from PIL import Image
 
     decoded = np.asarray(Image.open(io.BytesIO(image.encoded_image_string)).convert("RGB"))
@@ -89,8 +82,116 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     errors = summary["errors"]
     logged = events.Scalars("mask/rel_rms_vs_truth")[-1].value
     assert logged == pytest.approx(errors["rel_rms_vs_truth"], rel=1e-5)
-    assert 0 <= summary["localization"]["ecr_learned"] <= 1
-    assert not any(name.startswith("enmi_uniform_x") for name in summary["localization"])
+    assert set(summary["localization"]) == set(held_out)
+    assert all(set(rates) == set(methods) for rates in summary["localization"].values())
+    assert all(0 <= rate <= 1 for rates in summary["localization"].values() for rate in rates.values())
+    assert Path(summary["log_dir"]).name == "lidar_0"  # named by its data
+
+
+def event_values(log_dir) -> list:
+    """Every summary value in the run's event files, in order."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    values = []
+    for path in sorted(Path(log_dir).glob("events.out.tfevents.*")):
+        values += [value for event in EventFileLoader(str(path)).Load() for value in event.summary.value]
+    return values
+
+
+def test_dashboards_open_on_the_answer(tmp_path):
+    """The event files hold the Custom Scalars layout and the HParams session with the run's real final metrics."""
+    from tensorboard.plugins.custom_scalar import layout_pb2
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    summary = run(tmp_path)
+    events = EventAccumulator(summary["log_dir"], size_guidance={"scalars": 0})
+    events.Reload()
+    scalars = set(events.Tags()["scalars"])
+    values = event_values(summary["log_dir"])
+
+    layouts = [value for value in values if value.tag == "custom_scalars__config__"]
+    assert len(layouts) == 1
+    layout = layout_pb2.Layout.FromString(layouts[0].tensor.string_val[0])
+    answer, mask = layout.category[0], layout.category[1]
+    assert not answer.closed and not mask.closed and all(category.closed for category in layout.category[2:])
+    assert [chart.title.split(":")[0] for chart in answer.chart] == ["noise_x32", "noise_x16", "noise_x1"]
+    for chart in answer.chart:  # every score and variance of one held-out set (TensorBoard searches the regex)
+        (pattern,) = chart.multiline.tag
+        matched = {tag for tag in scalars if re.search(pattern, tag)}
+        held_out = chart.title.split(":")[0]
+        assert matched == {tag for tag in scalars if tag.startswith(f"localization/{held_out}/")}
+        assert len(matched) == 9
+    floor = mask.chart[0].multiline.tag
+    assert list(floor) == ["mask/rel_rms_vs_truth", "mask/empirical_rel_rms_vs_truth"]
+
+    hparams = [value for value in values if value.metadata.plugin_data.plugin_name == "hparams"]
+    contents = [plugin_data_pb2.HParamsPluginData.FromString(value.metadata.plugin_data.content) for value in hparams]
+    experiment = next(content.experiment for content in contents if content.HasField("experiment"))
+    start = next(content.session_start_info for content in contents if content.HasField("session_start_info"))
+    metrics = [info.name.tag for info in experiment.metric_infos]
+    assert "hp_metric" not in metrics and "hp_metric" not in scalars
+    assert metrics[:3] == ["mask/empirical_rel_rms_vs_truth", "mask/rel_rms_vs_empirical", "mask/rel_rms_vs_truth"]
+    assert metrics[3].startswith("localization/noise_x32/")
+    assert {tag for tag in scalars if tag.startswith("localization/")} <= set(metrics)
+    assert {"val/nll", "speed/pairs_per_second"} <= set(metrics) <= scalars
+    # HParams shows each metric's last value: the summary's numbers, not a placeholder.
+    last = {tag: events.Scalars(tag)[-1].value for tag in metrics}
+    assert last["mask/rel_rms_vs_truth"] == pytest.approx(summary["errors"]["rel_rms_vs_truth"], rel=1e-5)
+    for held_out, rates in summary["localization"].items():
+        for method, rate in rates.items():
+            assert last[f"localization/{held_out}/{method}"] == pytest.approx(rate, abs=1e-6)
+    assert start.hparams["data"].string_value == "lidar" and start.hparams["form"].string_value == "pixel"
+    assert start.hparams["epochs"].number_value == 2
+    assert set(start.hparams) == {"data", "epochs", "form", "smoothness", "match_intensity", "train_pairs", "size"} | {
+        "noise_std",
+        "lr",
+    }
+
+
+class SlowEpochs(Callback):
+    """0.3 s of training in each epoch's first batch, 0.5 s in each validation."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if batch_idx == 0:
+            time.sleep(0.3)
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        time.sleep(0.5)
+
+
+def test_training_speed_leaves_validation_out():
+    datamodule = PairDataModule(train_pairs=32, val_pairs=8, size=16, batch_size=16)
+    model = MaskFitModule(shape=datamodule.shape, localization_pairs=0)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_epochs=2,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=1,
+        enable_checkpointing=False,
+        callbacks=[SlowEpochs()],
+    )
+    trainer.fit(model, datamodule=datamodule)
+    assert len(model.epoch_seconds) == 2
+    assert all(0.3 <= seconds < 0.7 for seconds in model.epoch_seconds), model.epoch_seconds  # training counted only
+
+
+def test_held_out_sets_scale_the_noise_of_the_central_crop():
+    model = MaskFitModule(shape=(40, 44), localization_shift=2, localization_crop=16, localization_noise=(1, 4))
+    generator = torch.Generator().manual_seed(0)
+    prior = torch.rand(3, 1, 40, 44, generator=generator, dtype=torch.float64) * 256
+    local = prior + torch.randn(3, 1, 40, 44, generator=generator, dtype=torch.float64)
+    sets = model.held_out_sets(local, prior, torch.ones_like(local, dtype=torch.bool))
+    assert list(sets) == ["noise_x1", "noise_x4"]
+    window = (..., slice(10, 30), slice(12, 32))  # 16 + 2 x 2 around the centre of 40 x 44
+    for name, factor in (("noise_x1", 1.0), ("noise_x4", 4.0)):
+        set_local, set_prior, variance_factor = sets[name]
+        torch.testing.assert_close(set_prior, prior[window])
+        torch.testing.assert_close(set_local - set_prior, factor * (local - prior)[window])
+        assert variance_factor == factor**2
 
 
 @pytest.mark.parametrize(
@@ -271,9 +372,13 @@ def test_help_lists_this_commands_options_in_plain_text(capsys):
     ("arguments", "message"),
     [
         (["--data.flavor", "camera"], "unrecognized arguments: --data.flavor camera (did you mean --data.flavour?)"),
-        (["--data.flavour", "radar"], "flavour must be one of ['lidar', 'camera'], got 'radar'"),
-        (["--data.root", "/nonexistent"], "root must be a folder of pairs"),
+        (["--data.flavour", "radar"], "--data.flavour must be one of ['lidar', 'camera'], got 'radar'"),
+        (["--data.root", "/nonexistent"], "--data.root must be a folder of pairs"),
+        (["--data.train_pairs", "0"], "--data.train_pairs must be an int >= 1, got 0"),
+        (["--model.form", "pixl"], "--model.form must be one of ['pixel', 'radial', 'perspective'], got 'pixl'"),
+        (["--trainer.max_epochs", "abc"], "--trainer.max_epochs expects int or null, got 'abc'"),
         (["--ckpt_path", "missing.ckpt"], "ckpt_path must be a checkpoint file"),
+        (["--ckpt-path", "missing.ckpt"], "ckpt_path must be a checkpoint file"),
     ],
 )
 def test_user_mistakes_end_in_one_line_and_exit_code_2(tmp_path, capsys, arguments, message):
@@ -282,6 +387,28 @@ def test_user_mistakes_end_in_one_line_and_exit_code_2(tmp_path, capsys, argumen
     error_lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("enmi-fit-mask")]
     assert exit_info.value.code == 2 and len(error_lines) == 1
     assert error_lines[0].startswith("enmi-fit-mask: error: ") and message in error_lines[0]
+
+
+def test_an_error_comes_alone_before_any_of_lightnings_lines(tmp_path):
+    completed = subprocess.run(
+        [sys.executable, str(ROOT / "train" / "fit_mask.py"), "--data.train_pairs", "0"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert completed.returncode == 2 and completed.stdout == ""
+    assert completed.stderr == "enmi-fit-mask: error: --data.train_pairs must be an int >= 1, got 0\n"
+    completed = subprocess.run(  # a good run prints Lightning's lines after all
+        [sys.executable, str(ROOT / "train" / "fit_mask.py"), "--config", SMOKE, "--model.localization_pairs", "0"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert completed.returncode == 0 and "Seed set to 0" in completed.stderr and "GPU available" in completed.stderr
 
 
 def test_debug_shows_the_exception(tmp_path):

@@ -1,0 +1,148 @@
+"""``MaskLogger``: the fit-mask dashboards open on the answer.
+
+TensorBoard's logger with, for this command: runs named by their data (``runs/fit_mask/lidar_0``, not
+``version_0``), no ``epoch`` staircase, no ``hp_metric = -1``; a custom-scalars layout (the Custom Scalars tab) with
+one chart per held-out set comparing every score and variance on the same pairs and one chart of the mask's error
+against its empirical floor; and, at the end of a fit, the hyperparameters with the run's real final metrics (the
+HParams tab reads each metric's last value).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from lightning.fabric.utilities.logger import _convert_params, _flatten_dict
+from lightning.pytorch.loggers import TensorBoardLogger
+from lightning.pytorch.utilities import rank_zero_only
+
+LAYOUT_TAG = "custom_scalars__config__"
+# The hyperparameters that tell runs apart, shown in the HParams tab.
+SHOWN = ("form", "smoothness", "match_intensity", "train_pairs", "size", "noise_std", "lr")
+
+
+def run_name(root: str | None, flavour: str) -> str:
+    """What a run is named after: the pairs folder's name, or the synthetic flavour (``"lidar"``)."""
+    if root is None:
+        return flavour
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(root).resolve().name).strip("._")
+    return name or "pairs"
+
+
+def next_version(folder: str | Path, name: str) -> str:
+    """``<name>_<n>`` with ``n`` one more than the largest of the existing ``<name>_<n>`` folders (0 for none)."""
+    taken = [
+        int(match.group(1))
+        for path in (Path(folder).iterdir() if Path(folder).is_dir() else ())
+        if (match := re.fullmatch(rf"{re.escape(name)}_(\d+)", path.name))
+    ]
+    return f"{name}_{max(taken, default=-1) + 1}"
+
+
+def layout(sets: Sequence[str], masked_truth: bool) -> dict[str, dict[str, tuple[str, list[str]]]]:
+    """The Custom Scalars layout: category -> chart title -> ``("Multiline", [tag regex, ...])``.
+
+    ``sets``: the held-out sets, hardest first; ``masked_truth``: whether the true variance is known (synthetic data).
+    """
+    answer = {
+        f"{name}: share of held-out pairs located within one pixel, every score and variance": (
+            "Multiline",
+            [rf"localization/{re.escape(name)}/.*"],
+        )
+        for name in sets
+    }
+    mask = {}
+    if masked_truth:
+        mask["learned mask vs the true variance, and the empirical mask's error (its floor)"] = (
+            "Multiline",
+            ["mask/rel_rms_vs_truth", "mask/empirical_rel_rms_vs_truth"],
+        )
+    mask["learned mask vs the paper's empirical mask (convergence)"] = ("Multiline", ["mask/rel_rms_vs_empirical"])
+    margins = {
+        f"{name}: margin of the true shift (z-score), every score and variance": (
+            "Multiline",
+            [rf"localization_z/{re.escape(name)}/.*"],
+        )
+        for name in sets
+    }
+    training = {
+        "Gaussian NLL per valid pixel, training and held-out": ("Multiline", ["train/nll", "val/nll"]),
+        "training speed (validation left out)": ("Multiline", ["speed/pairs_per_second"]),
+    }
+    return {
+        "localization: which score and variance find held-out pairs": answer,
+        "the learned mask": mask,
+        "localization margins": margins,
+        "training": training,
+    }
+
+
+def layout_summary(categories: Mapping[str, Mapping[str, tuple[str, list[str]]]], closed: Iterable[str] = ()):
+    """The ``custom_scalars__config__`` summary of a layout, categories in ``closed`` folded."""
+    from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
+    from tensorboard.compat.proto.tensor_pb2 import TensorProto
+    from tensorboard.compat.proto.tensor_shape_pb2 import TensorShapeProto
+    from tensorboard.plugins.custom_scalar import layout_pb2
+
+    closed = set(closed)
+    proto = layout_pb2.Layout(
+        category=[
+            layout_pb2.Category(
+                title=title,
+                closed=title in closed,
+                chart=[
+                    layout_pb2.Chart(title=chart, multiline=layout_pb2.MultilineChartContent(tag=list(tags)))
+                    for chart, (_, tags) in charts.items()
+                ],
+            )
+            for title, charts in categories.items()
+            if charts
+        ]
+    )
+    tensor = TensorProto(dtype="DT_STRING", string_val=[proto.SerializeToString()], tensor_shape=TensorShapeProto())
+    metadata = SummaryMetadata(plugin_data=SummaryMetadata.PluginData(plugin_name="custom_scalars"))
+    return Summary(value=[Summary.Value(tag=LAYOUT_TAG, tensor=tensor, metadata=metadata)])
+
+
+class MaskLogger(TensorBoardLogger):
+    """:class:`~lightning.pytorch.loggers.TensorBoardLogger` for ``enmi-fit-mask``'s dashboards.
+
+    Args are TensorBoardLogger's; ``default_hp_metric`` is off (the real metrics go to HParams at the end of a fit,
+    :meth:`log_final_metrics`).
+    """
+
+    def __init__(self, *args: Any, default_hp_metric: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, default_hp_metric=default_hp_metric, **kwargs)
+
+    @rank_zero_only
+    def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
+        """Every metric but Lightning's ``epoch`` counter (a staircase that answers nothing)."""
+        super().log_metrics({key: value for key, value in metrics.items() if key != "epoch"}, step)
+
+    @rank_zero_only
+    def log_layout(self, sets: Sequence[str], masked_truth: bool) -> None:
+        """Write the Custom Scalars layout (:func:`layout`); the margins and training categories start folded."""
+        categories = layout(sets, masked_truth)
+        summary = layout_summary(categories, closed=list(categories)[2:])
+        self.experiment._get_file_writer().add_summary(summary)
+
+    @rank_zero_only
+    def log_final_metrics(self, metrics: Sequence[str], leading: Mapping[str, Any] | None = None) -> None:
+        """The hyperparameters with these metric tags: the HParams tab shows each tag's last logged value.
+
+        The hyperparameters are ``leading`` (the data, the epochs) and those of ``SHOWN`` (the ones that tell runs
+        apart; TensorBoard lists them by name and ticks the first few): every other one is in the run's
+        ``hparams.yaml`` and ``config.yaml``.
+        """
+        from torch.utils.tensorboard.summary import hparams
+
+        stored = self._sanitize_params(_flatten_dict(_convert_params(dict(self.hparams))))
+        params = dict(leading or {})
+        params.update({key: stored[key] for key in SHOWN if key in stored and key not in params})
+        experiment, start, end = hparams(params, dict.fromkeys(metrics, 0.0))
+        writer = self.experiment._get_file_writer()
+        for summary in (experiment, start, end):
+            writer.add_summary(summary)
+        writer.flush()
