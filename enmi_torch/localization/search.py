@@ -113,8 +113,9 @@ def localize(
             that cheap ranking, the number of peaks doubles (up to 64), then the exact best's own neighbourhood is
             completed for the sub-cell fit. Rescored candidates score as in the exhaustive surface (up to
             round-off; with ECR's estimated model variance, read at each yaw's cheap peak, when ``cheap_bins=4`` and
-            ``min_overlap <= 0.5``, else it may be read elsewhere), the others are ``-inf`` in ``surface``. It misses the exhaustive argmax when the cheap score
-            ranks that peak below the ones it rescored and the doubling has stopped
+            ``min_overlap <= 0.5``, else it may be read elsewhere), the others are ``-inf`` in ``surface``. It
+            misses the exhaustive argmax when the cheap score ranks that peak below the ones it rescored and the
+            doubling has stopped
             (``data_tools/benchmarks/bench_search.py`` measures how often: rarely, at extreme noise).
         cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.
 
