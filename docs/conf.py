@@ -17,6 +17,7 @@ import enmi_torch  # noqa: E402
 
 project = "enmi_torch"
 author = "enmi_torch contributors"
+copyright = f"2026, {author}"  # the footer; Sphinx reads this name
 release = version = enmi_torch.__version__
 extensions = ["sphinx.ext.autodoc", "sphinx.ext.napoleon", "myst_parser"]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
