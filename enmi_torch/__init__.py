@@ -14,7 +14,7 @@ from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.geometry.rectify import GroundGrid, rectify, unrectify
 from enmi_torch.histogram import joint_histogram
 from enmi_torch.information import entropies, nmi_from_joint_histogram
-from enmi_torch.localization.peak import Localization
+from enmi_torch.localization.peak import Localization, NoCandidateError
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ScoreLoss
 from enmi_torch.placement import Surface
@@ -57,6 +57,7 @@ __all__ = [
     "Mixture",
     "MixtureLoss",
     "NMILoss",
+    "NoCandidateError",
     "PerspectiveVariance",
     "RoadCamera",
     "Score",

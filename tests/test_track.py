@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from enmi_torch import ECR, NMI, Localization, as_score, value_checks
+from enmi_torch import ECR, NMI, Localization, NoCandidateError, as_score, localize, value_checks
 from enmi_torch.tracking import (
     CHI2_95_2D,
     Belief,
@@ -17,6 +17,7 @@ from enmi_torch.tracking import (
     Tracker,
     belief_pose,
     calibrate_temperature,
+    grid_temperature,
     initial_belief,
     predict,
     track_step,
@@ -125,18 +126,103 @@ def test_belief_pose_refines_below_a_cell_and_reports_a_laplace_covariance():
     assert covariance[0, 1, 1] == pytest.approx(1 / curvature)
 
 
-def test_noiseless_drive_is_tracked_exactly(generator):
+@pytest.mark.parametrize(("temperature", "tolerance"), [(1.0, 1e-6), ("auto", 0.01)])
+def test_noiseless_drive_is_tracked_exactly(generator, temperature, tolerance):
+    # With the raw log-likelihood (temperature 1, the default before "auto") the pose is the cell itself; the default
+    # flattens it to one bin's spread, which leaves the mean within a hundredth of a cell.
     reference = _texture(generator, (96, 200))
-    tracker = Tracker(reference.float(), score=ECR(bins=16), shifts=(4, 5), yaw_bins=3, motion_noise=(0.5, 0.5, 0.3))
+    tracker = Tracker(
+        reference.float(),
+        score=ECR(bins=16),
+        shifts=(4, 5),
+        yaw_bins=3,
+        motion_noise=(0.5, 0.5, 0.3),
+        temperature=temperature,
+    )
     tracker.start(torch.tensor([[40.0, 50.0, 0.0]]))
     x, y = 40, 50
     for step in range(12):
         du, dv = (3, 0) if step % 3 else (2, 1)  # unequal moves along columns and rows
         x, y = x + du, y + dv
         output = tracker(_cut(reference, x, y).float(), torch.tensor([[float(du), float(dv), 0.0]]), 1.0)
-        assert output.pose[0, :2].tolist() == pytest.approx([x, y], abs=1e-6)
-        assert float(output.pose[0, 2]) == pytest.approx(0.0, abs=1e-3)  # nearest-neighbour turns: not symmetric
-        assert bool(output.healthy[0])
+        assert output.pose[0, :2].tolist() == pytest.approx([x, y], abs=tolerance)
+        assert float(output.pose[0, 2]) == pytest.approx(0.0, abs=max(tolerance, 1e-3))  # nearest-neighbour turns
+        assert bool(output.healthy[0]) and not bool(output.lost[0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_grid_temperature_caps_each_axis_at_one_bin(dtype):
+    # Curvatures 30 (yaw), 6 (rows) and 96 (columns) per bin^2 on a non-square grid whose peak is off-centre: the
+    # sharpest axis, the columns, sets 1 + 96 / 12 = 9; a swapped or missed axis gives another number.
+    yaw, rows, cols = torch.meshgrid(torch.arange(3.0) - 1, torch.arange(7.0) - 2, torch.arange(9.0) - 5, indexing="ij")
+    sharp = -0.5 * (30.0 * yaw**2 + 6.0 * rows**2 + 96.0 * cols**2)
+    flat = torch.zeros(3, 7, 9)
+    dipped = 0.5 * 96.0 * cols**2  # the maximum at a border, the curvature upwards: counts zero
+    log_likelihood = torch.stack([sharp, flat, dipped]).to(dtype)
+    assert grid_temperature(log_likelihood).tolist() == pytest.approx([9.0, 1.0, 1.0])
+    assert grid_temperature(sharp[:, :, :2][None].to(dtype)).tolist() == pytest.approx([1 + 30.0 / 12])
+    at_border = sharp[None, :, :, 1:].clone()  # the peak on the window's first column: read one bin inwards
+    assert grid_temperature(at_border.to(dtype)).tolist() == pytest.approx([9.0])
+    sharp[0, 0, 0] = -math.inf  # a candidate left out: the smallest finite value, the peak's curvature unchanged
+    assert grid_temperature(sharp[None].to(dtype)).tolist() == pytest.approx([9.0])
+
+
+def test_a_window_without_candidates_raises_no_candidate_error(generator):
+    reference = _texture(generator, (40, 60)).float()
+    with pytest.raises(NoCandidateError, match="no candidate passes min_overlap"):
+        localize(_cut(reference, 30, 20), reference, 1.0, shifts=3, center=(20, 500))
+
+
+def _edge_drive(generator, steps: int, frame_of, start_x: float = 45.0) -> list:
+    reference = _texture(generator, (60, 90))
+    settings = {"score": ECR(bins=16), "shifts": 3, "yaw_bins": 1, "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
+    tracker = Tracker(reference.float(), relocalize_shifts=6, coarse_factor=2, **settings)
+    tracker.start(torch.tensor([[start_x, 30.0, 0.0]]))
+    return [frame_of(tracker, reference, step) for step in range(steps)]
+
+
+def test_a_fully_masked_frame_coasts_on_the_odometry(generator):
+    def frame_of(tracker, reference, step):
+        before = tracker.belief
+        mask = torch.full((1, 1, *FRAME), step != 2)  # the third frame sees nothing
+        output = tracker(_cut(reference, 45 + 2 * (step + 1), 30).float(), torch.tensor([[2.0, 0.0, 0.0]]), 1.0, mask)
+        return before, output
+
+    outputs = _edge_drive(generator, 5, frame_of)
+    before, masked = outputs[2]
+    assert not bool(masked.healthy[0]) and math.isnan(float(masked.score[0])) and math.isnan(float(masked.peak_z[0]))
+    coasted, _ = belief_pose(predict(before, torch.tensor([[2.0, 0.0, 0.0]]), (0.3, 0.3, 0.1)))
+    torch.testing.assert_close(masked.pose, coasted)  # the prediction alone
+    _, last = outputs[-1]
+    assert bool(last.healthy[0]) and not bool(last.lost[0])
+    assert last.pose[0, :2].tolist() == pytest.approx([55.0, 30.0], abs=0.05)
+
+
+def test_odometry_off_the_map_is_lost_then_found_again_without_an_exception(generator):
+    # The odometry claims a jump of 200 cells (off the 90-cell map) for three frames, then returns: the windows there
+    # hold no candidate (NoCandidateError inside, caught), the filter coasts and says lost, and recovers when back.
+    def frame_of(tracker, reference, step):
+        jump = {1: 200.0, 4: -200.0}.get(step, 0.0)
+        return tracker(_cut(reference, 45, 30).float(), torch.tensor([[jump, 0.0, 0.0]]), 1.0)
+
+    outputs = _edge_drive(generator, 7, frame_of)
+    assert [bool(output.healthy[0]) for output in outputs] == [True, False, False, False, True, True, True]
+    assert [bool(output.lost[0]) for output in outputs] == [False, False, True, True, False, False, False]
+    assert outputs[-1].pose[0, :2].tolist() == pytest.approx([45.0, 30.0], abs=0.05)
+
+
+def test_a_belief_at_the_map_edge_keeps_tracking(generator):
+    # The vehicle drives off the map's right edge: frames half off the map (their outer half masked) still match.
+    def frame_of(tracker, reference, step):
+        x = 76 + 2 * step
+        padded = torch.nn.functional.pad(reference, (0, 40))
+        valid = torch.nn.functional.pad(torch.ones_like(reference, dtype=torch.bool), (0, 40))
+        output = tracker(_cut(padded, x, 30).float(), torch.tensor([[2.0, 0.0, 0.0]]), 1.0, _cut(valid, x, 30))
+        return x, output
+
+    outputs = _edge_drive(generator, 8, frame_of, start_x=74.0)
+    for x, output in outputs:
+        assert output.pose[0, :2].tolist() == pytest.approx([x, 30.0], abs=0.5)
 
 
 def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
@@ -230,6 +316,7 @@ def _bad_call(case: str):
         "reference shape": lambda: track_step(belief, frame, torch.rand(32, 32), odometry, 1.0),
         "score": lambda: track_step(belief, frame, reference, odometry, 1.0, score="ssd"),
         "temperature": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature=0.0),
+        "temperature name": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature="grid"),
         "patience": lambda: track_step(belief, frame, reference, odometry, 1.0, patience=0),
         "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
         "unknown setting": lambda: Tracker(reference, shift=3),
@@ -256,6 +343,7 @@ def _bad_call(case: str):
         ("reference shape", ValueError, r"reference must be one map \(1, 1, Hm, Wm\)"),
         ("score", ValueError, "score must be a Score or one of"),
         ("temperature", ValueError, "temperature must be a finite number > 0"),
+        ("temperature name", ValueError, "temperature must be 'auto' or a finite number > 0, got 'grid'"),
         ("patience", ValueError, "patience must be an int >= 1"),
         ("truth shape", ValueError, r"truth \(N, 3\)"),
         ("unknown setting", TypeError, r"unknown setting\(s\) \['shift'\]"),
@@ -275,13 +363,12 @@ def _drive_module():
 
 
 @pytest.mark.slow
-def test_filter_ellipses_cover_the_truth_on_the_benchmark_drive():
+def test_uncalibrated_filter_ellipses_cover_the_truth_on_the_benchmark_drive():
     drive_tools = _drive_module()
     torch.set_num_threads(1)
     drive = drive_tools.Drive(240, seed=0)  # the benchmark's default drive
     with value_checks(False):  # the photograph's sky: featureless frames are weak matches, not errors
-        calibration = drive_tools.calibrate(drive, "ecr_analytic")
-        result = drive_tools.run_filter(drive, "ecr_analytic", calibration)
+        result = drive_tools.run_filter(drive, "ecr_analytic")  # as README shows it: no calibration
         argmax = drive_tools.run_argmax(drive, "ecr_analytic")
     covered = drive_tools.coverage(drive.truth, result)
     assert 0.90 <= covered <= 0.98

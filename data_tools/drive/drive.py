@@ -16,10 +16,15 @@ through a non-monotonic response ``255 |2 v / 255 - 1|^0.8``, as when the map wa
 repetitive ``brick`` tile. Odometry (``du``, ``dv``, ``dyaw`` in the frame's axes) has a 3 % scale error, a yaw-rate
 bias of 0.05 degrees per frame and white noise.
 
-Calibration on held-out frames (other poses and noise draws): each score's temperature
-(:func:`enmi_torch.tracking.calibrate_temperature`), its peak z-score threshold and the odometry noise
-(the RMS of the increment errors); it is written as ``calibration_<method>.json`` under ``--logdir``
-(``runs/drive``), with the TensorBoard logs of the errors (``tensorboard --logdir runs/drive/tensorboard``).
+The filter runs as README shows it, without calibration (each frame's temperature is
+:func:`enmi_torch.tracking.calibration.grid_temperature`); the odometry noise is the RMS of the increment errors of
+a held-out odometry sequence. ``--calibrate`` fits each score's temperature and peak z-score threshold on held-out
+frames instead (:func:`enmi_torch.tracking.calibrate_temperature`), written as ``calibration_<method>.json`` under
+``--logdir`` (``runs/drive``), with the TensorBoard logs of the errors
+(``tensorboard --logdir runs/drive/tensorboard``).
+``--scene-change S`` renders the frames from the road changed since the map was made (every change of
+:mod:`enmi_torch.data.scene_change` at strength ``S``, the map unchanged); ``--noise-scale`` multiplies the pixel
+noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them.
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
@@ -29,6 +34,7 @@ window +-8 cells, 5 yaws 1 degree apart). Errors are split along the true headin
     python data_tools/drive/drive.py                                      # runs/drive/drive.png, ~3 min on 2 cores
     python data_tools/drive/drive.py --out data_tools/figures/drive.png   # README's figure
     python data_tools/drive/drive.py --frames 60 --methods ecr_analytic   # a quick look
+    python data_tools/drive/drive.py --scene-change 0.5 --seeds 0 1 2 --out runs/drive/changed.png
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ import torch.nn.functional as F
 from skimage import data
 
 from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify, value_checks
+from enmi_torch.data.scene_change import scene_change
 from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
@@ -160,24 +167,40 @@ def respond(values: torch.Tensor) -> torch.Tensor:
     return 255 * (2 * values.clamp(0, 255) / 255 - 1).abs() ** 0.8
 
 
+def changed_scene(image: torch.Tensor, seed: int, strength: float) -> torch.Tensor:
+    """The road as the drive sees it: ``image`` changed in 512-row pieces, each with its own draws of every change."""
+    pieces = [scene_change(piece, seed * 1000 + index, strength) for index, piece in enumerate(image.split(512, dim=0))]
+    return torch.cat(pieces, 0)
+
+
 def analytic_variance() -> torch.Tensor:
     """``(1, 1, 64, 64)`` ``N0 / A`` per unit pixel noise variance."""
     return homography_variance(ground_to_image_homography(CAMERA, GRID), FRAME, 1.0)
 
 
 class Drive:
-    """The drive: map, truth, odometry, frames with their noise level, calibration frames."""
+    """The drive: map, truth, odometry, frames with their noise level, calibration frames.
 
-    def __init__(self, frames: int, seed: int) -> None:
+    ``scene_change`` in ``[0, 1]``: the frames see the road changed since the map was made
+    (:func:`enmi_torch.data.scene_change`, every kind mixed at that strength: illumination, cast shadows, occluders
+    pasted from other photographs, tone, resampling and blur, parallax warps), the map stays as it was;
+    ``noise_scale`` multiplies the pixel noise.
+    """
+
+    def __init__(self, frames: int, seed: int, scene_change: float = 0.0, noise_scale: float = 1.0) -> None:
         generator = torch.Generator().manual_seed(seed)
         self.map = road_map()
+        self.world = self.map
+        if scene_change > 0:
+            self.world = changed_scene(self.map[0, 0], seed, scene_change)[None, None]
         self.truth, increments = trajectory(frames)
         self.odometry = measured_odometry(increments, generator)
         index = torch.arange(frames)
         noisy = (index >= NOISY[0]) & (index < NOISY[1])
         changed = (index >= CHANGED[0]) & (index < CHANGED[1])
-        self.pixel_noise = torch.where(noisy, 4 * PIXEL_NOISE, PIXEL_NOISE).double()
-        patches = ground_patches(self.map, self.truth)
+        self.pixel_noise = torch.where(noisy, 4 * PIXEL_NOISE, PIXEL_NOISE).double() * noise_scale
+        self.noise_scale = noise_scale
+        patches = ground_patches(self.world, self.truth)
         patches = torch.where(changed[:, None, None, None], respond(patches), patches)
         self.frames, self.valid = render(patches, self.pixel_noise, generator)
         self.hard = {"strong noise": noisy, "changed appearance": changed, "brick": self._on_tile("brick")}
@@ -199,8 +222,9 @@ class Drive:
             1,
         )
         noise = torch.where(torch.rand(count, generator=generator) < 0.2, 4 * PIXEL_NOISE, PIXEL_NOISE).double()
+        noise = noise * self.noise_scale
         changed = torch.rand(count, generator=generator) < 0.2
-        patches = ground_patches(self.map, poses)
+        patches = ground_patches(self.world, poses)
         patches = torch.where(changed[:, None, None, None], respond(patches), patches)
         self.held_out_poses = poses
         self.held_out_noise = noise
@@ -269,8 +293,8 @@ def search(frame, reference, variance, valid, center, yaws, score: Score) -> Loc
     )
 
 
-def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
-    """Poses, covariances, health and relocalization per frame of the filter."""
+def run_filter(drive: Drive, method: str, calibration: Calibration | None = None) -> dict:
+    """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = METHODS[method]
     variance = drive.variance(kind, drive.pixel_noise)
     tracker = Tracker(
@@ -284,6 +308,7 @@ def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []
+    lost = [False]
     for index in range(1, len(drive.truth)):
         frame_variance = None if variance is None else variance[index : index + 1]
         start = time.perf_counter()
@@ -295,11 +320,13 @@ def run_filter(drive: Drive, method: str, calibration: Calibration) -> dict:
         covariances.append(output.covariance[0])
         healthy.append(bool(output.healthy[0]))
         relocalized.append(bool(output.relocalized[0]))
+        lost.append(bool(output.lost[0]))
     return {
         "pose": torch.stack(poses),
         "covariance": torch.stack(covariances).double(),
         "healthy": torch.tensor(healthy),
         "relocalized": torch.tensor(relocalized),
+        "lost": torch.tensor(lost),
         "seconds": torch.tensor(seconds),
     }
 
@@ -408,7 +435,8 @@ def print_tables(drive: Drive, results: dict, calibrations: dict) -> list[str]:
                 f"({theirs['lateral_rms']:.2f} / {theirs['longitudinal_rms']:.2f})"
             )
         lines.append(f"| {LABELS[method]} | " + " | ".join(parts) + " |")
-    lines += ["\nCalibration (held-out frames): temperature, peak z threshold\n"]
+    if calibrations:
+        lines += ["\nCalibration (held-out frames): temperature, peak z threshold\n"]
     for method, calibration in calibrations.items():
         lines.append(
             f"- {LABELS[method]}: T = {calibration.temperature:.3g}, min_peak_z = {calibration.min_peak_z:.2f}"
@@ -484,42 +512,99 @@ def log_tensorboard(drive: Drive, results: dict, folder: Path) -> Path | None:
     return folder
 
 
+def lost_share(truth: torch.Tensor, pose: torch.Tensor) -> float:
+    """Share of frames (after the first) more than 4 cells from the truth."""
+    return float(((pose[1:, :2] - truth[1:, :2]).norm(dim=1) > 4).double().mean())
+
+
+def across_drives(rows: dict) -> list[str]:
+    """Mean ± standard error over the drives of each method's filter and argmax."""
+    lines = [
+        "\nAcross drives: mean ± SE (drives that raised an exception are counted, not averaged)\n",
+        "| method | estimator | drives | within 1 cell | lost (> 4 cells) | RMS error (cells) | 95 % ellipse covers "
+        "| raised |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for (method, estimator), values in rows.items():
+        done = [value for value in values if value is not None]
+        parts = []
+        for key in ("within", "lost", "rms", "covered"):
+            column = torch.tensor([value[key] for value in done if value.get(key) is not None], dtype=torch.float64)
+            if len(column) == 0:
+                parts.append("-")
+                continue
+            error = float(column.std() / len(column) ** 0.5) if len(column) > 1 else float("nan")
+            parts.append(f"{float(column.mean()):.3f} ± {error:.3f}")
+        raised = len(values) - len(done)
+        lines.append(f"| {LABELS[method]} | {estimator} | {len(values)} | " + " | ".join(parts) + f" | {raised} |")
+    return lines
+
+
+def _drive_row(drive: Drive, result: dict, filtered: bool) -> dict:
+    stats = summary(drive.truth, result["pose"])
+    rms = float((result["pose"][1:, :2] - drive.truth[1:, :2]).square().sum(1).mean().sqrt())
+    return {
+        "within": stats["within_1_cell"],
+        "lost": lost_share(drive.truth, result["pose"]),
+        "rms": rms,
+        "covered": coverage(drive.truth, result) if filtered else None,
+    }
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.epilog = "examples:\n" + __doc__.rsplit("\n\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--frames", type=int, default=240, help="frames of the drive")
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=OUT, help="the figure")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="a drive per seed: noise, odometry, change")
+    parser.add_argument("--scene-change", type=float, default=0.0, help="strength in [0, 1] of the road's change")
+    parser.add_argument("--noise-scale", type=float, default=1.0, help="factor on the pixel noise")
+    parser.add_argument("--calibrate", action="store_true", help="fit each score's temperature on held-out frames")
+    parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
+    if not 0 <= args.scene_change <= 1:
+        parser.error(f"--scene-change must be in [0, 1], got {args.scene_change}")
+    if not args.noise_scale > 0:
+        parser.error(f"--noise-scale must be > 0, got {args.noise_scale}")
     torch.set_num_threads(1)
     start = time.perf_counter()
-    drive = Drive(args.frames, args.seed)
-    results, calibrations = {}, {}
-    for method in args.methods:
-        # Featureless frames (the photograph's sky) are no error here: their flat surfaces are weak matches.
-        with value_checks(False):
-            calibrations[method] = calibrate(drive, method)
-            filtered = run_filter(drive, method, calibrations[method])
-            results[method] = (filtered, run_argmax(drive, method))
-        print(f"{method}: {time.perf_counter() - start:.0f} s", flush=True)
-    lines = print_tables(drive, results, calibrations)
-    print("\n".join(lines))
-    folder = args.logdir
-    folder.mkdir(parents=True, exist_ok=True)
-    for method, calibration in calibrations.items():
-        calibration.save(folder / f"calibration_{method}.json")
-    plot(drive, results, args.out)
-    logged = log_tensorboard(drive, results, folder / "tensorboard")
-    step_ms = {method: 1000 * float(pair[0]["seconds"].median()) for method, pair in results.items()}
-    print(f"\nmedian filter step (ms): {json.dumps({k: round(v, 1) for k, v in step_ms.items()})}")
-    print(
-        f"wrote {args.out}"
-        + (f" and TensorBoard logs in {logged}" if logged else "")
-        + f" in {time.perf_counter() - start:.0f} s"
-    )
+    rows = {(method, estimator): [] for method in args.methods for estimator in ("filter", "per-frame argmax")}
+    for number, seed in enumerate(args.seeds):
+        drive = Drive(args.frames, seed, args.scene_change, args.noise_scale)
+        results, calibrations = {}, {}
+        for method in args.methods:
+            # Featureless frames (the photograph's sky) are no error here: their flat surfaces are weak matches.
+            with value_checks(False):
+                calibration = calibrate(drive, method) if args.calibrate else None
+                if calibration is not None:
+                    calibrations[method] = calibration
+                try:
+                    filtered = run_filter(drive, method, calibration)
+                except Exception as error:  # a drive that raises is a result, reported as such
+                    print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)
+                    filtered = None
+                argmax = run_argmax(drive, method)
+            rows[method, "filter"].append(None if filtered is None else _drive_row(drive, filtered, True))
+            rows[method, "per-frame argmax"].append(_drive_row(drive, argmax, False))
+            if filtered is not None:
+                results[method] = (filtered, argmax)
+            print(f"drive {number + 1}/{len(args.seeds)} {method}: {time.perf_counter() - start:.0f} s", flush=True)
+        print(f"\n## Drive seed {seed}")
+        print("\n".join(print_tables(drive, results, calibrations)))
+        if number == 0 and results:
+            folder = args.logdir
+            folder.mkdir(parents=True, exist_ok=True)
+            for method, calibration in calibrations.items():
+                calibration.save(folder / f"calibration_{method}.json")
+            plot(drive, results, args.out)
+            logged = log_tensorboard(drive, results, folder / "tensorboard")
+            step_ms = {method: 1000 * float(pair[0]["seconds"].median()) for method, pair in results.items()}
+            print(f"\nmedian filter step (ms): {json.dumps({k: round(v, 1) for k, v in step_ms.items()})}")
+            print(f"wrote {args.out}" + (f" and TensorBoard logs in {logged}" if logged else ""))
+    print("\n".join(across_drives(rows)))
+    print(f"\n{time.perf_counter() - start:.0f} s")
 
 
 if __name__ == "__main__":

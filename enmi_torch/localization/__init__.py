@@ -7,7 +7,7 @@ covariance, margin) → :mod:`~enmi_torch.localization.search` (shifts x yaws, c
 :class:`~enmi_torch.Tracker`) builds on :func:`localize` in :mod:`enmi_torch.tracking`.
 """
 
-from enmi_torch.localization.peak import Localization
+from enmi_torch.localization.peak import Localization, NoCandidateError
 from enmi_torch.localization.search import Localizer, localize
 
-__all__ = ["Localization", "Localizer", "localize"]
+__all__ = ["Localization", "Localizer", "NoCandidateError", "localize"]

@@ -94,6 +94,13 @@ class Localization(NamedTuple):
         return transform.to(self.pose.dtype)
 
 
+class NoCandidateError(ValueError):
+    """No candidate of a search passes ``min_overlap`` (the window lies off the map or the masks leave too little).
+
+    A :class:`ValueError`; the tracker catches it and coasts on odometry for that frame.
+    """
+
+
 def _separated_peaks(surface: Tensor, count: int, radius: int) -> list[tuple[int, int, int]]:
     """Up to ``count`` ``(yaw, row, col)`` maxima of a ``(Y, Sy, Sx)`` surface, each ``radius`` cells from the rest."""
     best_over_yaws, best_yaw = surface.max(0)
@@ -133,7 +140,7 @@ def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion
     best, index = flat.max(1)
     lost = ~torch.isfinite(best)
     if bool(lost.any()):
-        raise ValueError(
+        raise NoCandidateError(
             f"no candidate passes min_overlap in sample(s) {lost.nonzero()[:, 0].tolist()}: lower min_overlap, move "
             "center, or check the masks"
         )

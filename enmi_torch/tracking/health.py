@@ -4,7 +4,8 @@ A frame whose surface has no clear peak (the best score's robust z-score, :func:
 ``min_peak_z``, or below ``z_drop`` times the recent matches') or whose peak the prediction rules out
 (:func:`prediction_surprise`: more than ``max_surprise`` nats below the prediction's best) is not used
 (:func:`usable`); :class:`Health` counts such frames per vehicle (after ``patience`` of them the tracker
-relocalizes) and keeps the running peak z-score of the used matches (:func:`next_health`).
+relocalizes) and keeps the running peak z-score and likelihood temperature of the used matches
+(:func:`next_health`).
 """
 
 from __future__ import annotations
@@ -22,20 +23,22 @@ class Health(NamedTuple):
     Attributes:
         weak_frames: ``(B,)`` int64 consecutive frames without a usable match.
         typical_z: ``(B,)`` float64 running mean of the used matches' peak z-scores (NaN before the first).
+        typical_temperature: ``(B,)`` float64 running mean of the used matches' grid temperatures
+            (:func:`~enmi_torch.tracking.calibration.grid_temperature`; NaN before the first): a frame with no clear
+            peak is read at the scale of the recent clear ones.
     """
 
     weak_frames: Tensor
     typical_z: Tensor
+    typical_temperature: Tensor
 
 
 def check_health(health: object, batch: int, device: torch.device) -> Health:
     """The previous step's :class:`Health` checked against the batch, or a fresh one for ``None``."""
     if health is None:
-        return Health(
-            torch.zeros(batch, dtype=torch.int64, device=device),
-            torch.full((batch,), math.nan, dtype=torch.float64, device=device),
-        )
-    if not isinstance(health, Health) or health.weak_frames.shape != (batch,) or health.typical_z.shape != (batch,):
+        nothing = torch.full((batch,), math.nan, dtype=torch.float64, device=device)
+        return Health(torch.zeros(batch, dtype=torch.int64, device=device), nothing, nothing.clone())
+    if not isinstance(health, Health) or any(part.shape != (batch,) for part in health):
         raise ValueError(
             f"health must be a Health of ({batch},) tensors from the previous step or None, got {health!r}"
         )
@@ -64,12 +67,21 @@ def usable(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, 
     return (peak_z >= min_peak_z) & (peak_z >= z_drop * typical) & (surprise <= max_surprise)
 
 
-def next_health(health: Health, healthy: Tensor, relocalized: Tensor, weak_frames: Tensor, peak_z: Tensor) -> Health:
-    """The health after a frame: ``weak_frames`` so far, the running peak z-score of the used matches."""
+def next_health(
+    health: Health, healthy: Tensor, relocalized: Tensor, weak_frames: Tensor, peak_z: Tensor, temperature: Tensor
+) -> Health:
+    """The health after a frame: ``weak_frames`` so far, the running peak z-score and temperature of the used matches.
+
+    ``temperature`` ``(B,)`` is each frame's own grid temperature (NaN where it has none).
+    """
     weak_frames = torch.where(healthy, 0, weak_frames)
-    typical_z = torch.where(
-        relocalized | ~torch.isfinite(health.typical_z),
-        torch.where(healthy, peak_z, health.typical_z),
-        torch.where(healthy, 0.7 * health.typical_z + 0.3 * peak_z, health.typical_z),
-    )
-    return Health(weak_frames, typical_z)
+    typical_z = _running(health.typical_z, peak_z, healthy, relocalized)
+    typical_temperature = _running(health.typical_temperature, temperature, healthy, relocalized)
+    return Health(weak_frames, typical_z, typical_temperature)
+
+
+def _running(old: Tensor, new: Tensor, healthy: Tensor, relocalized: Tensor) -> Tensor:
+    """A running mean (0.3 on the newest) over the used matches; a relocalization or the first match resets it."""
+    fresh = relocalized | ~torch.isfinite(old)
+    used = healthy & torch.isfinite(new)
+    return torch.where(used, torch.where(fresh, new, 0.7 * old + 0.3 * new), old)

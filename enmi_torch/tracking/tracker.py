@@ -4,13 +4,17 @@ One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of fra
 
 * predict: the belief (:mod:`~enmi_torch.tracking.belief`) moves by the odometry and is blurred by its noise;
 * update: the score surface over the belief's window, turned into a log-likelihood ``score * n_valid /
-  temperature`` (``n_valid`` the captured image's valid pixels; :mod:`~enmi_torch.tracking.calibration` fits the
-  temperature), is added to the log belief;
+  temperature`` (``n_valid`` the captured image's valid pixels; by default each frame's temperature is
+  :func:`~enmi_torch.tracking.calibration.grid_temperature`, which needs no calibration, or one fitted on surveyed
+  frames by :func:`~enmi_torch.tracking.calibrate_temperature`), is added to the log belief;
 * read: pose and covariance are the posterior's moments;
 * health (:mod:`~enmi_torch.tracking.health`): a frame whose surface has no clear peak, or whose peak the prediction
   rules out, is not used; after ``patience`` such frames the filter searches a wider window (a coarse-to-fine
   :func:`~enmi_torch.localize`): if that search lands on the window's own peak the frame is used after all, and if it
-  finds a match better than the window's by ``relocalize_odds`` nats the filter restarts there (relocalization).
+  finds a match better than the window's by ``relocalize_odds`` nats the filter restarts there (relocalization);
+* a window with no candidate at all (off the map, a frame fully masked: :class:`~enmi_torch.NoCandidateError` from
+  the search) is a frame without a match: the belief coasts on the odometry. ``lost`` says that the filter has gone
+  ``patience`` frames without a match and the wide search has not found the vehicle again.
 
 Convention:
     Poses and odometry as in :mod:`~enmi_torch.tracking.belief`; searches run without gradient.
@@ -18,6 +22,7 @@ Convention:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -31,6 +36,7 @@ from enmi_torch._checks import (
     check_positive_number,
     check_shifts,
 )
+from enmi_torch.localization.peak import NoCandidateError
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import Score, as_score
 from enmi_torch.tracking.belief import (
@@ -42,7 +48,7 @@ from enmi_torch.tracking.belief import (
     normalized,
     predict,
 )
-from enmi_torch.tracking.calibration import Calibration
+from enmi_torch.tracking.calibration import Calibration, grid_temperature
 from enmi_torch.tracking.health import Health, check_health, next_health, peak_z_score, prediction_surprise, usable
 from enmi_torch.variance.base import VarianceModel
 
@@ -55,8 +61,11 @@ class TrackOutput(NamedTuple):
         covariance: ``(B, 3, 3)`` posterior covariance of ``(x, y, yaw)`` (cells², cells x degrees, degrees²).
         healthy: ``(B,)`` bool: this frame's match was used (a clear peak that the prediction allows).
         relocalized: ``(B,)`` bool: the filter searched the wide window this frame and restarted there.
-        score: ``(B,)`` best score of the frame's surface.
-        peak_z: ``(B,)`` the best score's robust z-score over the surface (``(best - median) / (1.4826 MAD)``).
+        score: ``(B,)`` best score of the frame's surface (NaN where the window had no candidate).
+        peak_z: ``(B,)`` the best score's robust z-score over the surface (``(best - median) / (1.4826 MAD)``; NaN
+            where the window had no candidate).
+        lost: ``(B,)`` bool: ``patience`` or more frames in a row without a usable match, and no relocalization
+            yet: the pose is dead reckoning and the belief grows with the odometry's noise.
     """
 
     pose: Tensor
@@ -65,6 +74,7 @@ class TrackOutput(NamedTuple):
     relocalized: Tensor
     score: Tensor
     peak_z: Tensor
+    lost: Tensor
 
 
 def track_step(
@@ -77,7 +87,7 @@ def track_step(
     *,
     motion_noise: Sequence[float] | Tensor = (0.5, 0.5, 0.5),
     score: Score | str = "ecr",
-    temperature: float = 1.0,
+    temperature: float | str = "auto",
     min_peak_z: float = 3.0,
     max_surprise: float = 30.0,
     z_drop: float = 0.3,
@@ -86,7 +96,7 @@ def track_step(
     relocalize_shifts: int = 32,
     relocalize_yaw_bins: int = 9,
     coarse_factor: int = 4,
-    relocalize_odds: float = 10.0,
+    relocalize_odds: float = 3.0,
 ) -> tuple[Belief, TrackOutput, Health]:
     """One frame of the filter: predict by ``odometry``, update by the frame's score surface, read the pose.
 
@@ -102,7 +112,9 @@ def track_step(
         motion_noise: standard deviations of the odometry's error ``(du, dv, dyaw)`` per frame.
         score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
             :func:`~enmi_torch.localize`).
-        temperature: ``score * n_valid / temperature`` is the log-likelihood (:func:`calibrate_temperature`).
+        temperature: ``score * n_valid / temperature`` is the log-likelihood: ``"auto"`` (default) each frame's
+            :func:`~enmi_torch.tracking.calibration.grid_temperature` (no sharper than one bin), or a number, e.g.
+            from :func:`calibrate_temperature` on surveyed frames.
         min_peak_z: a surface whose best score's robust z-score is below this is no match.
         max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
             is no match (the prediction rules it out).
@@ -113,7 +125,8 @@ def track_step(
         relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
         coarse_factor: pooling factor of the coarse-to-fine relocalization search.
         relocalize_odds: the relocalization moves the belief only if its match beats the window's best by this
-            many nats of log-likelihood, or lands within 1.5 cells of the window's own peak.
+            many nats of (tempered) log-likelihood, or lands within 1.5 cells of the window's own peak. With the
+            ``"auto"`` temperature a clear match's peak stands ~10 nats above no match: 3 nats are odds of 20 to 1.
 
     Returns:
         ``(belief, output, health)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the :class:`Health`
@@ -130,7 +143,10 @@ def track_step(
     check_floating("reference", reference)
     if reference.ndim != 4 or reference.shape[:2] != (1, 1):
         raise ValueError(f"reference must be one map (1, 1, Hm, Wm), got {tuple(reference.shape)}")
-    temperature = check_positive_number("temperature", temperature)
+    if isinstance(temperature, str) and temperature != "auto":
+        raise ValueError(f"temperature must be 'auto' or a finite number > 0, got {temperature!r}")
+    if temperature != "auto":
+        temperature = check_positive_number("temperature", temperature)
     check_positive_number("min_peak_z", min_peak_z)
     check_positive_number("max_surprise", max_surprise)
     check_positive_number("relocalize_odds", relocalize_odds)
@@ -140,9 +156,15 @@ def track_step(
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
     batch = captured.shape[0]
     health = check_health(health, batch, captured.device)
-    search = _Searcher(captured, reference, variance, captured_mask, score, temperature)
+    search = _Searcher(captured, reference, variance, captured_mask, score)
     prior = predict(belief, odometry, motion_noise)
-    log_likelihood, best_score, peak_z = search.window(prior)
+    raw, best_score, peak_z, frame_temperature = search.window(prior)
+    if temperature == "auto":
+        # A frame without a clear peak (a featureless stretch) is read at the scale of the recent clear matches.
+        typical = health.typical_temperature
+        temperature = torch.where(torch.isfinite(typical), torch.fmax(typical, frame_temperature), frame_temperature)
+        temperature = torch.where(torch.isfinite(temperature), temperature, 1.0)[:, None, None, None]
+    log_likelihood = raw / temperature
     surprise = prediction_surprise(prior.log_prob, log_likelihood)
     healthy = usable(peak_z, surprise, health, min_peak_z, z_drop, max_surprise)
     weak_frames = torch.where(healthy, 0, health.weak_frames + 1)
@@ -151,13 +173,16 @@ def track_step(
     center, yaw_center = prior.center.clone(), prior.yaw_center.clone()
     for vehicle in (weak_frames >= patience).nonzero()[:, 0].tolist():
         found = search.wide(vehicle, prior, relocalize_shifts, relocalize_yaw_bins, coarse_factor)
+        if found is None:
+            continue  # nothing to match in the wide window either (off the map): keep coasting
         window_peak = _peak_position(prior, log_likelihood, vehicle)
         if bool((window_peak - found[:2].to(window_peak)).abs().max() <= 1.5) and bool(peak_z[vehicle] >= min_peak_z):
             healthy[vehicle] = True  # the wide search confirms the window's own peak: use the frame
             continue
         fresh = _restart(prior, vehicle, found)
-        fresh_likelihood, fresh_score, fresh_z = search.window(fresh, vehicle)
-        # A jump needs a much better match than the window's, in calibrated nats.
+        fresh_raw, fresh_score, fresh_z, _ = search.window(fresh, vehicle)
+        fresh_likelihood = fresh_raw / (temperature[vehicle] if isinstance(temperature, Tensor) else temperature)
+        # A jump needs a much better match than the window's, in nats at the window's temperature.
         gain = fresh_likelihood[0].max() - log_likelihood[vehicle].max()
         if bool(fresh_z[0] >= min_peak_z) and bool(gain >= relocalize_odds):
             log_prob[vehicle] = normalized(fresh_likelihood)[0]
@@ -168,8 +193,10 @@ def track_step(
     healthy = healthy | relocalized
     posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
-    output = TrackOutput(pose, covariance, healthy, relocalized, best_score, peak_z)
-    return posterior, output, next_health(health, healthy, relocalized, weak_frames, peak_z)
+    health = next_health(health, healthy, relocalized, weak_frames, peak_z, frame_temperature)
+    lost = health.weak_frames >= patience
+    output = TrackOutput(pose, covariance, healthy, relocalized, best_score, peak_z, lost)
+    return posterior, output, health
 
 
 class Tracker(nn.Module):
@@ -289,10 +316,9 @@ _STEP_SETTINGS = (
 class _Searcher:
     """Score surfaces of the captured images over a belief's window and over the wide relocalization window."""
 
-    def __init__(self, captured, reference, variance, captured_mask, score: Score, temperature) -> None:
+    def __init__(self, captured, reference, variance, captured_mask, score: Score) -> None:
         self.captured, self.reference, self.variance, self.mask = captured, reference, variance, captured_mask
         self.score = score
-        self.temperature = temperature
         valid = torch.ones_like(captured, dtype=torch.bool)
         if captured_mask is not None:
             valid = valid & self._per_vehicle(captured_mask, slice(None)).expand_as(captured)
@@ -322,26 +348,50 @@ class _Searcher:
             **options,
         )
 
-    def window(self, belief: Belief, only: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """Log-likelihood ``(B, Y, Sy, Sx)`` over the belief's window, best score ``(B,)`` and its robust z-score."""
+    def window(self, belief: Belief, only: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Raw log-likelihood, best score, its robust z-score and grid temperature over the belief's window.
+
+        They are ``score * n_valid`` ``(B, Y, Sy, Sx)`` and ``(B,)`` each (:func:`grid_temperature`).
+        A vehicle whose window has no candidate gets a flat log-likelihood (zeros) and NaN for the rest.
+        """
         vehicles = range(belief.log_prob.shape[0]) if only is None else [only]
-        likelihoods, scores, z_scores = [], [], []
+        likelihoods, scores, z_scores, temperatures = [], [], [], []
         yaws = belief.yaws()
         for vehicle in vehicles:
-            surface = self._localize(vehicle, belief.center[vehicle], yaws[vehicle].tolist(), belief.radius).surface
-            surface = finite_floor(surface[0].double())
-            likelihoods.append(surface * self.valid_count[vehicle] / self.temperature)
+            try:
+                if not bool(self.valid_count[vehicle] > 0):
+                    raise NoCandidateError(f"captured image {vehicle} has no valid pixel")  # a frame fully masked
+                found = self._localize(vehicle, belief.center[vehicle], yaws[vehicle].tolist(), belief.radius)
+            except NoCandidateError:
+                nothing = torch.tensor(math.nan, dtype=torch.float64, device=belief.log_prob.device)
+                likelihoods.append(torch.zeros_like(belief.log_prob[vehicle]))
+                scores.append(nothing)
+                z_scores.append(nothing)
+                temperatures.append(nothing)
+                continue
+            surface = finite_floor(found.surface[0].double())
+            log_likelihood = surface * self.valid_count[vehicle].to(surface.device)
+            likelihoods.append(log_likelihood)
             scores.append(surface.max())
             z_scores.append(peak_z_score(surface))
-        return torch.stack(likelihoods), torch.stack(scores), torch.stack(z_scores)
+            temperatures.append(grid_temperature(log_likelihood[None])[0])
+        return torch.stack(likelihoods), torch.stack(scores), torch.stack(z_scores), torch.stack(temperatures)
 
-    def wide(self, vehicle: int, belief: Belief, shifts: int, yaw_bins: int, coarse_factor: int) -> Tensor:
-        """``(3,)`` pose ``(x, y, yaw)`` of the best match over the wide window around the belief's centre."""
+    def wide(self, vehicle: int, belief: Belief, shifts: int, yaw_bins: int, coarse_factor: int) -> Tensor | None:
+        """``(3,)`` pose ``(x, y, yaw)`` of the best match over the wide window around the belief's centre.
+
+        ``None`` where the wide window has no candidate either.
+        """
         offsets = (torch.arange(yaw_bins, dtype=torch.float64) - yaw_bins // 2) * belief.yaw_step
         yaws = (belief.yaw_center[vehicle].cpu() + offsets).tolist()
-        found = self._localize(
-            vehicle, belief.center[vehicle], yaws, shifts, coarse_factor=coarse_factor, min_overlap=0.5
-        )
+        if not bool(self.valid_count[vehicle] > 0):
+            return None
+        try:
+            found = self._localize(
+                vehicle, belief.center[vehicle], yaws, shifts, coarse_factor=coarse_factor, min_overlap=0.5
+            )
+        except NoCandidateError:
+            return None
         pose = found.pose[0].double()
         center = belief.center[vehicle].double()
         return torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]])
