@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from enmi_torch import ECR, BinSums, ECRLoss, ecr, ecr_from_bin_sums, ecr_surface, localize
-from enmi_torch.scores.ecr import default_model_variance
+from enmi_torch.scores.ecr import default_model_variance, ecr_surface_model_variance
 from enmi_torch.variance import ConstantVariance
 
 
@@ -231,7 +231,11 @@ def test_a_map_that_falls_in_one_bin_is_refused_where_ecr_bins_it():
     generator = torch.Generator().manual_seed(0)
     reference = torch.rand(1, 1, 24, 24, generator=generator)  # [0, 1] against the default (0, 256)
     captured = reference[..., 4:20, 4:20] + 0.01 * torch.randn(1, 1, 16, 16, generator=generator)
-    for surface in (lambda: ecr_surface(captured, reference, 1e-4), lambda: ECR().surface(captured, reference, 1e-4)):
+    for surface in (
+        lambda: ecr_surface(captured, reference, 1e-4),
+        lambda: ECR().surface(captured, reference, 1e-4),
+        lambda: ecr_surface_model_variance(captured, reference, 1e-4),  # the tau^2 of that surface: checked alike
+    ):
         with pytest.raises(ValueError, match=r"reference varies .* one of the 32 bins of value_range=\(0\.0, 256\.0\)"):
             surface()
     with pytest.raises(ValueError, match="reference varies"):  # the two-stage search bins the map too

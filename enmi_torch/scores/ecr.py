@@ -337,6 +337,35 @@ def _ecr_from_sums(
     return torch.where(total_count > 0.5, 0.5 * (between - penalty) / total_count.clamp_min(1), 0.0)
 
 
+def _aligned_inputs(captured, reference, variance, bins, value_range, model_variance, valid_mask, response):
+    """The checked inputs of :func:`ecr` and :func:`ecr_model_variance`, and the model variance option checked."""
+    check_variance_given(variance)
+    check_floating("captured", captured)
+    inputs = _prepare(
+        captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
+    )
+    tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
+    check_option("response", response, RESPONSES)
+    return inputs, tau2
+
+
+def _surface_inputs(
+    captured, reference, variance, bins, value_range, model_variance, captured_mask, reference_mask, response
+):
+    """The checked inputs, bins and value range of :func:`ecr_surface` and :func:`ecr_surface_model_variance`."""
+    check_variance_given(variance)
+    bins = check_bins(bins)
+    value_range = check_value_range(value_range)
+    check_model_variance(model_variance, bins, value_range)
+    check_option("response", response, RESPONSES)
+    binned = None if response == "linear" else bins  # the map is binned: refuse one that all falls in one bin
+    inputs = check_inputs(
+        captured, reference, captured_mask, reference_mask, value_range, variance, reference_bins=binned
+    )
+    check_surface_memory(inputs.captured, inputs.reference, bins)
+    return inputs, bins, value_range
+
+
 def ecr(
     captured: Tensor,
     reference: Tensor,
@@ -383,13 +412,9 @@ def ecr(
         tensor([[ 1.7013e+01],
                 [-2.1812e-03]])
     """
-    check_variance_given(variance)
-    check_floating("captured", captured)
-    inputs = _prepare(
-        captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
+    inputs, tau2 = _aligned_inputs(
+        captured, reference, variance, bins, value_range, model_variance, valid_mask, response
     )
-    tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
-    check_option("response", response, RESPONSES)
     if tau2 == MODEL_VARIANCE_ESTIMATE:
         tau2 = _aligned_model_variance(inputs, response).to(inputs.captured.dtype)[..., None]
     if response == "linear":
@@ -426,13 +451,9 @@ def ecr_model_variance(
         >>> ecr_model_variance(captured, reference, 100.0, bins=64).round()
         tensor([403., 411.], dtype=torch.float64)
     """
-    check_variance_given(variance)
-    check_floating("captured", captured)
-    inputs = _prepare(
-        captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
+    inputs, tau2 = _aligned_inputs(
+        captured, reference, variance, bins, value_range, model_variance, valid_mask, response
     )
-    tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
-    check_option("response", response, RESPONSES)
     if tau2 == MODEL_VARIANCE_ESTIMATE:
         tau2 = _aligned_model_variance(inputs, response)
     else:
@@ -542,16 +563,9 @@ def ecr_surface(
         >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
         (torch.Size([1, 7, 7]), (3, 2))
     """
-    check_variance_given(variance)
-    bins = check_bins(bins)
-    value_range = check_value_range(value_range)
-    check_model_variance(model_variance, bins, value_range)
-    binned = None if response == "linear" else bins  # the map is binned: refuse one that all falls in one bin
-    inputs = check_inputs(
-        captured, reference, captured_mask, reference_mask, value_range, variance, reference_bins=binned
+    inputs, bins, value_range = _surface_inputs(
+        captured, reference, variance, bins, value_range, model_variance, captured_mask, reference_mask, response
     )
-    check_option("response", response, RESPONSES)
-    check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():
         model_variance = _surface_model_variance(inputs, model_variance, bins, value_range, response)
         if response == "linear":
@@ -585,11 +599,9 @@ def ecr_surface_model_variance(
         >>> ecr_surface_model_variance(captured, reference, 100.0, bins=64).round()
         tensor([424.], dtype=torch.float64)
     """
-    check_variance_given(variance)
-    bins = check_bins(bins)
-    value_range = check_value_range(value_range)
-    inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance)
-    check_option("response", response, RESPONSES)
+    inputs, bins, value_range = _surface_inputs(
+        captured, reference, variance, bins, value_range, model_variance, captured_mask, reference_mask, response
+    )
     with torch.no_grad():
         tau2 = _surface_model_variance(inputs, model_variance, bins, value_range, response)
     if isinstance(tau2, Tensor):
