@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from enmi_torch._checks import check_option
 from enmi_torch.scores import ECR, ENMI, NMI, REDUCTIONS, Mixture, Score, as_score
-from enmi_torch.variance.base import VarianceModel, check_variance_model
+from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
 
 class ScoreLoss(nn.Module):
@@ -83,8 +83,7 @@ class ScoreLoss(nn.Module):
             if variance is None and self.score.uses_variance:
                 raise ValueError(f"variance must be given per call when {name} has no variance_model, got None")
             return variance, valid_mask
-        if variance is not None:
-            raise ValueError(f"variance must be None when {name} has a variance_model; pass one or the other")
+        call_variance(name, variance, self.variance_model)
         model_mask = self.variance_model.valid_mask(captured)
         if model_mask is not None:
             valid_mask = model_mask if valid_mask is None else valid_mask & model_mask

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from enmi_torch import ECR, NMI, Localization, NoCandidateError, as_score, localize, value_checks
+from enmi_torch import ECR, NMI, ConstantVariance, Localization, NoCandidateError, as_score, localize, value_checks
 from enmi_torch.tracking import (
     CHI2_95_2D,
     Belief,
@@ -321,6 +321,7 @@ def _bad_call(case: str):
         "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
         "unknown setting": lambda: Tracker(reference, shift=3),
         "no start": lambda: Tracker(reference)(frame, odometry, 1.0),
+        "variance twice": lambda: _started(Tracker(reference, ConstantVariance(1.0)))(frame, odometry, 1.0),
     }
     return calls[case]
 
@@ -348,11 +349,17 @@ def _bad_call(case: str):
         ("truth shape", ValueError, r"truth \(N, 3\)"),
         ("unknown setting", TypeError, r"unknown setting\(s\) \['shift'\]"),
         ("no start", RuntimeError, "call start"),
+        ("variance twice", ValueError, "variance must be None when Tracker has a variance_model"),
     ],
 )
 def test_bad_inputs_raise_naming_the_argument(case, error, match):
     with pytest.raises(error, match=match):
         _bad_call(case)()
+
+
+def _started(tracker: Tracker) -> Tracker:
+    tracker.start(torch.tensor([[16.0, 16.0, 0.0]]))
+    return tracker
 
 
 def _drive_module():

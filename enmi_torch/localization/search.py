@@ -45,7 +45,7 @@ from enmi_torch.localization.peak import Localization, _read_peak, _separated_pe
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.scores import ECR, Score, as_score
 from enmi_torch.scores.ecr import cheap_value_range
-from enmi_torch.variance.base import VarianceModel, check_variance_model
+from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
 _FULL_SUPPORT = 1 - 1e-3
@@ -257,12 +257,10 @@ class Localizer(nn.Module):
         reference_mask: Tensor | None = None,
     ) -> Localization:
         """Localize ``captured`` ``(B, 1, h, w)`` in ``reference``; ``variance`` per call unless a model is stored."""
-        if variance is not None and self.variance_model is not None:
-            raise ValueError("variance must be None when Localizer has a variance_model; pass one or the other")
         return localize(
             captured,
             reference,
-            self.variance_model if variance is None else variance,
+            call_variance("Localizer", variance, self.variance_model),
             score=self.score,
             shifts=self.shifts,
             center=center,

@@ -50,7 +50,7 @@ from enmi_torch.tracking.belief import (
 )
 from enmi_torch.tracking.calibration import Calibration, grid_temperature
 from enmi_torch.tracking.health import Health, check_health, next_health, peak_z_score, prediction_surprise, usable
-from enmi_torch.variance.base import VarianceModel
+from enmi_torch.variance.base import VarianceModel, call_variance
 
 
 class TrackOutput(NamedTuple):
@@ -282,9 +282,7 @@ class Tracker(nn.Module):
         """One frame in, one pose out: :func:`track_step` on the stored belief, which it replaces."""
         if self.belief is None:
             raise RuntimeError("Tracker has no belief yet: call start(pose) first")
-        if variance is not None and self.variance_model is not None:
-            raise ValueError("variance must be None when Tracker has a variance_model; pass one or the other")
-        variance = self.variance_model if variance is None else variance
+        variance = call_variance("Tracker", variance, self.variance_model)
         self.belief, output, self.health = track_step(
             self.belief,
             captured,

@@ -37,6 +37,15 @@ def check_variance_model(variance_model: object) -> VarianceModel | None:
     return variance_model
 
 
+def call_variance(owner: str, variance: object, variance_model: VarianceModel | None) -> object:
+    """The variance of a module's call: the call's own, or the stored ``variance_model`` (never both)."""
+    if variance_model is None:
+        return variance
+    if variance is not None:
+        raise ValueError(f"variance must be None when {owner} has a variance_model; pass one or the other")
+    return variance_model
+
+
 class ConstantVariance(VarianceModel):
     """The same noise variance at every pixel: ENMI's baseline, which ignores where the noise comes from.
 
