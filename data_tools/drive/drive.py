@@ -50,7 +50,7 @@ import torch
 import torch.nn.functional as F
 from skimage import data
 
-from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify, value_checks
+from enmi_torch import GroundGrid, Localization, NoCandidateError, RoadCamera, rectify, unrectify, value_checks
 from enmi_torch.data.scene_change import scene_change
 from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization.search import localize
@@ -340,15 +340,19 @@ def run_argmax(drive: Drive, method: str) -> dict:
         guess = _moved(poses[-1], drive.odometry[index])
         center = torch.stack([guess[1], guess[0]]).round().long()
         yaw_center = round(float(guess[2]))
-        result = search(
-            drive.frames[index : index + 1].float(),
-            drive.map.float(),
-            None if variance is None else variance[index : index + 1],
-            drive.valid,
-            center,
-            [yaw_center + step * YAW_STEP for step in range(-2, 3)],
-            score,
-        )
+        try:
+            result = search(
+                drive.frames[index : index + 1].float(),
+                drive.map.float(),
+                None if variance is None else variance[index : index + 1],
+                drive.valid,
+                center,
+                [yaw_center + step * YAW_STEP for step in range(-2, 3)],
+                score,
+            )
+        except NoCandidateError:  # the guess has left the map: keep dead reckoning
+            poses.append(guess)
+            continue
         pose = result.pose[0].double()
         poses.append(torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]]))
     return {"pose": torch.stack(poses)}
