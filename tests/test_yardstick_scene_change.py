@@ -95,6 +95,17 @@ def test_a_tiny_run_writes_its_tables(yardstick, tmp_path, capsys):
     assert capsys.readouterr().out.strip() == report.strip()
 
 
+def test_a_learned_mask_against_the_true_map_alone_reports_that_control_only(yardstick, tmp_path, capsys):
+    output, learned = tmp_path / "run", tmp_path / "mask.npy"
+    np.save(learned, np.full((64, 64), 900.0, dtype=np.float32))
+    argv = ["--trials", "2", "--cases", "tone@0.5", "--sensors", "camera-like", "--levels", "60", "--same-levels"]
+    argv += ["--noise-only-sensors", "camera-like", "--methods", "ECR learned", "ECR true", "--learned-mask"]
+    yardstick.main([*argv, str(learned), "--output", str(output), "--data", str(tmp_path / "none")])
+    report = (output / "report.md").read_text()
+    assert "- minus ECR true:" in report and "- minus ECR today" not in report
+    capsys.readouterr()
+
+
 def test_methods_are_score_objects_with_their_variances(yardstick):
     from enmi_torch import ECR
     from enmi_torch.scores.ecr import default_model_variance

@@ -487,6 +487,8 @@ def report(rows: list, calibration: list) -> str:
         lines += ["", "## ECR learned against ECR true (the analytic map) and ECR with a uniform variance", ""]
         for control in ("ECR true", "ECR today", "ECR uniform mean", "ECR best uniform"):
             judged = [key for key in keys if "ECR learned" in cells[key] and control in cells[key]]
+            if not judged:
+                continue  # that control was not run
             below = []
             for key in judged:
                 mean, error = _paired(cells[key]["ECR learned"], cells[key][control])
