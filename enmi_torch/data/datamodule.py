@@ -46,7 +46,7 @@ class PairDataModule(LightningDataModule):
         val_fraction: share of a folder's pairs held out (a fixed draw from ``seed``).
         batch_size: pairs per optimisation step over all processes (split evenly between them).
         num_workers: data-loading worker processes per training process.
-        seed: synthetic training pairs use seed ``2 seed``, held-out ones ``2 seed + 1``; shuffling uses ``seed``.
+        seed: synthetic training pairs use seed ``2 * seed``, held-out ones ``2 * seed + 1``; shuffling uses ``seed``.
         keep_pairs: generate the synthetic pairs once, in :meth:`setup`, and keep them in memory
             (:class:`~enmi_torch.data.synthetic.KeptPairs`, ``9 H W`` bytes per pair); ``False`` draws each pair again
             whenever it is read. Either way every epoch sees the same pairs (pair ``i`` is a function of the seed and

@@ -205,7 +205,12 @@ class Tracker(nn.Module):
     It stores the map, the settings and the running belief, and runs :func:`enmi_torch.tracking.track_step` (the
     function form, one step on an explicit belief) on each frame: ``start(pose)`` sets the first pose, then
     ``tracker(captured, odometry, variance)`` returns a :class:`~enmi_torch.tracking.TrackOutput` (``pose``,
-    ``covariance``, ``healthy``, ...).
+    ``covariance``, ``healthy``, ``lost``, ...).
+
+    It needs no calibration: by default (``temperature="auto"``) each frame's log-likelihood is flattened to the
+    belief's bin size (:func:`~enmi_torch.tracking.calibration.grid_temperature`). A frame it cannot use (no clear
+    peak, fully masked, off the map) is skipped and the belief coasts on the odometry; ``output.lost`` is ``True``
+    from ``patience`` such frames in a row until a match is used or a relocalization succeeds.
 
     Args:
         reference: ``(1, 1, Hm, Wm)`` or ``(Hm, Wm)`` map (a non-persistent buffer).

@@ -416,9 +416,16 @@ class MaskFitModule(LightningModule):
         return errors
 
     def on_train_epoch_start(self) -> None:
-        """Keep the first batch of the epoch for the residual histograms; start the epoch's training clock."""
+        """Keep the first batch of the epoch for the residual histograms; start the epoch's training clock.
+
+        The last epoch always validates, whatever ``check_val_every_n_epoch``: a run shorter than that interval still
+        ends with its held-out localization, its images and its metrics in HParams.
+        """
         self._histogram_batch = None
         self._clock, self._train_seconds, self._epoch_pairs = time.perf_counter(), 0.0, 0
+        trainer = self.trainer
+        if trainer.max_epochs is not None and trainer.current_epoch == trainer.max_epochs - 1:
+            trainer.check_val_every_n_epoch = 1
 
     def on_validation_start(self) -> None:
         """Stop the training clock: the speed is that of training alone."""

@@ -159,6 +159,11 @@ class SlowEpochs(Callback):
         time.sleep(0.5)
 
 
+def test_a_run_shorter_than_the_validation_interval_validates_at_its_last_epoch(tmp_path):
+    summary = run(tmp_path, "--trainer.check_val_every_n_epoch", "5")  # the smoke run has 2 epochs
+    assert summary["localization"] and all(summary["localization"].values())
+
+
 def test_training_speed_leaves_validation_out():
     datamodule = PairDataModule(train_pairs=32, val_pairs=8, size=16, batch_size=16)
     model = MaskFitModule(shape=datamodule.shape, localization_pairs=0)
