@@ -96,7 +96,7 @@ def track_step(
     relocalize_shifts: int = 32,
     relocalize_yaw_bins: int = 9,
     coarse_factor: int = 4,
-    relocalize_odds: float = 3.0,
+    relocalize_odds: float = 5.0,
 ) -> tuple[Belief, TrackOutput, Health]:
     """One frame of the filter: predict by ``odometry``, update by the frame's score surface, read the pose.
 
@@ -125,8 +125,9 @@ def track_step(
         relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
         coarse_factor: pooling factor of the coarse-to-fine relocalization search.
         relocalize_odds: the relocalization moves the belief only if its match beats the window's best by this
-            many nats of (tempered) log-likelihood, or lands within 1.5 cells of the window's own peak. With the
-            ``"auto"`` temperature a clear match's peak stands ~10 nats above no match: 3 nats are odds of 20 to 1.
+            many nats of (tempered) log-likelihood and its peak is as clear and as sharp as the recent matches'
+            (``z_drop``), or lands within 1.5 cells of the window's own peak. With the
+            ``"auto"`` temperature a clear match's peak stands ~10 nats above no match: 5 nats are odds of ~150 to 1.
 
     Returns:
         ``(belief, output, health)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the :class:`Health`
@@ -180,14 +181,20 @@ def track_step(
             healthy[vehicle] = True  # the wide search confirms the window's own peak: use the frame
             continue
         fresh = _restart(prior, vehicle, found)
-        fresh_raw, fresh_score, fresh_z, _ = search.window(fresh, vehicle)
+        fresh_raw, fresh_score, fresh_z, fresh_temperature = search.window(fresh, vehicle)
         fresh_likelihood = fresh_raw / (temperature[vehicle] if isinstance(temperature, Tensor) else temperature)
         # A jump needs a much better match than the window's, in nats at the window's temperature.
         gain = fresh_likelihood[0].max() - log_likelihood[vehicle].max()
-        if bool(fresh_z[0] >= min_peak_z) and bool(gain >= relocalize_odds):
+        # ... and a peak as clear and as sharp as the recent matches' (their z-score and grid temperature, within
+        # z_drop): a featureless stretch has weak, flat peaks everywhere, and the best of them is no place.
+        typical_z, typical_temperature = health.typical_z[vehicle], health.typical_temperature[vehicle]
+        clear = bool(fresh_z[0] >= min_peak_z) and not bool(fresh_z[0] < z_drop * typical_z)
+        clear = clear and not bool(fresh_temperature[0] < z_drop * typical_temperature)
+        if clear and bool(gain >= relocalize_odds):
             log_prob[vehicle] = normalized(fresh_likelihood)[0]
             center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
             best_score[vehicle], peak_z[vehicle], relocalized[vehicle] = fresh_score[0], fresh_z[0], True
+            frame_temperature[vehicle] = fresh_temperature[0]  # the match the belief restarts from
     used = healthy & ~relocalized
     log_prob = torch.where(used[:, None, None, None], normalized(log_prob + log_likelihood), log_prob)
     healthy = healthy | relocalized
