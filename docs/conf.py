@@ -44,6 +44,7 @@ TOPICS = [
     ("Losses", ("enmi_torch.losses",)),
     ("Variance maps", ("enmi_torch.variance",)),
     ("Localization", ("enmi_torch.localization", "enmi_torch.placement")),
+    ("Registration", ("enmi_torch.registration",)),
     ("Tracking", ("enmi_torch.tracking",)),
     ("Road camera and rectification", ("enmi_torch.geometry",)),
     ("Histograms, bins and information", ("enmi_torch.histogram", "enmi_torch.binning", "enmi_torch.information")),

@@ -18,6 +18,7 @@ from enmi_torch.localization.peak import Localization, NoCandidateError
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ScoreLoss
 from enmi_torch.placement import Surface
+from enmi_torch.registration import Registration, register, registration_score, warp_reference
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Mixture, Score, as_score, direct_surface
 from enmi_torch.scores.ecr import BinSums, ecr, ecr_from_bin_sums, ecr_loss, ecr_surface
 from enmi_torch.scores.enmi import enmi, enmi_loss, enmi_surface
@@ -59,6 +60,7 @@ __all__ = [
     "NMILoss",
     "NoCandidateError",
     "PerspectiveVariance",
+    "Registration",
     "RoadCamera",
     "Score",
     "ScoreLoss",
@@ -98,8 +100,11 @@ __all__ = [
     "parzen_weights",
     "perspective_variance",
     "rectify",
+    "register",
+    "registration_score",
     "set_memory_budget",
     "truncated_likelihood_weights",
     "unrectify",
     "value_checks",
+    "warp_reference",
 ]

@@ -43,6 +43,7 @@ from enmi_torch._checks import (
 from enmi_torch._layout import mask_map, variance_map
 from enmi_torch.localization.peak import Localization, _read_peak, _separated_peaks
 from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.registration.refine import register
 from enmi_torch.scores import ECR, Score, as_score
 from enmi_torch.scores.ecr import cheap_value_range
 from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
@@ -69,6 +70,7 @@ def localize(
     resample: str = "nearest",
     search: str = "exhaustive",
     cheap_bins: int = 4,
+    refine: bool = False,
 ) -> Localization:
     """Find the pose of each captured image in the prior map: the best of a window of shifts and a set of yaws.
 
@@ -118,6 +120,9 @@ def localize(
             doubling has stopped
             (``data_tools/benchmarks/bench_search.py`` measures how often: rarely, at extreme noise).
         cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.
+        refine: move on from the best candidate to the continuous pose that maximises the score, by Gauss-Newton
+            (:func:`~enmi_torch.registration.register`, ECR or NCC): ``pose`` is then the refined pose; the surface,
+            score, covariance and margin stay those of the search.
 
     Returns:
         :class:`Localization`.
@@ -163,7 +168,28 @@ def localize(
             surface = searcher.exhaustive(min_overlap)
         else:
             surface = searcher.coarse_to_fine(min_overlap, coarse_factor, coarse_peaks, exclusion_radius)
-        return _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
+        found = _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
+    if not refine:
+        return found
+    return _refined(found, captured, reference, variance, score, centers, captured_mask, reference_mask)
+
+
+def _refined(found: Localization, captured, reference, variance, score, centers, captured_mask, reference_mask):
+    """``found`` with its pose moved on by :func:`~enmi_torch.registration.register` (absolute poses meanwhile)."""
+    offset = torch.stack([centers[:, 1], centers[:, 0], torch.zeros_like(centers[:, 0])], 1).to(torch.float64)
+    if reference_mask is not None and reference_mask.ndim == 2:
+        reference_mask = reference_mask[None, None]
+    start = found.pose.double() + offset.to(found.pose.device)
+    refined = register(
+        captured,
+        reference,
+        variance,
+        pose=start,
+        score=score,
+        captured_mask=captured_mask,
+        reference_mask=reference_mask,
+    )
+    return found._replace(pose=(refined.pose.double() - offset).to(found.pose.dtype))
 
 
 def _check_search_settings(

@@ -1,0 +1,455 @@
+"""Continuous pose refinement: the pose ``(x, y, yaw)`` of captured images in a map by Gauss-Newton through a score.
+
+:func:`localize` finds the best integer shift and yaw bin; :func:`register` moves on from there (or from any pose) to
+the continuous pose that maximises the score, batched. The map is sampled under the captured image at the pose
+(:func:`warp_reference`, bilinear, differentiable in the pose), so the noisy captured image, its variance and its mask
+are never resampled. The score is a weighted least-squares fit of the captured values by a response of the map's
+values, the likelihood behind ECR (:class:`~enmi_torch.ECR`):
+
+* ECR, ``response="binned"``: a piecewise-linear response with one knot per bin centre over ``value_range`` (the
+  binned response made continuous in the map's values, so the score is smooth in the pose), each pixel weighed by
+  ``1 / (sigma_n^2 + tau^2)``, ``tau^2`` the ECR estimate at the starting pose (or the fixed ``model_variance``);
+* ECR, ``response="linear"``: ``a + b m``, the same weights;
+* NCC (:class:`~enmi_torch.NCC`): ``a + b m``, every pixel alike.
+
+The response is profiled out (refitted at every pose) and the pose moves by Levenberg-Marquardt steps on the
+Gauss-Newton normal equations (Kaufman's approximation of the variable-projection Jacobian). Histogram scores (NMI,
+ENMI, the mixture) are not least-squares fits and are refused.
+
+Pixels whose map sample at the starting pose lies within ``margin`` cells of the map's border, off the map or on an
+invalid map cell do not count, nor do the captured image's invalid pixels; the set is held fixed while the pose moves
+(a score whose pixel set changed with the pose would jump), so a move of more than ``margin`` cells ends the
+refinement of that image (``Registration.converged`` is ``False``).
+
+Convention:
+    A pose is ``(x, y, yaw)`` as in :mod:`enmi_torch.tracking`: ``x`` (column) and ``y`` (row) the map cell under the
+    captured image's pixel ``(h // 2, w // 2)``, ``yaw`` in degrees, counter-clockwise as displayed; the captured
+    pixel ``(u, v)`` shows the map at :meth:`~enmi_torch.Localization.local_to_map` of that pose.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from enmi_torch._checks import (
+    check_bool_mask,
+    check_floating,
+    check_positive_int,
+    check_positive_number,
+    check_variance_given,
+)
+from enmi_torch.scores import ECR, NCC, Score, as_score
+from enmi_torch.variance.base import VarianceModel
+
+
+class Registration(NamedTuple):
+    """The result of :func:`register`.
+
+    Attributes:
+        pose: ``(B, 3)`` refined ``(x, y, yaw)``: map column and row of the captured centre pixel, yaw in degrees.
+        score: ``(B,)`` the fit's log-likelihood ratio per valid pixel at ``pose`` (half the weighted residual sum of
+            squares the response removes, over the valid pixels; larger is better).
+        converged: ``(B,)`` bool: the last step moved less than ``tolerance`` (cells, and degrees for the yaw)
+            without leaving the pixels fixed at the start.
+        iterations: ``(B,)`` int64 steps taken.
+    """
+
+    pose: Tensor
+    score: Tensor
+    converged: Tensor
+    iterations: Tensor
+
+
+def sample_positions(pose: Tensor, shape: tuple[int, int]) -> Tensor:
+    """``(B, h, w, 2)`` map positions ``(x, y)`` of every captured pixel at ``pose`` ``(B, 3)`` (differentiable)."""
+    height, width = shape
+    dtype, device = pose.dtype, pose.device
+    rows = torch.arange(height, dtype=dtype, device=device) - (height - 1) / 2
+    cols = torch.arange(width, dtype=dtype, device=device) - (width - 1) / 2
+    angle = torch.deg2rad(-pose[:, 2])[:, None, None]
+    cos, sin = angle.cos(), angle.sin()
+    offset_x = pose[:, 0, None, None] + (width - 1) / 2 - width // 2
+    offset_y = pose[:, 1, None, None] + (height - 1) / 2 - height // 2
+    x = cos * cols[None, None, :] + sin * rows[None, :, None] + offset_x
+    y = -sin * cols[None, None, :] + cos * rows[None, :, None] + offset_y
+    return torch.stack([x, y], -1)
+
+
+def warp_reference(
+    reference: Tensor, pose: Tensor, shape: tuple[int, int], reference_mask: Tensor | None = None, margin: float = 0.0
+) -> tuple[Tensor, Tensor]:
+    """The map under captured images of ``shape`` at ``pose``: bilinear samples and where they count.
+
+    Args:
+        reference: ``(1 or B, 1, Hm, Wm)`` map, floating point.
+        pose: ``(B, 3)`` ``(x, y, yaw)`` (see the module's convention); the samples are differentiable in it.
+        shape: ``(h, w)`` of the captured images.
+        reference_mask: optional bool map ``(1 or B, 1, Hm, Wm)``: ``False`` cells are unobserved.
+        margin: cells a sample must keep from the map's border.
+
+    Returns:
+        ``(warped, valid)``: ``(B, 1, h, w)`` samples (0 off the map) and bool ``(B, 1, h, w)``: the sample lies on the
+        map, ``margin`` cells inside its border, and its four neighbouring cells are observed.
+
+    Example:
+        >>> reference = torch.arange(20.0).reshape(1, 1, 4, 5)
+        >>> warped, valid = warp_reference(reference, torch.tensor([[2.5, 1.0, 0.0]]), (1, 2))
+        >>> warped.flatten().tolist(), valid.flatten().tolist()  # centre pixel (0, 1) on column 2.5 of row 1
+        ([6.5, 7.5], [True, True])
+    """
+    batch = pose.shape[0]
+    height, width = reference.shape[-2:]
+    positions = sample_positions(pose, shape)
+    scale = torch.tensor([max(width - 1, 1), max(height - 1, 1)], dtype=pose.dtype, device=pose.device)
+    grid = positions / scale * 2 - 1
+    expanded = reference.expand(batch, -1, -1, -1) if reference.shape[0] == 1 else reference
+    warped = F.grid_sample(expanded.to(pose.dtype), grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    x, y = positions.detach().unbind(-1)
+    valid = (x >= margin) & (x <= width - 1 - margin) & (y >= margin) & (y <= height - 1 - margin)
+    if reference_mask is not None:
+        unobserved = (~reference_mask).to(pose.dtype).expand(batch, -1, -1, -1)
+        touched = F.grid_sample(unobserved, grid.detach(), mode="bilinear", padding_mode="zeros", align_corners=True)
+        # A cell the bilinear sample leans on at all (weight > 0) must be observed.
+        spread = F.max_pool2d(unobserved, 3, 1, 1)
+        near = F.grid_sample(spread, grid.detach(), mode="nearest", padding_mode="zeros", align_corners=True)
+        valid = valid & (touched[:, 0] <= 0) & (near[:, 0] <= 0)
+    return warped, valid[:, None]
+
+
+class _Fit:
+    """The score's weighted least-squares model of the captured values by the map's, each pixel with its weight.
+
+    Every pixel's predictor is two basis functions: ``(i, 1 - f), (i + 1, f)`` (the hat functions of the knots around
+    its map value: the piecewise-linear response) or ``(0, 1), (1, m)`` (the affine response). The normal equations
+    are assembled with index sums, ``O(N)`` per image whatever the number of knots.
+    """
+
+    def __init__(self, score: Score, weights: Tensor) -> None:
+        self.weights = weights  # (B, N), zero on pixels that do not count
+        self.spline = isinstance(score, ECR) and score.response == "binned"
+        if self.spline:
+            low, high = score.value_range
+            self.step = (high - low) / score.bins
+            self.first = low + 0.5 * self.step  # the first knot: the first bin's centre
+            self.size = score.bins
+        else:
+            self.size = 2
+
+    def _pairs(self, values: Tensor):
+        """Per pixel: the two basis indices, their values, and their derivatives in the map's value."""
+        if not self.spline:
+            zero, one = torch.zeros_like(values, dtype=torch.long), torch.ones_like(values, dtype=torch.long)
+            return (zero, one), (torch.ones_like(values), values), (torch.zeros_like(values), torch.ones_like(values))
+        unclamped = (values - self.first) / self.step
+        position = unclamped.clamp(0, self.size - 1)
+        index = position.detach().floor().clamp(max=self.size - 2).long()
+        fraction = position - index
+        rate = ((unclamped > 0) & (unclamped < self.size - 1)).to(values.dtype) / self.step
+        return (index, index + 1), (1 - fraction, fraction), (-rate, rate)
+
+    def solve(self, captured: Tensor, values: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Residuals ``(B, N)`` (weighted by the square root of the weights), response slopes ``(B, N)``, scores."""
+        batch, size = values.shape[0], self.size
+        indices, parts, slopes = self._pairs(values)
+        offset = (torch.arange(batch, device=values.device) * size)[:, None]
+        normal = values.new_zeros(batch * size * size)
+        right = values.new_zeros(batch * size)
+        for first, first_part in zip(indices, parts, strict=True):
+            right = right.index_add(0, (offset + first).flatten(), (self.weights * first_part * captured).flatten())
+            for second, second_part in zip(indices, parts, strict=True):
+                cell = (offset * size + first * size + second).flatten()
+                normal = normal.index_add(0, cell, (self.weights * first_part * second_part).flatten())
+        normal = normal.view(batch, size, size)
+        ridge = 1e-9 * normal.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
+        normal = normal + ridge[:, None, None] * torch.eye(size, dtype=normal.dtype, device=normal.device)
+        coefficients = torch.linalg.solve(normal, right.view(batch, size))
+        at = [coefficients.gather(1, index) for index in indices]
+        fitted = parts[0] * at[0] + parts[1] * at[1]
+        slope = slopes[0] * at[0] + slopes[1] * at[1]
+        residual = self.weights.sqrt() * (captured - fitted)
+        total = self.weights.sum(1).clamp_min(1e-300)
+        mean = (self.weights * captured).sum(1) / total
+        null = (self.weights * (captured - mean[:, None]).square()).sum(1)
+        count = (self.weights > 0).sum(1).clamp_min(1).to(captured.dtype)
+        score = 0.5 * (null - residual.square().sum(1)) / count
+        return residual, slope, score
+
+
+def _check_score(score: Score | str) -> Score:
+    score = as_score(score)
+    if not isinstance(score, (ECR, NCC)):
+        raise ValueError(
+            f"score must be ECR or NCC for register (a weighted least-squares fit, smooth in the pose), got "
+            f"{score.name!r}: register with ECR, then compare with {score.name!r} at the registered pose"
+        )
+    return score
+
+
+def _weights(score: Score, captured, warped, variance, valid) -> Tensor:
+    """Per-pixel weights ``(B, N)``: ``1 / (sigma^2 + tau^2)`` for ECR (``tau^2`` at the given pose), 1 for NCC."""
+    batch = captured.shape[0]
+    mask = valid.reshape(batch, -1).to(captured.dtype)
+    if isinstance(score, NCC):
+        return mask
+    noise = torch.as_tensor(variance, dtype=captured.dtype, device=captured.device).expand_as(captured)
+    if score.model_variance == "estimate":
+        tau2 = score.model_variance_of(captured, warped.detach(), noise, valid_mask=valid)
+    else:
+        tau2 = torch.full((batch,), score.model_variance, dtype=torch.float64, device=captured.device)
+        if score.model_variance is None:
+            tau2 = tau2.fill_((score.value_range[1] - score.value_range[0]) ** 2 / score.bins**2 / 12)
+    total = noise.reshape(batch, -1) + tau2.to(captured.dtype)[:, None]
+    return torch.where(mask > 0, mask / total.clamp_min(torch.finfo(captured.dtype).tiny), 0.0)
+
+
+def _prepare(captured, reference, variance, captured_mask, reference_mask, score: Score):
+    check_floating("captured", captured)
+    check_floating("reference", reference)
+    if captured.ndim != 4 or captured.shape[1] != 1:
+        raise ValueError(f"captured must be (B, 1, h, w), got {tuple(captured.shape)}")
+    if reference.ndim != 4 or reference.shape[1] != 1 or reference.shape[0] not in (1, captured.shape[0]):
+        raise ValueError(
+            f"reference must be (1 or B, 1, Hm, Wm) with B = {captured.shape[0]}, got {tuple(reference.shape)}"
+        )
+    if isinstance(variance, VarianceModel):
+        variance = variance(captured)
+    if score.uses_variance:
+        check_variance_given(variance)
+    elif variance is not None:
+        raise ValueError(f"variance is not used by score {score.name!r}; pass None")
+    for name, mask in (("captured_mask", captured_mask), ("reference_mask", reference_mask)):
+        if mask is not None:
+            check_bool_mask(name, mask)
+    return variance
+
+
+def registration_score(
+    captured: Tensor,
+    reference: Tensor,
+    pose: Tensor,
+    variance: Tensor | float | None = None,
+    *,
+    score: Score | str = "ecr",
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
+    margin: float = 0.0,
+) -> Tensor:
+    """The score :func:`register` maximises, ``(B,)``, at ``pose`` ``(B, 3)``; differentiable in ``pose``.
+
+    The weights (``tau^2`` for ECR) and the pixels that count are read at ``pose`` itself, without gradient; the
+    response is refitted. Arguments as :func:`register`'s.
+
+    Example:
+        >>> reference = torch.rand(1, 1, 40, 40, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 255
+        >>> truth = torch.tensor([[20.3, 19.6, 4.0]], dtype=torch.float64)
+        >>> captured = warp_reference(reference, truth, (16, 16))[0]
+        >>> pose = truth + torch.tensor([[0.2, 0.0, 0.0]], dtype=torch.float64)
+        >>> score = registration_score(captured, reference, pose, 1.0, score=ECR(model_variance=1.0))
+        >>> bool(score < registration_score(captured, reference, truth, 1.0, score=ECR(model_variance=1.0)))
+        True
+    """
+    score = _check_score(score)
+    variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
+    check_floating("pose", pose)
+    warped, valid = warp_reference(reference, pose, captured.shape[-2:], reference_mask, margin)
+    if captured_mask is not None:
+        valid = valid & captured_mask.expand_as(valid)
+    values = captured.to(pose.dtype)
+    weights = _weights(score, values, warped, variance, valid)
+    fit = _Fit(score, weights)
+    batch = captured.shape[0]
+    return fit.solve(values.reshape(batch, -1), warped.reshape(batch, -1))[2]
+
+
+def register(
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float | VarianceModel | None = None,
+    *,
+    pose: Tensor,
+    score: Score | str = "ecr",
+    captured_mask: Tensor | None = None,
+    reference_mask: Tensor | None = None,
+    blur: tuple[float, ...] = (1.0, 0.0),
+    iterations: int = 30,
+    tolerance: float = 1e-4,
+    margin: float = 2.0,
+) -> Registration:
+    """Refine the pose of captured images in a map by Gauss-Newton through a least-squares score, batched.
+
+    Args:
+        captured: ``(B, 1, h, w)`` captured images on the map's cell grid.
+        reference: ``(1 or B, 1, Hm, Wm)`` the map (one for all, or one per image).
+        variance: the captured images' noise variance for ECR (a number, ``(h, w)``, ``(1 or B, 1, h, w)`` or a
+            :class:`~enmi_torch.variance.VarianceModel`); ``None`` for NCC.
+        pose: ``(B, 3)`` starting ``(x, y, yaw)``, e.g. :func:`localize`'s ``center + (dx, dy)`` and ``yaw``.
+        score: :class:`~enmi_torch.ECR` (its bins, value range, model variance and response) or
+            :class:`~enmi_torch.NCC`, or the name of either.
+        captured_mask: bool like ``variance``: ``False`` pixels do not count.
+        reference_mask: bool ``(1 or B, 1, Hm, Wm)``: ``False`` map cells are unobserved.
+        blur: the multi-resolution schedule: Gaussian standard deviations (cells) of the map and the captured images
+            for each stage, coarse to fine (0: none). A blurred stage widens the basin of attraction.
+        iterations: Levenberg-Marquardt steps per stage at most.
+        tolerance: a step smaller than this (cells and degrees) ends a stage.
+        margin: cells a counting pixel's map sample keeps from the map's border and from unobserved cells at the
+            stage's start; a larger move ends the refinement.
+
+    Returns:
+        :class:`Registration` (``pose``, ``score``, ``converged``, ``iterations``).
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> reference = F.avg_pool2d(torch.rand(1, 1, 80, 80, generator=generator, dtype=torch.float64), 3, 1) * 255
+        >>> truth = torch.tensor([[39.3, 40.6, 2.5]], dtype=torch.float64)
+        >>> captured = warp_reference(reference, truth, (32, 32))[0]
+        >>> start = torch.tensor([[39.0, 41.0, 2.0]], dtype=torch.float64)  # e.g. localize's integer peak
+        >>> found = register(captured, reference, 1.0, pose=start, score=ECR(bins=16))
+        >>> found.pose.round(decimals=3).tolist(), bool(found.converged)
+        ([[39.3, 40.6, 2.5]], True)
+    """
+    score = _check_score(score)
+    variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
+    iterations = check_positive_int("iterations", iterations)
+    tolerance = check_positive_number("tolerance", tolerance)
+    if not isinstance(margin, (int, float)) or isinstance(margin, bool) or not math.isfinite(margin) or margin < 0:
+        raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
+    if (
+        isinstance(blur, (int, float))
+        or not len(blur)
+        or any(not isinstance(sigma, (int, float)) or not math.isfinite(sigma) or sigma < 0 for sigma in blur)
+    ):
+        raise ValueError(f"blur must be a non-empty sequence of standard deviations >= 0, got {blur!r}")
+    check_floating("pose", pose)
+    batch = captured.shape[0]
+    if pose.shape != (batch, 3) or not bool(torch.isfinite(pose).all()):
+        raise ValueError(f"pose must be finite (B, 3) with B = {batch}, got {tuple(pose.shape)}")
+    dtype = torch.float64
+    current = pose.detach().to(dtype).clone()
+    steps = torch.zeros(batch, dtype=torch.int64, device=captured.device)
+    converged = torch.zeros(batch, dtype=torch.bool, device=captured.device)
+    noise = None if variance is None else torch.as_tensor(variance, dtype=dtype, device=captured.device)
+    for sigma in blur:
+        stage = _Stage(captured, reference, noise, captured_mask, reference_mask, score, float(sigma), margin)
+        current, taken, converged = stage.run(current, iterations, tolerance)
+        steps += taken
+    final = _Stage(captured, reference, noise, captured_mask, reference_mask, score, 0.0, margin)
+    return Registration(current.to(pose.dtype), final.score(current).to(captured.dtype), converged, steps)
+
+
+def _gaussian(images: Tensor, sigma: float, weight: Tensor) -> tuple[Tensor, Tensor]:
+    """Normalised Gaussian blur of ``images`` over ``weight`` (0 or 1), and the blurred weight."""
+    radius = max(1, math.ceil(3 * sigma))
+    offsets = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
+    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+
+    def smooth(values: Tensor) -> Tensor:
+        values = F.conv2d(F.pad(values, (radius, radius, 0, 0)), kernel.view(1, 1, 1, -1))
+        return F.conv2d(F.pad(values, (0, 0, radius, radius)), kernel.view(1, 1, -1, 1))
+
+    mass = smooth(weight)
+    return smooth(images * weight) / mass.clamp_min(1e-12), mass
+
+
+class _Stage:
+    """One stage of :func:`register`: the (blurred) images, the weights and pixels fixed at the stage's start."""
+
+    def __init__(self, captured, reference, noise, captured_mask, reference_mask, score, sigma, margin) -> None:
+        dtype = torch.float64
+        self.captured = captured.detach().to(dtype)
+        self.reference = reference.detach().to(dtype)
+        self.noise, self.score_, self.margin, self.reference_mask = noise, score, margin, reference_mask
+        self.captured_valid = torch.ones_like(self.captured, dtype=torch.bool)
+        if captured_mask is not None:
+            self.captured_valid = self.captured_valid & captured_mask.expand_as(self.captured)
+        self.captured_valid = self.captured_valid & torch.isfinite(self.captured)
+        self.captured = torch.where(self.captured_valid, self.captured, 0.0)
+        self.sigma = sigma
+        if sigma > 0:
+            observed = torch.ones_like(self.reference)
+            if reference_mask is not None:
+                observed = reference_mask.expand_as(self.reference).to(dtype)
+            self.reference, _ = _gaussian(self.reference, sigma, observed)
+        self.shape = captured.shape[-2:]
+
+    def _setup(self, pose: Tensor) -> _Fit:
+        """The pixels that count at ``pose`` (the captured image blurred over them alone) and their weights."""
+        warped, valid = warp_reference(self.reference, pose, self.shape, self.reference_mask, self.margin)
+        self.valid = valid & self.captured_valid
+        self.values = self.captured
+        if self.sigma > 0:  # pixels off the map must not bleed into the blurred image
+            self.values, _ = _gaussian(self.captured, self.sigma, self.valid.to(self.captured.dtype))
+        weights = _weights(self.score_, self.values, warped, self.noise, self.valid)
+        return _Fit(self.score_, weights)
+
+    def score(self, pose: Tensor) -> Tensor:
+        fit = self._setup(pose)
+        warped, _ = warp_reference(self.reference, pose, self.shape)
+        return fit.solve(self.values.flatten(1), warped.flatten(1))[2]
+
+    def _residuals(self, fit: _Fit, pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Residuals ``(B, N)``, their Jacobian ``(B, N, 3)`` in the pose, and the scores."""
+        batch = pose.shape[0]
+        height, width = self.reference.shape[-2:]
+        scale = torch.tensor([max(width - 1, 1), max(height - 1, 1)], dtype=pose.dtype, device=pose.device)
+        expanded = self.reference.expand(batch, -1, -1, -1) if self.reference.shape[0] == 1 else self.reference
+        with torch.enable_grad():
+            positions = sample_positions(pose.detach(), self.shape).requires_grad_(True)
+            warped = F.grid_sample(expanded, positions / scale * 2 - 1, mode="bilinear", align_corners=True)
+            # Each sample depends on its own position only: the gradient of the sum is every pixel's own.
+            (gradient,) = torch.autograd.grad(warped.sum(), positions)
+        # d position / d pose per pixel: x and y move one to one; the yaw turns the pixel about the image's centre.
+        rows = torch.arange(self.shape[0], dtype=pose.dtype, device=pose.device) - (self.shape[0] - 1) / 2
+        cols = torch.arange(self.shape[1], dtype=pose.dtype, device=pose.device) - (self.shape[1] - 1) / 2
+        angle = torch.deg2rad(-pose[:, 2])[:, None, None]
+        cos, sin = angle.cos(), angle.sin()
+        x_per_yaw = (-sin * cols[None, None, :] + cos * rows[None, :, None]) * (-math.pi / 180)
+        y_per_yaw = (-cos * cols[None, None, :] - sin * rows[None, :, None]) * (-math.pi / 180)
+        per_pose = torch.stack(
+            [gradient[..., 0], gradient[..., 1], gradient[..., 0] * x_per_yaw + gradient[..., 1] * y_per_yaw], -1
+        ).flatten(1, 2)
+        residual, slope, score = fit.solve(self.values.flatten(1), warped.detach().flatten(1))
+        jacobian = -(fit.weights.sqrt() * slope)[..., None] * per_pose
+        return residual, jacobian, score
+
+    def run(self, pose: Tensor, iterations: int, tolerance: float) -> tuple[Tensor, Tensor, Tensor]:
+        start = pose.clone()
+        fit = self._setup(pose)
+        batch = pose.shape[0]
+        damping = torch.full((batch,), 1e-3, dtype=pose.dtype)
+        steps = torch.zeros(batch, dtype=torch.int64)
+        done = torch.zeros(batch, dtype=torch.bool)
+        converged = torch.zeros(batch, dtype=torch.bool)
+        residual, jacobian, _ = self._residuals(fit, pose)
+        cost = residual.square().sum(1)
+        for _ in range(iterations):
+            if bool(done.all()):
+                break
+            normal = jacobian.transpose(1, 2) @ jacobian
+            gradient = (jacobian.transpose(1, 2) @ residual[..., None])[..., 0]
+            diagonal = normal.diagonal(dim1=1, dim2=2).clamp_min(1e-12)
+            damped = normal + torch.diag_embed(damping[:, None] * diagonal)
+            step = -torch.linalg.solve(damped, gradient)
+            step = torch.where(done[:, None], 0.0, step)
+            trial = pose + step
+            left = ((trial[:, :2] - start[:, :2]).abs() > self.margin).any(1)
+            new_residual, new_jacobian, _ = self._residuals(fit, trial)
+            new_cost = new_residual.square().sum(1)
+            better = (new_cost <= cost) & ~done & ~left
+            stalled = better & (cost - new_cost <= 1e-10 * cost)  # the fit no longer improves
+            pose = torch.where(better[:, None], trial, pose)
+            residual = torch.where(better[:, None], new_residual, residual)
+            jacobian = torch.where(better[:, None, None], new_jacobian, jacobian)
+            cost = torch.where(better, new_cost, cost)
+            damping = torch.where(better, damping / 10, damping * 10).clamp(1e-9, 1e9)
+            steps += (~done).long()
+            small = step.abs().amax(1) < tolerance
+            converged = converged | (small & ~left & ~done)
+            converged = converged | (stalled & ~done)
+            done = done | small | stalled | left | (damping >= 1e9)
+        return pose, steps, converged & ~((pose[:, :2] - start[:, :2]).abs() > self.margin).any(1)
