@@ -10,7 +10,8 @@ is not), and adds Gaussian noise of a camera-like (far rows 100 times the varian
 
 * ``quadratic fit``: localize's own pose (a quadratic on the 3 x 3 cells around the peak, a parabola across yaws);
 * ``register ECR true`` / ``register ECR uniform``: :func:`enmi_torch.register` with ECR and the true variance, or one
-  uniform variance (the true map's mean); ``register NCC``;
+  uniform variance (the true map's mean); ``register NCC``; from localize's pose, ``margin=1`` (as
+  ``localize(refine=True)``: the search scored the neighbouring cells);
 * ``SimpleITK Mattes translation`` / ``rigid``: SimpleITK's Mattes mutual information (32 bins, every pixel sampled),
   linear interpolation, regular-step gradient descent with physical-shift scales, two levels (shrink 2 and 1,
   smoothing 1 and 0 pixels), started from localize's integer peak (translation) or its pose (rigid); one image at a
@@ -108,7 +109,8 @@ def make_trials(cell: str, count: int, seed: int, profiles):
         seen = image
         if change is not None:  # the scene around the captured image changed (a 160 x 160 window: all it sees)
             seen = image.clone()
-            window = (slice(row - 80, row + 80), slice(col - 80, col + 80))
+            top, left = max(row - 80, 0), max(col - 80, 0)
+            window = (slice(top, top + 160), slice(left, left + 160))
             seen[window] = scene_change(image[window], seed * 1000 + index, 0.5, kinds=[change])
         clean = warp_reference(seen[None, None], truth, (LOCAL, LOCAL))[0]
         noise = torch.randn(1, 1, LOCAL, LOCAL, generator=generator, dtype=torch.float64)
@@ -149,7 +151,7 @@ def run_register(maps, captured, variance, start, score, uniform: bool) -> tuple
         if not rows:
             continue
         given = None if isinstance(score, NCC) else variance[rows]
-        found = register(captured[rows], maps[rows[0]], given, pose=start[rows], score=score)
+        found = register(captured[rows], maps[rows[0]], given, pose=start[rows], score=score, margin=1.0)
         poses[rows] = found.pose.double()
     return poses, (time.perf_counter() - began) / len(maps)
 

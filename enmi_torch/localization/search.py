@@ -188,6 +188,7 @@ def _refined(found: Localization, captured, reference, variance, score, centers,
         score=score,
         captured_mask=captured_mask,
         reference_mask=reference_mask,
+        margin=1.0,  # the search scored the neighbouring cells: the continuous optimum lies within one of its best
     )
     return found._replace(pose=(refined.pose.double() - offset).to(found.pose.dtype))
 

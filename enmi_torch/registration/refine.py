@@ -54,8 +54,9 @@ class Registration(NamedTuple):
         pose: ``(B, 3)`` refined ``(x, y, yaw)``: map column and row of the captured centre pixel, yaw in degrees.
         score: ``(B,)`` the fit's log-likelihood ratio per valid pixel at ``pose`` (half the weighted residual sum of
             squares the response removes, over the valid pixels; larger is better).
-        converged: ``(B,)`` bool: the last step moved less than ``tolerance`` (cells, and degrees for the yaw)
-            without leaving the pixels fixed at the start.
+        converged: ``(B,)`` bool: the last step moved less than ``tolerance`` (cells, and degrees for the yaw), or
+            the fit stopped improving, without leaving the pixels fixed at the start. A result that scores below the
+            start (a blurred stage led astray) is replaced by the start, not converged.
         iterations: ``(B,)`` int64 steps taken.
     """
 
@@ -329,7 +330,8 @@ def register(
     if pose.shape != (batch, 3) or not bool(torch.isfinite(pose).all()):
         raise ValueError(f"pose must be finite (B, 3) with B = {batch}, got {tuple(pose.shape)}")
     dtype = torch.float64
-    current = pose.detach().to(dtype).clone()
+    start = pose.detach().to(dtype)
+    current = start.clone()
     steps = torch.zeros(batch, dtype=torch.int64, device=captured.device)
     converged = torch.zeros(batch, dtype=torch.bool, device=captured.device)
     noise = None if variance is None else torch.as_tensor(variance, dtype=dtype, device=captured.device)
@@ -338,6 +340,13 @@ def register(
         current, taken, converged = stage.run(current, iterations, tolerance)
         steps += taken
     final = _Stage(captured, reference, noise, captured_mask, reference_mask, score, 0.0, margin)
+    # Never worse than the start: a blurred stage can lead astray where the scene changed (the pixels and weights of
+    # the start for both, so the two scores compare).
+    fit = final._setup(start)
+    before, after = (final.score_with(fit, at) for at in (start, current))
+    astray = after < before
+    current = torch.where(astray[:, None], start, current)
+    converged = converged & ~astray
     return Registration(current.to(pose.dtype), final.score(current).to(captured.dtype), converged, steps)
 
 
@@ -388,7 +397,11 @@ class _Stage:
         return _Fit(self.score_, weights)
 
     def score(self, pose: Tensor) -> Tensor:
-        fit = self._setup(pose)
+        """The score at ``pose``, with the pixels and weights of ``pose``."""
+        return self.score_with(self._setup(pose), pose)
+
+    def score_with(self, fit: _Fit, pose: Tensor) -> Tensor:
+        """The score at ``pose`` with the pixels and weights of ``fit``."""
         warped, _ = warp_reference(self.reference, pose, self.shape)
         return fit.solve(self.values.flatten(1), warped.flatten(1))[2]
 
