@@ -537,8 +537,8 @@ def across_drives(rows: dict) -> list[str]:
             if len(column) == 0:
                 parts.append("-")
                 continue
-            error = float(column.std() / len(column) ** 0.5) if len(column) > 1 else float("nan")
-            parts.append(f"{float(column.mean()):.3f} ± {error:.3f}")
+            spread = f" ± {float(column.std() / len(column) ** 0.5):.3f}" if len(column) > 1 else ""
+            parts.append(f"{float(column.mean()):.3f}{spread}")
         raised = len(values) - len(done)
         lines.append(f"| {LABELS[method]} | {estimator} | {len(values)} | " + " | ".join(parts) + f" | {raised} |")
     return lines
