@@ -9,7 +9,17 @@ from pathlib import Path
 import pytest
 import torch
 
-from enmi_torch import ECR, NMI, ConstantVariance, Localization, NoCandidateError, as_score, localize, value_checks
+from enmi_torch import (
+    ECR,
+    NMI,
+    ConstantVariance,
+    Localization,
+    NoCandidateError,
+    as_score,
+    localize,
+    value_checks,
+    warp_reference,
+)
 from enmi_torch.tracking import (
     CHI2_95_2D,
     Belief,
@@ -225,6 +235,27 @@ def test_a_belief_at_the_map_edge_keeps_tracking(generator):
         assert output.pose[0, :2].tolist() == pytest.approx([x, 30.0], abs=0.5)
 
 
+def test_a_tracker_refines_each_used_frame_below_one_cell(generator):
+    # Frames cut at sub-cell poses (bilinear): the belief stays on its cells, the refined pose finds the truth.
+    reference = _texture(generator, (96, 200))
+    tracker = Tracker(
+        reference.float(), score=ECR(bins=16), shifts=4, yaw_bins=3, motion_noise=(0.5, 0.5, 0.3), refine=True
+    )
+    tracker.start(torch.tensor([[40.0, 50.0, 0.0]]))
+    truth = torch.tensor([[40.0, 50.0, 0.0]], dtype=torch.float64)
+    for _ in range(6):
+        move = torch.tensor([[2.6, 0.3, 0.0]], dtype=torch.float64)
+        truth = truth + move
+        frame = warp_reference(reference, truth, FRAME)[0].float()
+        output = tracker(frame, move.float(), 1.0)
+        assert bool(output.healthy[0])
+        assert output.refined[0].tolist() == pytest.approx(truth[0].tolist(), abs=5e-3)
+    assert float((output.pose[0, :2].double() - truth[0, :2]).abs().max()) < 0.6  # the belief's own: one cell
+    belief = initial_belief(torch.tensor([[40.0, 50.0, 0.0]]))
+    with pytest.raises(ValueError, match="score must be ECR or NCC for register"):
+        track_step(belief, frame, reference.float(), move.float(), refine=True, score="nmi")
+
+
 def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
     reference = _texture(generator, (120, 240))
     settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
@@ -397,7 +428,8 @@ def test_a_tracker_takes_the_score_by_name_or_object_alike(generator, name):
         tracker = Tracker(reference, score=score, shifts=3, yaw_bins=3, temperature=0.05)
         tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
         outputs.append(tracker(frame, odometry, variance))
-    assert all(torch.equal(first, second) for first, second in zip(*outputs, strict=True))
+    for first, second in zip(*outputs, strict=True):  # NaN alike: no refined pose without refine=True
+        torch.testing.assert_close(first, second, rtol=0, atol=0, equal_nan=True)
     calibrated = Tracker(reference, calibration=Calibration(name, 0.05, 3.0), shifts=3, yaw_bins=3)
     calibrated.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
     assert torch.equal(calibrated(frame, odometry, variance).pose, outputs[0].pose)

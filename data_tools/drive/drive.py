@@ -293,7 +293,7 @@ def search(frame, reference, variance, valid, center, yaws, score: Score) -> Loc
     )
 
 
-def run_filter(drive: Drive, method: str, calibration: Calibration | None = None) -> dict:
+def run_filter(drive: Drive, method: str, calibration: Calibration | None = None, refine: bool = False) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = METHODS[method]
     variance = drive.variance(kind, drive.pixel_noise)
@@ -305,10 +305,12 @@ def run_filter(drive: Drive, method: str, calibration: Calibration | None = None
         yaw_bins=YAW_BINS,
         yaw_step=YAW_STEP,
         motion_noise=drive.motion_noise,
+        refine=refine and method != "nmi",
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []
     lost = [False]
+    refined = [torch.full((3,), math.nan, dtype=torch.float64)]
     for index in range(1, len(drive.truth)):
         frame_variance = None if variance is None else variance[index : index + 1]
         start = time.perf_counter()
@@ -321,12 +323,14 @@ def run_filter(drive: Drive, method: str, calibration: Calibration | None = None
         healthy.append(bool(output.healthy[0]))
         relocalized.append(bool(output.relocalized[0]))
         lost.append(bool(output.lost[0]))
+        refined.append(output.refined[0].double())
     return {
         "pose": torch.stack(poses),
         "covariance": torch.stack(covariances).double(),
         "healthy": torch.tensor(healthy),
         "relocalized": torch.tensor(relocalized),
         "lost": torch.tensor(lost),
+        "refined": torch.stack(refined),
         "seconds": torch.tensor(seconds),
     }
 
@@ -516,6 +520,28 @@ def log_tensorboard(drive: Drive, results: dict, folder: Path) -> Path | None:
     return folder
 
 
+def refined_table(drive: Drive, results: dict) -> list[str]:
+    """The filter's pose against each used frame's refined pose (``Tracker(refine=True)``), over those frames."""
+    lines = [
+        "\nRefined (each used frame registered from the filter's pose), over the frames refined\n",
+        "| method | frames | filter: position RMS | refined: position RMS | filter: yaw RMS | refined: yaw RMS |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for method, (filtered, _) in results.items():
+        done = torch.isfinite(filtered["refined"][:, 0])
+        if not bool(done.any()):
+            continue
+        truth = drive.truth[done]
+        parts = []
+        for pose in (filtered["pose"][done], filtered["refined"][done]):
+            parts.append(float((pose[:, :2] - truth[:, :2]).square().sum(1).mean().sqrt()))
+        for pose in (filtered["pose"][done], filtered["refined"][done]):
+            parts.append(float((pose[:, 2] - truth[:, 2]).square().mean().sqrt()))
+        values = " | ".join(f"{value:.3f}" for value in parts)
+        lines.append(f"| {LABELS[method]} | {int(done.sum())} | {values} |")
+    return lines
+
+
 def lost_share(truth: torch.Tensor, pose: torch.Tensor) -> float:
     """Share of frames (after the first) more than 4 cells from the truth."""
     return float(((pose[1:, :2] - truth[1:, :2]).norm(dim=1) > 4).double().mean())
@@ -565,6 +591,7 @@ def main(argv=None) -> None:
     parser.add_argument("--scene-change", type=float, default=0.0, help="strength in [0, 1] of the road's change")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="factor on the pixel noise")
     parser.add_argument("--calibrate", action="store_true", help="fit each score's temperature on held-out frames")
+    parser.add_argument("--refine", action="store_true", help="also register each used frame (ECR and NCC)")
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
@@ -585,7 +612,7 @@ def main(argv=None) -> None:
                 if calibration is not None:
                     calibrations[method] = calibration
                 try:
-                    filtered = run_filter(drive, method, calibration)
+                    filtered = run_filter(drive, method, calibration, args.refine)
                 except Exception as error:  # a drive that raises is a result, reported as such
                     print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)
                     filtered = None
@@ -597,6 +624,8 @@ def main(argv=None) -> None:
             print(f"drive {number + 1}/{len(args.seeds)} {method}: {time.perf_counter() - start:.0f} s", flush=True)
         print(f"\n## Drive seed {seed}")
         print("\n".join(print_tables(drive, results, calibrations)))
+        if args.refine:
+            print("\n".join(refined_table(drive, results)))
         if number == 0 and results:
             folder = args.logdir
             folder.mkdir(parents=True, exist_ok=True)

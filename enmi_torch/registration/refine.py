@@ -181,7 +181,8 @@ class _Fit:
         return residual, slope, score
 
 
-def _check_score(score: Score | str) -> Score:
+def check_registration_score(score: Score | str) -> Score:
+    """``score`` as a :class:`~enmi_torch.Score` that :func:`register` can fit (ECR or NCC), else ``ValueError``."""
     score = as_score(score)
     if not isinstance(score, (ECR, NCC)):
         raise ValueError(
@@ -254,7 +255,7 @@ def registration_score(
         >>> bool(score < registration_score(captured, reference, truth, 1.0, score=ECR(model_variance=1.0)))
         True
     """
-    score = _check_score(score)
+    score = check_registration_score(score)
     variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
     check_floating("pose", pose)
     warped, valid = warp_reference(reference, pose, captured.shape[-2:], reference_mask, margin)
@@ -313,7 +314,7 @@ def register(
         >>> found.pose.round(decimals=3).tolist(), bool(found.converged)
         ([[39.3, 40.6, 2.5]], True)
     """
-    score = _check_score(score)
+    score = check_registration_score(score)
     variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
     iterations = check_positive_int("iterations", iterations)
     tolerance = check_positive_number("tolerance", tolerance)

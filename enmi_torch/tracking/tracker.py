@@ -38,6 +38,7 @@ from enmi_torch._checks import (
 )
 from enmi_torch.localization.peak import NoCandidateError
 from enmi_torch.localization.search import localize
+from enmi_torch.registration.refine import check_registration_score, register
 from enmi_torch.scores import Score, as_score
 from enmi_torch.tracking.belief import (
     Belief,
@@ -66,6 +67,9 @@ class TrackOutput(NamedTuple):
             where the window had no candidate).
         lost: ``(B,)`` bool: ``patience`` or more frames in a row without a usable match, and no relocalization
             yet: the pose is dead reckoning and the belief grows with the odometry's noise.
+        refined: ``(B, 3)`` this frame's own continuous pose, :func:`~enmi_torch.register` from ``pose`` (within one
+            cell of it), where the frame's match was used and ``refine=True``; NaN elsewhere. The belief itself
+            stays on its grid.
     """
 
     pose: Tensor
@@ -75,6 +79,7 @@ class TrackOutput(NamedTuple):
     score: Tensor
     peak_z: Tensor
     lost: Tensor
+    refined: Tensor
 
 
 def track_step(
@@ -97,6 +102,7 @@ def track_step(
     relocalize_yaw_bins: int = 9,
     coarse_factor: int = 4,
     relocalize_odds: float = 5.0,
+    refine: bool = False,
 ) -> tuple[Belief, TrackOutput, Health]:
     """One frame of the filter: predict by ``odometry``, update by the frame's score surface, read the pose.
 
@@ -128,6 +134,7 @@ def track_step(
             many nats of (tempered) log-likelihood and its peak is as clear and as sharp as the recent matches'
             (``z_drop``), or lands within 1.5 cells of the window's own peak. With the
             ``"auto"`` temperature a clear match's peak stands ~10 nats above no match: 5 nats are odds of ~150 to 1.
+        refine: also register each used frame from the posterior pose (``TrackOutput.refined``): ECR or NCC only.
 
     Returns:
         ``(belief, output, health)``: the posterior :class:`Belief`, the :class:`TrackOutput` and the :class:`Health`
@@ -135,6 +142,10 @@ def track_step(
     """
     check_belief(belief)
     score = as_score(score)
+    if not isinstance(refine, bool):
+        raise TypeError(f"refine must be a bool, got {type(refine).__name__} {refine!r}")
+    if refine:
+        check_registration_score(score)
     check_floating("captured", captured)
     if captured.ndim != 4 or captured.shape[1] != 1 or captured.shape[0] != belief.log_prob.shape[0]:
         raise ValueError(
@@ -202,7 +213,10 @@ def track_step(
     pose, covariance = belief_pose(posterior)
     health = next_health(health, healthy, relocalized, weak_frames, peak_z, frame_temperature)
     lost = health.weak_frames >= patience
-    output = TrackOutput(pose, covariance, healthy, relocalized, best_score, peak_z, lost)
+    refined = torch.full_like(pose, math.nan)
+    if refine:
+        refined = search.refined(pose, healthy, refined)
+    output = TrackOutput(pose, covariance, healthy, relocalized, best_score, peak_z, lost, refined)
     return posterior, output, health
 
 
@@ -320,6 +334,7 @@ _STEP_SETTINGS = (
     "relocalize_yaw_bins",
     "coarse_factor",
     "relocalize_odds",
+    "refine",
 )
 
 
@@ -386,6 +401,23 @@ class _Searcher:
             z_scores.append(peak_z_score(surface))
             temperatures.append(grid_temperature(log_likelihood[None])[0])
         return torch.stack(likelihoods), torch.stack(scores), torch.stack(z_scores), torch.stack(temperatures)
+
+    def refined(self, pose: Tensor, used: Tensor, refined: Tensor) -> Tensor:
+        """``refined`` with the used vehicles' rows replaced by :func:`register` from ``pose`` (one batch)."""
+        rows = used.nonzero()[:, 0]
+        if len(rows) == 0:
+            return refined
+        found = register(
+            self.captured[rows],
+            self.reference,
+            self._per_vehicle(self.variance, rows),
+            pose=pose[rows].to(torch.float64),
+            score=self.score,
+            captured_mask=self._per_vehicle(self.mask, rows),
+            margin=1.0,
+        )
+        refined[rows] = found.pose.to(refined.dtype)
+        return refined
 
     def wide(self, vehicle: int, belief: Belief, shifts: int, yaw_bins: int, coarse_factor: int) -> Tensor | None:
         """``(3,)`` pose ``(x, y, yaw)`` of the best match over the wide window around the belief's centre.
