@@ -441,3 +441,15 @@ def test_a_calibration_file_that_names_its_score_metric_still_loads(tmp_path):
     (tmp_path / "wrong.json").write_text('{"score": "mi", "temperature": 2.0, "min_peak_z": 3.5}')
     with pytest.raises(ValueError, match="score must be one of"):
         Calibration.load(tmp_path / "wrong.json")
+
+
+def test_a_restart_moves_the_window_to_the_pose_on_the_yaw_lattice():
+    from enmi_torch.tracking.tracker import _peak_position, _restart
+
+    belief = initial_belief(torch.tensor([[10.0, 20.0, 20.0], [30.0, 40.0, -5.0]]), shifts=(2, 3), yaw_step=5.0)
+    moved = _restart(belief, 0, torch.tensor([57.4, 31.6, 1.7], dtype=torch.float64))
+    assert moved.center[0].tolist() == [32, 57] and moved.center[1].tolist() == [40, 30]  # (row, col); vehicle 1 kept
+    assert moved.yaw_center.tolist() == [0.0, -5.0]  # 20 - 4 steps of 5: the lattice bin nearest 1.7
+    likelihood = torch.zeros(2, 5, 5, 7, dtype=torch.float64)
+    likelihood[1, 3, 4, 1] = 1.0  # yaw bin 3, row 4 of 5, column 1 of 7 (a non-square window)
+    assert _peak_position(belief, likelihood, 1).tolist() == [30 + 1 - 3, 40 + 4 - 2]

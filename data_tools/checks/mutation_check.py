@@ -57,6 +57,9 @@ MODULES = {
     "localization/peak": ["tests/test_localize.py"],
     "variance/empirical": ["tests/variance/test_empirical.py"],
     "variance/perspective": ["tests/variance/test_perspective.py"],
+    "registration/refine": ["tests/registration/test_register.py"],
+    "tracking/calibration": ["tests/test_track.py"],
+    "tracking/tracker": ["tests/test_track.py"],
 }
 
 # Where a module's code lived in older checkouts, newest first, for --root: before the scores package (337d306 and

@@ -318,8 +318,8 @@ def register(
     variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
     iterations = check_positive_int("iterations", iterations)
     tolerance = check_positive_number("tolerance", tolerance)
-    if not isinstance(margin, (int, float)) or isinstance(margin, bool) or not math.isfinite(margin) or margin < 0:
-        raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
+    if not isinstance(margin, (int, float)) or isinstance(margin, bool) or not math.isfinite(margin) or margin <= 0:
+        raise ValueError(f"margin must be a finite number > 0 (the largest move, in cells), got {margin!r}")
     if (
         isinstance(blur, (int, float))
         or not len(blur)

@@ -138,3 +138,38 @@ def test_localize_refines_its_peak_on_request(generator):
     assert refined.pose[0].tolist() == pytest.approx(expected, abs=2e-3)
     assert float((grid.pose[0] - torch.tensor(expected)).abs().max()) > 0.1
     torch.testing.assert_close(refined.surface, grid.surface)  # the search's own results stay
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_score_is_half_the_weighted_variance_the_fit_removes_per_pixel(generator, dtype):
+    # At the truth a noiseless linear map is fitted exactly: the score is half the weighted variance of the captured
+    # values about their weighted mean, per counted pixel (a direct sum with other weights per pixel).
+    reference = _map(generator)
+    truth = torch.tensor([[44.4, 33.8, 1.0]], dtype=torch.float64)
+    captured = 3 + 0.5 * warp_reference(reference, truth, SHAPE)[0]
+    variance = 1 + torch.rand(1, 1, *SHAPE, generator=generator, dtype=torch.float64) * 9
+    value = registration_score(
+        captured.to(dtype),
+        reference.to(dtype),
+        truth,
+        variance.to(dtype),
+        score=ECR(response="linear", model_variance=2.0),
+    )
+    weights = 1 / (variance + 2.0)
+    mean = (weights * captured).sum() / weights.sum()
+    expected = 0.5 * (weights * (captured - mean) ** 2).sum() / captured.numel()
+    assert float(value) == pytest.approx(float(expected), rel=1e-4 if dtype == torch.float32 else 1e-9)
+
+
+def test_the_margin_bounds_the_move(generator):
+    reference = _map(generator)
+    truth = torch.tensor([[44.4, 33.8, 1.0]], dtype=torch.float64)
+    captured = warp_reference(reference, truth, SHAPE)[0]
+    start = truth + torch.tensor([[0.9, 0.0, 0.0]], dtype=torch.float64)
+    held = register(captured, reference, 1.0, pose=start, score=ECR(bins=16), margin=0.5)
+    assert float((held.pose[0, 0] - start[0, 0]).abs()) <= 0.5 and not bool(held.converged[0])
+    free = register(captured, reference, 1.0, pose=start, score=ECR(bins=16), margin=2.0)
+    assert free.pose[0, :2].tolist() == pytest.approx(truth[0, :2].tolist(), abs=1e-3)
+    for margin in (0.0, -1.0):
+        with pytest.raises(ValueError, match=r"margin must be a finite number > 0 \(the largest move, in cells\)"):
+            register(captured, reference, 1.0, pose=truth.round(), margin=margin)
