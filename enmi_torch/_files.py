@@ -137,3 +137,36 @@ def load_plain_torch(path: str | Path, what: str) -> object:
         return torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
         raise ValueError(f"{path} is refused: it is not {what} that loads with weights_only=True ({error})") from None
+
+
+def read_json(path: str | Path, source: str) -> object:
+    """The JSON value of the text file at ``path``; every failure is one ``ValueError`` naming ``source`` and the file.
+
+    Refused: a file that cannot be opened, is not UTF-8 text (a binary file), is not JSON, or nests deeper than
+    Python's parser can follow (``RecursionError``). ``NaN`` and ``Infinity`` are read as Python's ``json`` reads them
+    (floats): checking the values (finite numbers, an object, its keys) is the caller's, which can name the key.
+    """
+    import json
+
+    named = f"{source} {str(path)!r}"
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as error:
+        raise ValueError(f"{named} cannot be read: {error.strerror or error}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{named} is not readable JSON: it is not UTF-8 text (a binary file?)") from None
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{named} is not readable JSON: it nests too deeply") from None
+    except ValueError as error:  # json.JSONDecodeError
+        raise ValueError(f"{named} is not readable JSON: {error}") from None
+
+
+def describe_json(value: object) -> str:
+    """A JSON value's kind and a short excerpt, for messages: ``a list [1, 2]``, ``null``, ``a string 'x'``."""
+    kinds = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", int: "a number", float: "a number"}
+    if value is None:
+        return "null"
+    text = repr(value)
+    return f"{kinds.get(type(value), type(value).__name__)} {text if len(text) <= 60 else text[:57] + '...'}"

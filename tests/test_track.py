@@ -327,6 +327,55 @@ def test_calibration_round_trips_through_json(tmp_path):
         Calibration.load(tmp_path / "bad.json")
 
 
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("[1, 2]", "must hold a JSON object .* got a list"),
+        ("3", "must hold a JSON object .* got a number 3"),
+        ("null", "must hold a JSON object .* got null"),
+        ("[" * 100_000 + "]" * 100_000, "nests too deeply"),
+        ("{not json", "is not readable JSON"),
+        (
+            '{"score": "ecr", "temperature": "2", "min_peak_z": 2.5}',
+            "temperature must be a finite number, got a string",
+        ),
+        ('{"score": "ecr", "temperature": NaN, "min_peak_z": 2.5}', "temperature must be a finite number, got nan"),
+        (
+            '{"score": "ecr", "temperature": Infinity, "min_peak_z": 2.5}',
+            "temperature must be a finite number, got inf",
+        ),
+        ('{"score": "ecr", "temperature": 0, "min_peak_z": 2.5}', r"temperature must be a finite number > 0, got 0"),
+        ('{"score": "ecr", "temperature": -3, "min_peak_z": 2.5}', r"temperature must be a finite number > 0, got -3"),
+        ('{"score": "ecr", "temperature": 2, "min_peak_z": NaN}', "min_peak_z must be a finite number, got nan"),
+        (
+            '{"score": "ecr", "temperature": true, "min_peak_z": 1}',
+            "temperature must be a finite number, got a boolean",
+        ),
+        ('{"score": "nope", "temperature": 2, "min_peak_z": 1}', "score must be one of"),
+    ],
+)
+def test_a_bad_calibration_file_is_refused_naming_the_file_and_the_key(tmp_path, text, match):
+    path = tmp_path / "calibration.json"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match) as raised:
+        Calibration.load(path)
+    assert "calibration file" in str(raised.value) and str(path) in str(raised.value)
+
+
+def test_a_binary_calibration_file_is_refused_naming_the_file(tmp_path):
+    path = tmp_path / "calibration.json"
+    path.write_bytes(b"\x80\x81\xff\x00")
+    with pytest.raises(ValueError, match=r"calibration file .* is not readable JSON: it is not UTF-8 text"):
+        Calibration.load(path)
+
+
+@pytest.mark.parametrize(("temperature", "min_peak_z"), [(math.nan, 1.0), (0.0, 1.0), (-1.0, 1.0), (2.0, math.inf)])
+def test_a_calibration_that_could_not_load_is_not_saved(tmp_path, temperature, min_peak_z):
+    with pytest.raises(ValueError, match="must be a finite number"):
+        Calibration("ecr", temperature, min_peak_z).save(tmp_path / "calibration.json")
+    assert not (tmp_path / "calibration.json").exists()
+
+
 def _bad_call(case: str):
     belief = initial_belief(torch.zeros(1, 3), shifts=2, yaw_bins=1)
     frame, reference = torch.rand(1, 1, 8, 8), torch.rand(1, 1, 32, 32)

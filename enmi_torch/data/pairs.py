@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from enmi_torch._checks import check_image_shape, check_option
-from enmi_torch._files import read_image
+from enmi_torch._files import read_image, read_json
 from enmi_torch.data.truth import VarianceTruth
 
 PAIR_FORMAT = "enmi_torch.pairs"
@@ -99,10 +99,7 @@ class PairDataset(Dataset):
 def _read_meta(path: Path) -> dict:
     if not path.is_file():
         return {}
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path} is not readable JSON: {error}") from None
+    meta = read_json(path, "meta.json")
     if not isinstance(meta, dict) or meta.get("format") != PAIR_FORMAT or meta.get("version") != PAIR_VERSION:
         raise ValueError(f"{path} must be a JSON object with format {PAIR_FORMAT!r} and version {PAIR_VERSION}")
     return meta

@@ -19,7 +19,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_option, check_positive_number
+from enmi_torch._checks import check_floating, check_positive_number
+from enmi_torch._files import describe_json, read_json
 from enmi_torch.scores import score_names
 from enmi_torch.tracking.belief import finite_floor
 
@@ -145,21 +146,49 @@ class Calibration(NamedTuple):
     min_peak_z: float
 
     def save(self, path: str | Path) -> Path:
-        """Write the calibration as JSON (e.g. ``map_calibration.json`` next to the map)."""
+        """Write the calibration as JSON (e.g. ``map_calibration.json`` next to the map), unless it could not load it.
+
+        Raises:
+            ValueError: naming the field, when ``temperature`` is not a finite number > 0 or ``min_peak_z`` is not
+                finite (JSON has no NaN or inf), or ``score`` is not a score's name.
+        """
+        _checked(self, "Calibration")
         path = Path(path)
         path.write_text(json.dumps(self._asdict(), indent=2) + "\n")
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
-        """Read a calibration written by :meth:`save` (files that name the score ``metric`` too)."""
-        values = json.loads(Path(path).read_text())
+        """Read a calibration written by :meth:`save` (files that name the score ``metric`` too).
+
+        Raises:
+            ValueError: naming the file (and the key), when it is not a JSON object with exactly the keys ``score``
+                (a score's name), ``temperature`` (a finite number > 0) and ``min_peak_z`` (a finite number).
+        """
+        values = read_json(path, "calibration file")
+        named = f"calibration file {str(path)!r}"
+        if not isinstance(values, dict):
+            raise ValueError(
+                f"{named} must hold a JSON object with keys {list(cls._fields)}, got {describe_json(values)}"
+            )
         if "metric" in values and "score" not in values:
             values["score"] = values.pop("metric")
         if set(values) != set(cls._fields):
-            raise ValueError(f"{path}: a calibration needs keys {list(cls._fields)}, got {sorted(values)}")
-        return cls(
-            check_option("score", values["score"], score_names()),
-            float(values["temperature"]),
-            float(values["min_peak_z"]),
-        )
+            raise ValueError(f"{named}: a calibration needs keys {list(cls._fields)}, got {sorted(values)}")
+        return _checked(cls(values["score"], values["temperature"], values["min_peak_z"]), named)
+
+
+def _checked(calibration: Calibration, named: str) -> Calibration:
+    """``calibration`` with float fields once each field is checked; messages start with ``named``."""
+    score, temperature, min_peak_z = calibration
+    if not isinstance(score, str) or score not in score_names():
+        raise ValueError(f"{named}: score must be one of {list(score_names())}, got {score!r}")
+    for key, value in (("temperature", temperature), ("min_peak_z", min_peak_z)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            kind = describe_json(value) if not isinstance(value, Tensor) else f"a tensor {value!r}"
+            raise ValueError(f"{named}: {key} must be a finite number, got {kind}")
+        if not math.isfinite(value):
+            raise ValueError(f"{named}: {key} must be a finite number, got {value!r}")
+    if temperature <= 0:
+        raise ValueError(f"{named}: temperature must be a finite number > 0, got {temperature!r}")
+    return Calibration(score, float(temperature), float(min_peak_z))

@@ -68,7 +68,15 @@ def test_images_are_read_lazily(folder):
         (lambda root: (root / "local" / "000003.npy").unlink(), r"prior/000003\.npy has no partner in .*local"),
         (lambda root: (root / "valid" / "000001.npy").unlink(), r"local/000001\.npy has no partner in .*valid"),
         (lambda root: (root / "local" / "000001.png").write_bytes(b""), r"000001\.npy and .*000001\.png"),
-        (lambda root: (root / "meta.json").write_text("{not json"), r"meta\.json is not readable JSON"),
+        (lambda root: (root / "meta.json").write_text("{not json"), r"meta\.json' is not readable JSON"),
+        (
+            lambda root: (root / "meta.json").write_bytes(b"\x80\xff"),
+            r"meta\.json' is not readable JSON: it is not UTF-8",
+        ),
+        (
+            lambda root: (root / "meta.json").write_text("[" * 100_000),
+            r"meta\.json' is not readable JSON: it nests too",
+        ),
         (lambda root: (root / "meta.json").write_text('{"format": "x"}'), r"meta\.json must be a JSON object"),
         (lambda root: [path.unlink() for path in (root / "local").iterdir()], "holds no .npy or .png"),
     ],
