@@ -170,3 +170,23 @@ def describe_json(value: object) -> str:
         return "null"
     text = repr(value)
     return f"{kinds.get(type(value), type(value).__name__)} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
+def yaml_error_message(path: str | Path, source: str, error: BaseException) -> str:
+    """One line for a YAML file that did not parse: ``source``, the file, what went wrong and where.
+
+    ``error`` is what ``yaml.safe_load`` raised: a ``yaml.YAMLError`` (a syntax error, or a tag such as
+    ``!!python/object`` that the safe loader refuses without running anything), ``UnicodeDecodeError`` (a binary
+    file) or ``RecursionError`` (nesting deeper than the parser follows).
+    """
+    named = f"{source} {str(path)!r}"
+    if isinstance(error, UnicodeDecodeError):
+        return f"{named} is not readable YAML: it is not UTF-8 text (a binary file?)"
+    if isinstance(error, RecursionError):
+        return f"{named} is not readable YAML: it nests too deeply"
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    mark = getattr(error, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    if "constructor for the tag" in problem:
+        problem += " (only plain YAML is read: tags such as !!python/... are refused and nothing is run)"
+    return f"{named} is not readable YAML: {problem}{where}"

@@ -235,3 +235,20 @@ PAPER = {
 def test_invalid_inputs(build, error, match):
     with pytest.raises(error, match=match):
         build()
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"camera: [1, 2\n", r"is not readable YAML: expected ',' or '\]'.* at line 2, column 1"),
+        (b"camera: !!python/object/apply:os.system ['echo hi']\n", r"tags such as !!python/\.\.\. are refused"),
+        (b"\x80\xff\x00", "is not readable YAML: it is not UTF-8 text"),
+        (b"[" * 100_000, "is not readable YAML: it nests too deeply"),
+    ],
+)
+def test_from_yaml_refuses_a_malformed_file_naming_it(tmp_path, content, message):
+    path = tmp_path / "camera.yaml"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=message) as raised:
+        RoadCamera.from_yaml(path)
+    assert f"camera config file {str(path)!r}" in str(raised.value)

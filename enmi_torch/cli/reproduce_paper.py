@@ -38,12 +38,13 @@ CPU cores; --scores '[nmi, enmi_mass]' takes a quarter of that).
 It simulates section "Simulated Performance" with configs/paper_simulation.yaml: 66 road tiles seen by the paper's
 camera, amplitudes N(128, 32^2), an independent candidate, noise variance N0 / A~ per tile. It writes
 paper_simulation.csv (our error rates, their standard errors, the paper's points) and paper_simulation.png (ours
-over the paper's) to --output-dir, and prints the run time and the deviations from the paper as Markdown tables.
+over the paper's) to --output-dir (refusing to replace an earlier run's unless --overwrite true), and prints the
+run time and the deviations from the paper as Markdown tables.
 
 examples:
   {PROG}                                              # also: python data_tools/reproduce_paper.py
   {PROG} --scores '[nmi, enmi_mass]' --trials 2000    # two curves, fewer trials
-  {PROG} --output-dir data_tools/figures              # regenerate the README's figure and CSV
+  {PROG} --output-dir data_tools/figures --overwrite true   # regenerate the README's figure and CSV
   {PROG} --tensorboard runs/paper_tensorboard         # also log every point and the figure
 
 Every key of the config is an option, its underscores written as dashes (output_dir: --output-dir). Relative paths
@@ -108,6 +109,9 @@ def build_parser() -> jsonargparse.ArgumentParser:
     parser.add_argument(
         "--output-dir", type=str, default="runs/paper_simulation", help="folder for the CSV and the figure"
     )
+    parser.add_argument(
+        "--overwrite", type=bool, default=False, help="replace the CSV and figure of an earlier run in --output-dir"
+    )
     parser.add_argument("--chunk-trials", type=int, default=96, help="trials per scoring call")
     parser.add_argument("--dtype", type=Literal["float32", "float64"], default="float32", help="precision")
     parser.add_argument("--workers", type=int, default=1, help="N0 points scored at once (threads)")
@@ -128,7 +132,9 @@ CONFIG_KEYS = (
     "paper_points",
     "output_dir",
     "chunk_trials",
+    "overwrite",
 )
+OUTPUTS = ("paper_simulation.csv", "paper_simulation.png")
 
 
 def read_paper_points(path: Path) -> dict[str, list[float]]:
@@ -242,11 +248,25 @@ def main(argv: Sequence[str] | None = None) -> None:
 def reproduce_paper(argv: Sequence[str]) -> None:
     """The command with these arguments."""
     args = build_parser().parse_args(dashed_aliases(argv, [key.replace("_", "-") for key in CONFIG_KEYS]))
+    for flag, value in (("--threads", args.threads), ("--workers", args.workers)):
+        if value < 1:
+            raise ValueError(f"{flag} must be an int >= 1, got {value}")
+    if not args.scores:
+        raise ValueError(f"--scores must name at least one score of {list(SCORES)}, got []")
+    output_dir = Path(args.output_dir)
+    earlier = [name for name in OUTPUTS if (output_dir / name).exists()]
+    if earlier and not args.overwrite:
+        raise ValueError(
+            f"--output-dir {str(output_dir)!r} already holds {', '.join(earlier)} of an earlier run; choose another "
+            "--output-dir, or pass --overwrite true to replace them"
+        )
     torch.set_num_threads(args.threads)
     paper = read_paper_points(Path(args.paper_points.absolute))
-    camera = RoadCamera.from_yaml(args.camera_config.absolute)
+    try:
+        camera = RoadCamera.from_yaml(args.camera_config.absolute)
+    except ValueError as error:
+        raise ValueError(f"--camera-config: {error}") from None
     tiles = road_tiles(camera, args.row_counts, args.tile_size, args.nearest_distance)
-    output_dir = Path(args.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     writer = None
     if args.tensorboard is not None:

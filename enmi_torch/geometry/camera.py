@@ -28,6 +28,7 @@ from torch import Tensor
 
 from enmi_torch._checks import check_image_shape, check_positive_number
 from enmi_torch._config import check_config_keys, load_yaml_section
+from enmi_torch._files import yaml_error_message
 
 
 @dataclass(frozen=True)
@@ -137,8 +138,20 @@ class RoadCamera:
 
     @classmethod
     def from_yaml(cls, path: str | Path, key: str = "camera") -> RoadCamera:
-        """The camera in section ``key`` of a YAML file (see :meth:`from_dict`), e.g. ``configs/camera/paper.yaml``."""
-        return cls.from_dict(load_yaml_section(path, key))
+        """The camera in section ``key`` of a YAML file (see :meth:`from_dict`), e.g. ``configs/camera/paper.yaml``.
+
+        Raises:
+            ValueError: naming the file, when it is not readable YAML (a syntax error, a binary file, a tag such as
+                ``!!python/object``, which is refused without running anything) or lacks the section; naming the
+                key, when a value is wrong.
+        """
+        import yaml
+
+        try:
+            section = load_yaml_section(path, key)
+        except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as error:
+            raise ValueError(yaml_error_message(path, "camera config file", error)) from None
+        return cls.from_dict(section)
 
     @property
     def tilt(self) -> float:

@@ -62,3 +62,60 @@ def test_relative_paths_in_a_config_are_read_from_its_folder_and_flags_use_dashe
         main(["--help"])
     text = capsys.readouterr().out
     assert "--output-dir" in text and "--paper-points" in text and "--output_dir" not in text
+
+
+def _points(tmp_path):
+    points = tmp_path / "points.csv"
+    points.write_text("noise_power,nmi,enmi\n0.01,0.2479,0.0048\n")
+    return f"--paper_points={points}"
+
+
+def _one_line_error(capsys, arguments):
+    with pytest.raises(SystemExit) as exit_info:
+        main(arguments)
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and error.count("\n") == 1, error
+    return error
+
+
+def test_an_earlier_run_is_not_overwritten_unless_asked(tmp_path, capsys):
+    arguments = ["--trials=8", _points(tmp_path), "--scores=[nmi]", f"--output-dir={tmp_path / 'out'}"]
+    main(arguments)
+    csv_file = tmp_path / "out" / "paper_simulation.csv"
+    csv_file.write_text("mine\n")
+    capsys.readouterr()
+    error = _one_line_error(capsys, arguments)
+    assert "already holds paper_simulation.csv, paper_simulation.png" in error and "--overwrite true" in error
+    assert csv_file.read_text() == "mine\n"
+    main([*arguments, "--overwrite", "true"])
+    assert csv_file.read_text().startswith("noise_power")
+
+
+@pytest.mark.parametrize(
+    ("flag", "message"),
+    [
+        ("--threads=0", "--threads must be an int >= 1, got 0"),
+        ("--workers=0", "--workers must be an int >= 1, got 0"),
+        ("--scores=[]", "--scores must name at least one score"),
+    ],
+)
+def test_empty_or_zero_options_end_in_one_line_and_write_nothing(tmp_path, capsys, flag, message):
+    error = _one_line_error(capsys, ["--trials=8", _points(tmp_path), f"--output-dir={tmp_path / 'out'}", flag])
+    assert message in error
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("camera: [1, 2\n", "is not readable YAML: expected ',' or ']'"),
+        ('camera: !!python/object/apply:os.system ["echo hi"]\n', "tags such as !!python/... are refused"),
+        ("camera: {a: b: c}\n", "is not readable YAML"),
+    ],
+)
+def test_a_malformed_camera_config_ends_in_one_line_naming_the_flag_and_file(tmp_path, capsys, text, message):
+    camera = tmp_path / "camera.yaml"
+    camera.write_text(text)
+    arguments = ["--trials=8", _points(tmp_path), f"--output-dir={tmp_path / 'out'}", f"--camera-config={camera}"]
+    error = _one_line_error(capsys, arguments)
+    assert f"--camera-config: camera config file '{camera}'" in error and message in error
