@@ -43,7 +43,8 @@ class PairDataModule(LightningDataModule):
         noise_std: RMS noise std of the synthetic field over its valid pixels, in grey levels.
         gain_std: std of the synthetic per-pair intensity gain (0: none).
         offset_std: std of the synthetic per-pair intensity offset (0: none).
-        val_fraction: share of a folder's pairs held out (a fixed draw from ``seed``).
+        val_fraction: share of a folder's pairs held out (a fixed draw from ``seed``), in ``(0, 1)``; checked, but
+            not used, for synthetic data.
         batch_size: pairs per optimisation step over all processes (split evenly between them).
         num_workers: data-loading worker processes per training process.
         seed: synthetic training pairs use seed ``2 * seed``, held-out ones ``2 * seed + 1``; shuffling uses ``seed``.
@@ -83,6 +84,9 @@ class PairDataModule(LightningDataModule):
         if not isinstance(keep_pairs, bool):
             raise TypeError(f"keep_pairs must be a bool, got {type(keep_pairs).__name__}")
         self.keep_pairs = keep_pairs
+        # Checked for synthetic data too (where val_pairs holds out instead): a wrong value is never passed over.
+        if not 0 < check_positive_number("val_fraction", val_fraction) < 1:
+            raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
         if root is None:
             check_option("flavour", flavour, FLAVOURS)
             side = gravel_texture().shape[0]
@@ -97,8 +101,6 @@ class PairDataModule(LightningDataModule):
             self.truth: VarianceTruth | None = truth
             self.shape = truth.shape
             return
-        if not 0 < check_positive_number("val_fraction", val_fraction) < 1:
-            raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
         pairs = PairDataset(root)
         held_out = max(1, math.floor(val_fraction * len(pairs)))
         if held_out >= len(pairs):

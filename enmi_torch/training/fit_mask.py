@@ -11,6 +11,7 @@ import contextlib
 import copy
 import json
 import logging
+import math
 import time
 import warnings
 from collections.abc import Sequence
@@ -226,11 +227,46 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
 
 
-def check_checkpoint(path: str) -> None:
-    """Refuse a checkpoint that does not load as plain tensors and primitives (``weights_only=True``)."""
+def check_checkpoint(path: str, model: torch.nn.Module | None = None) -> None:
+    """Refuse a checkpoint that does not load as plain tensors and primitives (``weights_only=True``).
+
+    With ``model``, refuse one whose tensors do not have the model's shapes either (a 16x16 run's checkpoint resumed on
+    32x32 data), naming the sizes, instead of ``load_state_dict``'s traceback.
+    """
     if not Path(path).is_file():
         raise FileNotFoundError(f"ckpt_path must be a checkpoint file, got {path!r}")
-    load_plain_torch(path, "a plain checkpoint")
+    checkpoint = load_plain_torch(path, "a plain checkpoint")
+    if model is None:
+        return
+    saved = checkpoint.get("state_dict") if isinstance(checkpoint, dict) else None
+    if not isinstance(saved, dict):
+        raise ValueError(f"--ckpt_path {path!r} is not a Lightning checkpoint: it has no state_dict")
+    wanted = model.state_dict()
+    differ = [
+        f"{key} {tuple(value.shape)} (this run: {tuple(wanted[key].shape)})"
+        for key, value in saved.items()
+        if key in wanted and isinstance(value, torch.Tensor) and value.shape != wanted[key].shape
+    ]
+    if differ:
+        shape = getattr(model, "shape", None)
+        this_run = f" of {shape[0]}x{shape[1]} images" if shape is not None and len(shape) == 2 else ""
+        raise ValueError(
+            f"--ckpt_path {path!r} was saved by a run of other sizes than this one{this_run}: {', '.join(differ)}; "
+            "resume it on the data it was trained on (--data.size, --data.root), or start afresh without --ckpt_path"
+        )
+
+
+def finite_for_json(value: object, where: str = "") -> tuple[object, list[str]]:
+    """``value`` with every NaN or inf float replaced by ``None`` (JSON has neither), and the keys where it was."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None, [where or "value"]
+    if isinstance(value, dict):
+        pairs = [(key, finite_for_json(item, f"{where}.{key}" if where else str(key))) for key, item in value.items()]
+        return {key: item for key, (item, _) in pairs}, [path for _, (_, paths) in pairs for path in paths]
+    if isinstance(value, (list, tuple)):
+        items = [finite_for_json(item, f"{where}[{index}]") for index, item in enumerate(value)]
+        return [item for item, _ in items], [path for _, paths in items for path in paths]
+    return value, []
 
 
 def check_output_dir(output_dir: Path, overwrite: bool) -> None:
@@ -286,7 +322,10 @@ def write_outputs(
         "localization": _by_set(metrics, "localization/"),
         "localization_z": _by_set(metrics, "localization_z/"),
     }
-    (output_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    written, non_finite = finite_for_json(summary)
+    (output_dir / "summary.json").write_text(json.dumps(written, indent=2, allow_nan=False) + "\n")
+    if non_finite:
+        print(f"summary.json: {', '.join(non_finite)} not finite, written as null")
     return summary
 
 
@@ -373,10 +412,12 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
                 auto_configure_optimizers=False,
             )
             if cli.config["torch_threads"] is not None:
+                if cli.config["torch_threads"] < 1:
+                    raise ValueError(f"--torch_threads must be an int >= 1 or null, got {cli.config['torch_threads']}")
                 torch.set_num_threads(cli.config["torch_threads"])
             ckpt_path = cli.config["ckpt_path"]
             if ckpt_path is not None:
-                check_checkpoint(ckpt_path)
+                check_checkpoint(ckpt_path, cli.model)
             if cli.config["output_dir"] is not None:
                 check_output_dir(Path(cli.config["output_dir"]), cli.config["overwrite"])
             world = cli.trainer.num_devices * cli.trainer.num_nodes

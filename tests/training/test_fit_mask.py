@@ -1,5 +1,6 @@
 import io
 import json
+import math
 import os
 import re
 import subprocess
@@ -436,3 +437,46 @@ def test_two_process_ddp_gives_the_same_mask(tmp_path):
     ddp = fit_in_subprocess(tmp_path, "ddp", "--trainer.devices", "2", "--trainer.strategy", "ddp")
     assert np.array_equal(np.isfinite(single), np.isfinite(ddp))
     np.testing.assert_allclose(ddp, single, rtol=1e-5)
+
+
+def test_a_checkpoint_of_other_sizes_is_refused_naming_them(tmp_path, capsys):
+    first = run(tmp_path / "small", "--data.size", "16")
+    with pytest.raises(SystemExit) as exit_info:
+        main(
+            [
+                "--config",
+                SMOKE,
+                "--trainer.logger.init_args.save_dir",
+                str(tmp_path),
+                "--ckpt_path",
+                first["last_checkpoint"],
+            ]
+        )
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert exit_info.value.code == 2 and error.startswith("enmi-fit-mask: error: --ckpt_path")
+    assert "was saved by a run of other sizes than this one of 32x32 images" in error and "(16, 16)" in error
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--torch_threads", "0"], "--torch_threads must be an int >= 1 or null, got 0"),
+        (["--data.val_fraction", "1.5"], "--data.val_fraction must be in (0, 1), got 1.5"),
+    ],
+)
+def test_zero_threads_and_a_share_above_one_end_in_one_line(tmp_path, capsys, arguments, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--config", SMOKE, "--trainer.logger.init_args.save_dir", str(tmp_path), *arguments])
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("enmi-fit-mask")]
+    assert exit_info.value.code == 2 and errors == [f"enmi-fit-mask: error: {message}"]
+
+
+def test_summary_json_holds_null_where_a_value_is_not_finite_and_says_so(tmp_path, capsys, monkeypatch):
+    errors = MaskFitModule.mask_errors
+    monkeypatch.setattr(MaskFitModule, "mask_errors", lambda self: {**errors(self), "rel_rms_vs_empirical": math.inf})
+    summary = run(tmp_path, "--output_dir", str(tmp_path / "mask"))
+    text = (tmp_path / "mask" / "summary.json").read_text()
+    assert "Infinity" not in text and "NaN" not in text
+    assert json.loads(text)["errors"]["rel_rms_vs_empirical"] is None
+    assert summary["errors"]["rel_rms_vs_empirical"] == math.inf
+    assert "summary.json: errors.rel_rms_vs_empirical not finite, written as null" in capsys.readouterr().out
