@@ -280,3 +280,46 @@ def check_captured_in_reference(captured: Any, reference: Any, reference_dims: s
     if reference.device != captured.device:
         raise ValueError(f"reference must be on the device of captured ({captured.device}), got {reference.device}")
     return batch, height, width
+
+
+def check_real_data(name: str, value: Tensor) -> None:
+    """Raise ``ValueError`` if the tensor ``value`` is a meta tensor (a shape without data) or complex."""
+    if value.is_meta:
+        raise ValueError(f"{name} must hold data, got a meta tensor (a shape only) of shape {tuple(value.shape)}")
+    if value.is_complex():
+        raise TypeError(f"{name} must be real, got complex dtype {value.dtype}")
+
+
+def check_same_device(name: str, value: Any, like_name: str, like: Any) -> None:
+    """Raise ``ValueError`` unless the tensors ``value`` and ``like`` hold data on one device (named in the message).
+
+    Tensors only (anything else is left to the type checks); meta tensors are refused by name.
+    """
+    if not isinstance(value, Tensor) or not isinstance(like, Tensor):
+        return
+    check_real_data(like_name, like)
+    check_real_data(name, value)
+    if value.device != like.device:
+        raise ValueError(f"{name} must be on the device of {like_name} ({like.device}), got {value.device}")
+
+
+def check_counts(name: str, counts: Tensor) -> None:
+    """Raise ``ValueError`` if the histogram ``counts`` hold a NaN, an inf or a negative count (a value check)."""
+    if not _values_checked(counts):
+        return
+    bad = ~torch.isfinite(counts) | (counts < 0)
+    if bool(bad.any()):
+        worst = counts[bad].flatten()[0].item()
+        raise ValueError(f"{name} must be finite counts >= 0, got {int(bad.sum())} value(s) outside (e.g. {worst})")
+
+
+def check_log_prior_allows_a_bin(log_prior: Tensor) -> None:
+    """Raise ``ValueError`` if a row of the ``(..., bins)`` ``log_prior`` is ``-inf`` everywhere (no bin allowed)."""
+    if not _values_checked(log_prior):
+        return
+    ruled_out = torch.isneginf(log_prior).all(-1)
+    if bool(ruled_out.any()):
+        raise ValueError(
+            f"log_prior must allow at least one bin (a value above -inf) in each row, got {int(ruled_out.sum())} "
+            "row(s) of -inf only"
+        )

@@ -118,6 +118,8 @@ def read_image(path: str | Path, source: str) -> np.ndarray:
             raise ValueError(f"{named} is not a readable image: {error}") from None
     else:
         raise ValueError(f"{named} must be a .npy or .png file")
+    if np.iscomplexobj(image):
+        raise ValueError(f"{named} must hold real values, got complex dtype {image.dtype}")
     if image.ndim == 3 and image.shape[0] == 1:
         image = image[0]
     if image.ndim != 2:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating
+from enmi_torch._checks import check_counts, check_floating
 
 
 def entropies(counts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -56,6 +56,7 @@ def nmi_from_joint_histogram(counts: Tensor) -> Tensor:
     check_floating("counts", counts)
     if counts.ndim < 3 or counts.shape[-1] != counts.shape[-2]:
         raise ValueError(f"counts must have shape (B, K, K) or (..., B, K, K), got {tuple(counts.shape)}")
+    check_counts("counts", counts)
     return _nmi_from_entropies(*entropies(counts))
 
 

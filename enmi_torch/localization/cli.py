@@ -38,11 +38,20 @@ def _parse_yaws(text: str) -> list[float]:
         if len(values) != 3:
             raise argparse.ArgumentTypeError(f"yaws start:stop:step needs three numbers, got {text!r}")
         start, stop, step = values
+        if not all(math.isfinite(value) for value in values):
+            raise argparse.ArgumentTypeError(f"yaws start:stop:step needs three finite numbers, got {text!r}")
         if step <= 0 or stop < start:
             raise argparse.ArgumentTypeError(f"yaws start:stop:step needs step > 0 and stop >= start, got {text!r}")
         count = math.floor((stop - start) / step + 1e-9) + 1
+        if count > _MAX_YAWS:
+            raise argparse.ArgumentTypeError(
+                f"yaws start:stop:step gives {count:.3g} yaws, more than the {_MAX_YAWS} searched at most, got {text!r}"
+            )
         return [start + k * step for k in range(count)]
     return values
+
+
+_MAX_YAWS = 36_000  # a full turn in steps of 0.01 degree
 
 
 _PROG = "enmi-localize"

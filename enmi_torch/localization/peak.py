@@ -11,6 +11,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from enmi_torch._checks import check_image_shape
+
 
 class Localization(NamedTuple):
     """The result of :func:`~enmi_torch.localize`: the pose found, its score surface and how sure it is.
@@ -76,9 +78,15 @@ class Localization(NamedTuple):
             >>> (transform @ torch.tensor([4.0, 2.0, 1.0])).round().tolist()  # two pixels right: two cells down
             [22.0, 11.0, 1.0]
         """
-        height, width = local_shape
+        height, width = check_image_shape("local_shape", local_shape)
         pose = self.pose.double()
-        centers = torch.as_tensor(center, dtype=torch.float64, device=pose.device).reshape(-1, 2).expand(len(pose), 2)
+        try:
+            centers = torch.as_tensor(center, dtype=torch.float64, device=pose.device)
+        except (TypeError, ValueError, RuntimeError):
+            centers = None
+        if centers is None or centers.shape not in ((2,), (1, 2), (len(pose), 2)):
+            raise ValueError(f"center must be (row, col) or a ({len(pose)}, 2) tensor of them, got {center!r}")
+        centers = centers.reshape(-1, 2).expand(len(pose), 2)
         angle = torch.deg2rad(-pose[:, 2])  # the search turns the captured image by -yaw
         cos, sin = angle.cos(), angle.sin()
         middle_x, middle_y = (width - 1) / 2, (height - 1) / 2

@@ -38,10 +38,11 @@ from enmi_torch._checks import (
     check_option,
     check_positive_int,
     check_resolved_by_bins,
+    check_same_device,
     check_shifts,
 )
 from enmi_torch._layout import mask_map, variance_map
-from enmi_torch.localization.peak import Localization, _read_peak, _separated_peaks
+from enmi_torch.localization.peak import Localization, NoCandidateError, _read_peak, _separated_peaks
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.registration.refine import register
 from enmi_torch.scores import ECR, Score, as_score
@@ -148,6 +149,7 @@ def localize(
     """
     score = as_score(score)
     check_option("resample", resample, RESAMPLING)
+    check_same_device("reference", reference, "captured", captured)
     batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
     radius = check_shifts(shifts)
     centers = _check_center(center, batch, tuple(reference.shape[2:]), captured.device)
@@ -168,7 +170,17 @@ def localize(
             surface = searcher.exhaustive(min_overlap)
         else:
             surface = searcher.coarse_to_fine(min_overlap, coarse_factor, coarse_peaks, exclusion_radius)
-        found = _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
+        try:
+            found = _read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
+        except NoCandidateError as error:
+            off_map = _windows_off_map(centers, radius, tuple(captured.shape[2:]), tuple(reference.shape[2:]))
+            if off_map:
+                raise NoCandidateError(
+                    f"the search window lies off the map in sample(s) {off_map}: every candidate of center "
+                    f"{centers[off_map[0]].tolist()} with shifts {radius} places captured {tuple(captured.shape[2:])} "
+                    f"outside the {tuple(reference.shape[2:])} map; move center onto the map"
+                ) from None
+            raise error from None
     if not refine:
         return found
     return _refined(found, captured, reference, variance, score, centers, captured_mask, reference_mask)
@@ -298,12 +310,33 @@ class Localizer(nn.Module):
         )
 
 
+def _windows_off_map(
+    centers: Tensor, radius: tuple[int, int], captured_shape: tuple[int, int], map_shape: tuple[int, int]
+) -> list[int]:
+    """The samples whose every candidate (any shift, any yaw) places the captured box wholly outside the map.
+
+    A rotation keeps the turned image within its ``(h, w)`` box, so no yaw can bring such a window onto the map.
+    """
+    height, width = captured_shape
+    tops = centers[:, 0].cpu() - height // 2
+    lefts = centers[:, 1].cpu() - width // 2
+    rows_off = (tops + radius[0] + height <= 0) | (tops - radius[0] >= map_shape[0])
+    cols_off = (lefts + radius[1] + width <= 0) | (lefts - radius[1] >= map_shape[1])
+    return (rows_off | cols_off).nonzero()[:, 0].tolist()
+
+
 def _check_yaws(yaws) -> list[float]:
     if yaws is None:
         return [0.0]
     values = yaws.flatten().tolist() if isinstance(yaws, Tensor) else list(yaws)
     if not values or not all(isinstance(value, (int, float)) and math.isfinite(value) for value in values):
         raise ValueError(f"yaws must be a non-empty sequence of finite angles in degrees, got {yaws!r}")
+    largest = max(abs(value) for value in values)
+    if largest > MAX_YAW_DEG:
+        raise ValueError(
+            f"yaws must be angles within +-{MAX_YAW_DEG:g} degrees (float32 poses cannot tell yaws apart beyond), "
+            f"got {largest:g}"
+        )
     return [float(value) for value in values]
 
 
@@ -360,6 +393,7 @@ RESAMPLING = ("nearest", "bilinear")
 SEARCHES = ("exhaustive", "two_stage")
 # Peaks of the two-stage search's cheap surface rescored first, and at most.
 _CANDIDATES, _MAX_CANDIDATES = 4, 64
+MAX_YAW_DEG = 1e6  # a float32 yaw of 1e6 degrees is exact to 1/16 degree; 1e300 would read as inf
 
 
 def _rotated(captured: Tensor, variance: Tensor | None, valid: Tensor, yaws: list[float], resample: str):
@@ -368,10 +402,13 @@ def _rotated(captured: Tensor, variance: Tensor | None, valid: Tensor, yaws: lis
     captured = torch.where(valid, captured, 0.0)
     if variance is not None:
         variance = torch.where(valid, variance, 1.0)
-    if all(yaw == 0 for yaw in yaws):
+    if all(math.remainder(yaw, 360.0) == 0 for yaw in yaws):
         expand = (count, 1, *captured.shape[2:])
         return captured.expand(expand), None if variance is None else variance.expand(expand), valid.expand(expand)
-    angles = -torch.tensor(yaws, dtype=captured.dtype, device=captured.device)
+    # The turn modulo 360 degrees, exact in float64: 1e300 degrees would be inf in float32 (no pixel left), and
+    # 1e10 off by hundreds of degrees.
+    turns = [math.remainder(yaw, 360.0) for yaw in yaws]
+    angles = -torch.tensor(turns, dtype=torch.float64).to(device=captured.device, dtype=captured.dtype)
     zero = angles == 0
     channels = [captured, valid.to(captured.dtype)]
     if variance is not None:

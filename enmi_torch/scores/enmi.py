@@ -17,7 +17,9 @@ from enmi_torch._budget import check_surface_memory
 from enmi_torch._checks import (
     check_bins,
     check_log_prior,
+    check_log_prior_allows_a_bin,
     check_option,
+    check_same_device,
     check_value_range,
     check_variance_given,
 )
@@ -94,6 +96,11 @@ def enmi(
     """
     check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
     check_variance_given(variance)
+    check_same_device("reference", reference, "captured", captured)
+    if isinstance(log_prior, Tensor):
+        check_log_prior_allows_a_bin(log_prior)
+    if isinstance(variance, Tensor):
+        check_same_device("variance", variance, "captured", captured)
     _check_reliability(reliability)
     inputs = _prepare(
         captured, reference, bins, value_range, variance, valid_mask, kernel, reference_kernel, log_prior, "variance"

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from enmi_torch._budget import check_surface_memory
-from enmi_torch._checks import check_bins, check_option, check_value_range
+from enmi_torch._checks import check_bins, check_option, check_same_device, check_value_range
 from enmi_torch.binning import PARZEN_KERNELS, hard_bin_index
 from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
 from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
@@ -60,6 +60,7 @@ def nmi(
         tensor([1.])
     """
     check_option("kernel", kernel, ("hard", "triangular", "xu"))
+    check_same_device("reference", reference, "captured", captured)
     if kernel == "hard" and reference_kernel == "hard" and _few_pixels(captured, bins):
         # Same score as the hard joint histogram's, with O(pixels) logarithms per sample instead of O(bins^2).
         return _nmi_from_entropies(

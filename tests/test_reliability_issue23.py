@@ -1,0 +1,88 @@
+"""Issue 23, items 3, 5 and 6: commands, files and messages that named nothing or misled."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from enmi_torch import ECR, Localization, NoCandidateError, enmi, localize, nmi, nmi_from_joint_histogram
+from enmi_torch._files import read_image
+from enmi_torch.localization.cli import main as localize_main
+
+
+def _scene():
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
+    return reference[..., 14:30, 19:35].clone(), reference
+
+
+def test_an_off_map_window_is_told_it_lies_off_the_map():
+    captured, reference = _scene()
+    with pytest.raises(NoCandidateError, match=r"the search window lies off the map in sample\(s\) \[0\]"):
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, center=(500, 500))
+
+
+def test_huge_yaws_are_refused_by_name_and_turns_are_taken_modulo_360():
+    captured, reference = _scene()
+    with pytest.raises(ValueError, match=r"yaws must be angles within \+-1e\+06 degrees .* got 1e\+300"):
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[1e300])
+    turned = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[-720.0, 5.0 - 720.0])
+    assert turned.pose[0, :2].tolist() == [3.0, -2.0]
+
+
+@pytest.mark.parametrize(
+    ("yaws", "message"),
+    [
+        ("0:1e12:1", "gives 1e+12 yaws, more than the 36000 searched at most"),
+        ("0:inf:1", "needs three finite numbers"),
+    ],
+)
+def test_yaw_ranges_without_a_bound_end_in_one_line(capsys, yaws, message):
+    with pytest.raises(SystemExit) as exit_info:
+        localize_main(["--map", "map.npy", "--local", "local.npy", "--yaws", yaws])
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and error.count("\n") == 1 and message in error
+
+
+def test_a_complex_map_is_refused(tmp_path):
+    np.save(tmp_path / "map.npy", np.ones((4, 4), dtype=np.complex64))
+    with pytest.raises(ValueError, match=r"--map '.*map\.npy' must hold real values, got complex dtype complex64"):
+        read_image(tmp_path / "map.npy", "--map")
+
+
+def test_local_to_map_names_a_wrong_center_or_shape():
+    result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
+    with pytest.raises(ValueError, match=r"center must be \(row, col\) or a \(1, 2\) tensor of them, got \(5,\)"):
+        result.local_to_map((5,), (5, 5))
+    with pytest.raises(ValueError, match=r"local_shape must be \(H, W\), two positive ints, got \(5,\)"):
+        result.local_to_map((10, 20), (5,))
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda x: nmi(x, x.to("meta")), "reference must hold data, got a meta tensor"),
+        (lambda x: nmi(x.to("meta"), x.to("meta")), "captured must hold data, got a meta tensor"),
+        (lambda x: enmi(x, x.to("meta"), variance=4.0), "reference must hold data, got a meta tensor"),
+        (lambda x: enmi(x, x, variance=torch.ones_like(x, device="meta")), "variance must hold data"),
+        (lambda x: localize(x[..., :8, :8], x.to("meta"), 64.0, shifts=2), "reference must hold data"),
+    ],
+)
+def test_a_reference_without_data_on_the_device_is_named(call, message):
+    with pytest.raises(ValueError, match=message):
+        call(torch.rand(1, 1, 16, 16) * 255)
+
+
+def test_a_log_prior_that_rules_out_every_bin_is_refused():
+    x = torch.rand(1, 1, 16, 16, generator=torch.Generator().manual_seed(0)) * 255
+    with pytest.raises(ValueError, match="log_prior must allow at least one bin"):
+        enmi(x, x + 1, variance=4.0, log_prior=torch.full((32,), -torch.inf))
+
+
+@pytest.mark.parametrize("count", [float("nan"), -0.5, float("inf")])
+def test_nmi_from_a_histogram_of_bad_counts_is_refused(count):
+    counts = torch.ones(1, 4, 4)
+    counts[0, 0, 0] = count
+    with pytest.raises(ValueError, match="counts must be finite counts >= 0"):
+        nmi_from_joint_histogram(counts)
