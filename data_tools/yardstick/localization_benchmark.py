@@ -160,8 +160,20 @@ def run_trials(map_name, model, noise_power, trials, pairs, bins, seed, response
     return successes
 
 
-def write_example(directory: Path, seed: int) -> None:
-    """A gravel map, a camera-model local image at a known pose and its variance and mask, as .npy files."""
+EXAMPLE_FILES = ("map.npy", "local.npy", "variance.npy", "local_mask.npy")
+
+
+def write_example(directory: Path, seed: int, overwrite: bool = False) -> None:
+    """A gravel map, a camera-model local image at a known pose and its variance and mask, as .npy files.
+
+    Refuses to replace the files of an earlier call unless ``overwrite``.
+    """
+    earlier = [name for name in EXAMPLE_FILES if (directory / name).exists()]
+    if earlier and not overwrite:
+        raise FileExistsError(
+            f"--example {str(directory)!r} already holds {', '.join(earlier)}; choose another folder, or pass "
+            "--overwrite to replace them"
+        )
     directory.mkdir(parents=True, exist_ok=True)
     generator = torch.Generator().manual_seed(seed)
     prior = prior_map("gravel")
@@ -225,9 +237,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--figure", type=Path, help=f"default {FIGURE} (with _nonmonotonic for that response)")
     parser.add_argument("--example", type=Path, help="only write the command-line example files to this folder")
+    parser.add_argument("--overwrite", action="store_true", help="let --example replace the files of an earlier call")
     args = parser.parse_args()
     if args.example is not None:
-        write_example(args.example, args.seed)
+        try:
+            write_example(args.example, args.seed, args.overwrite)
+        except FileExistsError as error:
+            parser.error(str(error))
         return
     start = time.perf_counter()
     rates = {}
