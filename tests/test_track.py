@@ -179,7 +179,7 @@ def test_grid_temperature_caps_each_axis_at_one_bin(dtype):
 
 def test_a_window_without_candidates_raises_no_candidate_error(generator):
     reference = _texture(generator, (40, 60)).float()
-    with pytest.raises(NoCandidateError, match="no candidate passes min_overlap"):
+    with pytest.raises(NoCandidateError, match="the search window lies off the map"):
         localize(_cut(reference, 30, 20), reference, 1.0, shifts=3, center=(20, 500))
 
 

@@ -43,8 +43,7 @@ class PairDataModule(LightningDataModule):
         noise_std: RMS noise std of the synthetic field over its valid pixels, in grey levels.
         gain_std: std of the synthetic per-pair intensity gain (0: none).
         offset_std: std of the synthetic per-pair intensity offset (0: none).
-        val_fraction: share of a folder's pairs held out (a fixed draw from ``seed``), in ``(0, 1)``; checked, but
-            not used, for synthetic data.
+        val_fraction: share of a folder's pairs held out (a fixed draw from ``seed``).
         batch_size: pairs per optimisation step over all processes (split evenly between them).
         num_workers: data-loading worker processes per training process.
         seed: synthetic training pairs use seed ``2 * seed``, held-out ones ``2 * seed + 1``; shuffling uses ``seed``.
