@@ -112,6 +112,9 @@ def check_value_range(value_range: Any, name: str = "value_range") -> tuple[floa
         raise ValueError(f"{name} must be a pair of finite numbers (low, high), got {value_range!r}") from None
     if not (math.isfinite(low) and math.isfinite(high)) or low >= high:
         raise ValueError(f"{name} must be finite with low < high, got {value_range!r}")
+    if not math.isfinite(high - low):
+        # Bin widths and positions are taken from high - low: it must be a float64 number too.
+        raise ValueError(f"{name} must have a finite width high - low (at most ~1.8e308), got {value_range!r}")
     return low, high
 
 

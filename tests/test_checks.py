@@ -7,9 +7,11 @@ from enmi_torch import (
     ENMILoss,
     NMILoss,
     direct_surface,
+    ecr,
     enmi,
     enmi_surface,
     joint_histogram,
+    mixture_information,
     ncc_surface,
     nmi,
     nmi_surface,
@@ -96,3 +98,19 @@ def test_value_checks_switch_turns_value_checks_off_and_on_everywhere():
     with pytest.raises(TypeError, match="enabled must be True, False or None"):
         with enmi_torch.value_checks("off"):
             pass
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda value_range: nmi(WINDOW, WINDOW, value_range=value_range),
+        lambda value_range: enmi(WINDOW, WINDOW, 1.0, value_range=value_range),
+        lambda value_range: joint_histogram(WINDOW, WINDOW, value_range=value_range),
+        lambda value_range: ecr(WINDOW, WINDOW, 1.0, value_range=value_range),
+        lambda value_range: mixture_information(WINDOW, WINDOW, 1.0, value_range=value_range),
+        lambda value_range: nmi_surface(WINDOW[..., :4, :4], WINDOW, value_range=value_range),
+    ],
+)
+def test_a_value_range_whose_width_overflows_is_refused_by_every_binned_function(call):
+    with pytest.raises(ValueError, match=r"value_range must have a finite width .* got \(-1e\+308, 1e\+308\)"):
+        call((-1e308, 1e308))
