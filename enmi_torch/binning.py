@@ -13,6 +13,16 @@ import math
 import torch
 from torch import Tensor
 
+from enmi_torch._checks import (
+    check_bins,
+    check_finite_where,
+    check_floating,
+    check_option,
+    check_positive_number,
+    check_positive_where,
+    check_value_range,
+)
+
 PARZEN_KERNELS = ("hard", "triangular", "xu")
 LIKELIHOOD_WEIGHTS = ("mass", "density", "truncated")
 
@@ -36,7 +46,8 @@ def bin_edges(bins: int, value_range: tuple[float, float], *, dtype=None, device
         >>> bin_edges(4, (0.0, 8.0))
         tensor([0., 2., 4., 6., 8.])
     """
-    low, high = value_range
+    low, high = check_value_range(value_range)
+    check_bins(bins)
     return torch.linspace(low, high, bins + 1, dtype=dtype, device=device)
 
 
@@ -81,6 +92,14 @@ def parzen_weights(values: Tensor, bins: int, value_range: tuple[float, float], 
         >>> parzen_weights(torch.tensor([2.0]), 4, (0.0, 8.0), "triangular")
         tensor([[0.5000, 0.5000, 0.0000, 0.0000]])
     """
+    check_floating("values", values)
+    check_option("kernel", kernel, PARZEN_KERNELS)
+    check_finite_where("values", values, None)
+    return _parzen_weights(values, check_bins(bins), check_value_range(value_range), kernel)
+
+
+def _parzen_weights(values: Tensor, bins: int, value_range: tuple[float, float], kernel: str) -> Tensor:
+    """:func:`parzen_weights` of checked arguments (the histograms' inner loop)."""
     if kernel == "hard":
         index = hard_bin_index(values, bins, value_range)
         return torch.nn.functional.one_hot(index, bins).to(values.dtype)
@@ -130,6 +149,24 @@ def likelihood_weights(
         >>> [round(x, 4) for x in w[0].tolist()]
         [0.1587, 0.6827, 0.1573, 0.0013]
     """
+    check_floating("values", values)
+    check_floating("variance", variance)
+    check_option("kernel", kernel, LIKELIHOOD_WEIGHTS)
+    check_finite_where("values", values, None)
+    check_positive_where("variance", variance, None)
+    bins, value_range = check_bins(bins), check_value_range(value_range)
+    return _likelihood_weights(values, variance, bins, value_range, kernel, log_prior)
+
+
+def _likelihood_weights(
+    values: Tensor,
+    variance: Tensor,
+    bins: int,
+    value_range: tuple[float, float],
+    kernel: str = "mass",
+    log_prior: Tensor | None = None,
+) -> Tensor:
+    """:func:`likelihood_weights` of checked arguments (the histograms' inner loop)."""
     if kernel == "truncated":
         log_weights = _log_bin_masses(values, variance, bins, value_range)
         return torch.softmax(log_weights if log_prior is None else log_weights + log_prior, dim=-1)
@@ -222,6 +259,9 @@ def gaussian_log_prior(
         >>> gaussian_log_prior(4.0, 1.0, 4, (0.0, 8.0)).exp().sum().item()
         1.0
     """
+    if isinstance(mean, bool) or not isinstance(mean, (int, float)) or not math.isfinite(mean):
+        raise ValueError(f"mean must be a finite number, got {mean!r}")
+    std = check_positive_number("std", std)
     dtype = dtype or torch.get_default_dtype()
     interior = bin_edges(bins, value_range, dtype=torch.float64, device=device)[1:-1]
     cdf = 0.5 * torch.erfc(-(interior - mean) / (std * math.sqrt(2)))
@@ -251,7 +291,7 @@ def likelihood_weights_vjp(
         with torch.enable_grad():
             values = values.detach().requires_grad_()
             variance = variance.detach().requires_grad_()
-            result = likelihood_weights(values, variance, bins, value_range, kernel, log_prior)
+            result = _likelihood_weights(values, variance, bins, value_range, kernel, log_prior)
             grad_values, grad_variance = torch.autograd.grad(result, (values, variance), upstream)
         return grad_values, torch.where(clamped, 0.0, grad_variance)
     if kernel == "mass":

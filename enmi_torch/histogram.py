@@ -26,13 +26,13 @@ from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
+    _likelihood_weights,
     _mass_weights_vjp,
+    _parzen_weights,
     bin_edges,
     hard_bin_index,
-    likelihood_weights,
     likelihood_weights_vjp,
     min_variance,
-    parzen_weights,
 )
 
 CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
@@ -372,9 +372,9 @@ def _chunks(batch: int, pixels: int, bins: int, device: torch.device):
 def _pixel_weights(captured, variance, pair_weight, log_prior, bins, value_range, kernel) -> Tensor:
     """``(B, n, bins)`` weights of the captured pixels, zero rows where masked."""
     if kernel in LIKELIHOOD_WEIGHTS:
-        weights = likelihood_weights(captured, variance, bins, value_range, kernel, log_prior)
+        weights = _likelihood_weights(captured, variance, bins, value_range, kernel, log_prior)
     else:
-        weights = parzen_weights(captured, bins, value_range, kernel)
+        weights = _parzen_weights(captured, bins, value_range, kernel)
     return weights if pair_weight is None else weights * pair_weight.unsqueeze(-1)
 
 
@@ -393,7 +393,7 @@ def _dense_joint_histogram(
         source = captured_weights.expand(*reference.shape, bins).reshape(-1, bins)
         transposed = captured_weights.new_zeros(reference.shape[:-1].numel() * bins, bins).index_add(0, rows, source)
         return transposed.view(*reference.shape[:-1], bins, bins).transpose(-1, -2)
-    reference_weights = parzen_weights(reference, bins, value_range, reference_kernel)
+    reference_weights = _parzen_weights(reference, bins, value_range, reference_kernel)
     return torch.matmul(captured_weights.transpose(-1, -2), reference_weights)
 
 
@@ -452,7 +452,7 @@ def _likelihood_counts(
         if kernel == "mass" and log_prior is None:
             weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
         else:
-            weights = likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
+            weights = _likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
         weights = weights.reshape(-1, bins)
         for candidate_rows in rows:
             transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)

@@ -177,3 +177,29 @@ def test_truncated_weights_mix_their_near_and_tail_forms_consistently():
         total = sum(masses)
         expected = torch.tensor([float(mpmath.log(mass / total)) for mass in masses], dtype=torch.float64)
         torch.testing.assert_close(weights[row].log(), expected, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda: bin_edges(0, RANGE), r"bins must be an int >= 2, got 0"),
+        (
+            lambda: likelihood_weights(torch.tensor([3.0]), torch.tensor([-1.0]), 4, RANGE),
+            r"variance must be finite and > 0 .* got 1 value\(s\) outside that \(e.g. -1.0\)",
+        ),
+        (
+            lambda: likelihood_weights(torch.tensor([3.0]), torch.tensor([1.0]), 4, RANGE, kernel="gauss"),
+            r"kernel must be one of \['mass', 'density', 'truncated'\], got 'gauss'",
+        ),
+        (
+            lambda: parzen_weights(torch.tensor([float("nan")]), 4, RANGE, "triangular"),
+            r"values must be finite .* got 1 NaN/inf value\(s\)",
+        ),
+        (lambda: gaussian_log_prior(4.0, -1.0, 4, RANGE), r"std must be a finite number > 0, got -1.0"),
+        (lambda: gaussian_log_prior(4.0, math.nan, 4, RANGE), r"std must be a finite number > 0, got nan"),
+        (lambda: gaussian_log_prior(math.inf, 1.0, 4, RANGE), r"mean must be a finite number, got inf"),
+    ],
+)
+def test_public_binning_functions_refuse_arguments_that_gave_garbage(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()

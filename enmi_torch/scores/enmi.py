@@ -23,7 +23,7 @@ from enmi_torch._checks import (
     check_value_range,
     check_variance_given,
 )
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS, likelihood_weights, reliability_weights
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS, _likelihood_weights, reliability_weights
 from enmi_torch.histogram import _joint_histogram, _prepare, joint_histogram
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.placement.information import information_surface
@@ -165,7 +165,7 @@ def enmi_surface(
         log_prior = check_log_prior(log_prior, bins, batch).to(inputs.captured).unsqueeze(1)
     _check_reliability(reliability)
     with torch.no_grad():
-        plane_weights = likelihood_weights(inputs.captured, inputs.variance, bins, value_range, kernel, log_prior)
+        plane_weights = _likelihood_weights(inputs.captured, inputs.variance, bins, value_range, kernel, log_prior)
         pixel_weight = None
         if reliability:
             pixel_weight = reliability_weights(
