@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import Mixture, direct_surface, mixture_information, mixture_surface
-from enmi_torch.binning import _log_bin_masses, likelihood_weights, truncated_likelihood_weights
+from enmi_torch import MemoryBudgetError, Mixture, MixtureLoss, direct_surface, mixture_information, mixture_surface
+from enmi_torch.binning import _log_bin_masses, _LowerLogNdtr, likelihood_weights, truncated_likelihood_weights
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.scores.ecr import ecr_surface
 from enmi_torch.scores.mixture import _mixture_log_likelihoods
@@ -435,3 +435,33 @@ def test_mixture_surface_refuses_bad_arguments(kwargs, error, message):
     variance, window = arguments.pop("variance"), arguments.pop("reference")
     with pytest.raises(error, match=message):
         mixture_surface(local, window, variance, **arguments)
+
+
+@pytest.mark.parametrize("variance", [1e-5, 1e-6, 1e-9])
+def test_float32_gradients_stay_finite_at_tiny_variances_also_through_the_loss(variance):
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(2, 1, 8, 8, generator=generator) * 256
+    captured = (reference + 0.3).requires_grad_()
+    noise = torch.full_like(reference, variance).requires_grad_()
+    mixture_information(captured, reference, noise).sum().backward()
+    assert torch.isfinite(captured.grad).all() and torch.isfinite(noise.grad).all()
+    captured.grad = None
+    MixtureLoss()(captured, reference, variance=variance).backward()
+    assert torch.isfinite(captured.grad).all()
+
+
+def test_lower_log_ndtr_has_the_inverse_mills_ratio_for_its_derivative():
+    standardized = torch.tensor([0.0, -1.0, -10.0, -1e3, -1e4, -1e6, -1e10], dtype=torch.float64, requires_grad=True)
+    _LowerLogNdtr.apply(standardized).sum().backward()
+    # phi(z) / Phi(z) -> -z - 1 / z (1 + O(z^-2)) far in the lower tail; exact values below 10.
+    expected = [math.sqrt(2 / math.pi), 1.525135276160981, 10.098093233962512, 1e3 + 1e-3, 1e4 + 1e-4, 1e6, 1e10]
+    assert standardized.grad.tolist() == pytest.approx(expected, rel=1e-9)
+    assert torch.autograd.gradcheck(_LowerLogNdtr.apply, (standardized.detach()[:4].clone().requires_grad_(),))
+
+
+def test_mixture_refuses_bins_over_the_memory_budget_before_allocating():
+    image = torch.rand(1, 1, 8, 8) * 256
+    with pytest.raises(MemoryBudgetError, match=r"bins=100000 needs about .* GiB for the joint histograms"):
+        mixture_information(image, image, 1.0, bins=100_000)
+    with pytest.raises(MemoryBudgetError, match=r"bins=100000"):
+        mixture_surface(image[..., :4, :4], image, 1.0, bins=100_000)

@@ -38,6 +38,7 @@ import functools
 import torch
 from torch import Tensor
 
+from enmi_torch._budget import check_histogram_memory, check_surface_memory
 from enmi_torch._checks import (
     check_bins,
     check_floating,
@@ -102,6 +103,11 @@ def mixture_information(
     check_floating("captured", captured)
     em_steps = check_non_negative_int("em_steps", em_steps)
     inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance")
+    # The (C * B * bins, bins) histograms, their conditional probabilities and products, and (B, N, bins) weights.
+    candidates = inputs.reference.shape[0] if inputs.with_candidates else None
+    check_histogram_memory(
+        inputs.captured, inputs.bins, candidates, captured_planes=True, reference_planes=False, scored=True
+    )
     weights = truncated_likelihood_weights(inputs.captured, inputs.variance, inputs.bins, inputs.value_range)
     reference_bins = hard_bin_index(inputs.reference, inputs.bins, inputs.value_range)
     score = _mixture_score(weights, reference_bins, inputs.pair_weight, inputs.bins, em_steps)
@@ -247,6 +253,11 @@ def mixture_surface(
     if max_candidates < candidates:
         raise ValueError(f"max_candidates must be >= candidates ({candidates}), got {max_candidates}")
     inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, variance, bins)
+    check_surface_memory(inputs.captured, inputs.reference, bins)
+    # Each placement is rescored alone: one (bins, bins) histogram at a time, from (B, N, bins) weights.
+    check_histogram_memory(
+        inputs.captured.flatten(1), bins, None, captured_planes=True, reference_planes=False, scored=True
+    )
     with torch.no_grad():
         cheap = _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range)
         batch, height, width = inputs.captured.shape
