@@ -217,6 +217,23 @@ def check_finite_where(name: str, values: Tensor, valid: Tensor | None, mask_nam
         )
 
 
+def fitted_to(name: str, values: Tensor, dtype: torch.dtype, remedy: str) -> Tensor:
+    """``values`` cast to ``dtype``; raise ``ValueError`` if a finite value overflows there (a value check).
+
+    A result computed in a wider dtype than it is returned in must not turn into inf silently on the way out.
+    """
+    result = values.to(dtype)
+    if not _values_checked(values) or values.dtype == dtype:
+        return result
+    lost = torch.isfinite(values) & ~torch.isfinite(result)
+    if bool(lost.any()):
+        largest = float(values[lost].abs().max())
+        raise ValueError(
+            f"{name} reaches {largest:.3g}, beyond the largest {dtype} ({torch.finfo(dtype).max:.3g}): {remedy}"
+        )
+    return result
+
+
 def check_positive_where(name: str, values: Tensor, valid: Tensor | None) -> None:
     """Raise ``ValueError`` if ``values`` is not finite and > 0 at a valid position (a value check)."""
     if not _values_checked(values):

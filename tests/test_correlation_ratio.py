@@ -243,3 +243,28 @@ def test_a_map_that_falls_in_one_bin_is_refused_where_ecr_bins_it():
     fixed = ecr_surface(captured, reference, 1e-4, value_range=(0.0, 1.0))
     assert int(fixed.score[0].argmax()) == 4 * 9 + 4  # the true placement, (4, 4) of 9 x 9
     ecr_surface(captured, reference, 1e-4, response="linear")  # the linear response bins nothing
+
+
+@pytest.mark.parametrize(
+    ("scale", "variance", "model_variance"),
+    [(1.0, 1e-30, 0.0), (1.0, 1e-30, "estimate"), (1e20, 1e-30, "estimate"), (1e20, 1e-30, None), (1e18, 1e-4, 0.0)],
+)
+def test_float32_ecr_and_its_gradient_stay_finite_for_tiny_variances_and_huge_values(scale, variance, model_variance):
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(2, 1, 8, 8, generator=generator) * 256
+    captured = reference + torch.randn(2, 1, 8, 8, generator=generator)
+    reference, captured = reference * scale, (captured * scale).requires_grad_()
+    noise = torch.full_like(reference, variance * scale**2)
+    options = {"value_range": (0.0, 256 * scale), "model_variance": model_variance}
+    score = ecr(captured, reference, noise, **options)
+    score.sum().backward()
+    assert torch.isfinite(score).all() and torch.isfinite(captured.grad).all()
+    as_float64 = ecr(captured.detach().double(), reference.double(), noise.double(), **options)
+    torch.testing.assert_close(score, as_float64.float(), rtol=1e-4, atol=0.0)
+
+
+def test_ecr_that_overflows_the_output_dtype_is_refused_not_inf():
+    image = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+    assert ecr(image.half(), image.half(), 1.0, model_variance=0.0).dtype == torch.float16
+    with pytest.raises(ValueError, match=r"ecr reaches .*, beyond the largest torch.float16 \(6.55e\+04\)"):
+        ecr((image + 1).half(), image.half(), 1e-3, model_variance=0.0)

@@ -61,7 +61,14 @@ import torch
 from torch import Tensor
 
 from enmi_torch._budget import check_surface_memory
-from enmi_torch._checks import check_bins, check_floating, check_option, check_value_range, check_variance_given
+from enmi_torch._checks import (
+    check_bins,
+    check_floating,
+    check_option,
+    check_value_range,
+    check_variance_given,
+    fitted_to,
+)
 from enmi_torch.binning import bin_width, hard_bin_index
 from enmi_torch.histogram import _prepare
 from enmi_torch.placement.fft import Correlator
@@ -416,15 +423,20 @@ def ecr(
         captured, reference, variance, bins, value_range, model_variance, valid_mask, response
     )
     if tau2 == MODEL_VARIANCE_ESTIMATE:
-        tau2 = _aligned_model_variance(inputs, response).to(inputs.captured.dtype)[..., None]
-    if response == "linear":
-        score = _linear_ecr(inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight)
-        return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
-    sums = bin_sums(
-        inputs.captured, inputs.reference, inputs.variance + tau2, inputs.pair_weight, inputs.bins, inputs.value_range
+        tau2 = _aligned_model_variance(inputs, response)[..., None]
+    # The sums run in float64 whatever the input: weights 1 / sigma^2 of float32 variances reach 1e45 and squared
+    # weighted values of float32 values overflow float32 (NaN from inf - inf); they are a few sums per pixel.
+    captured, reference, noise = (
+        part.to(torch.float64) for part in (inputs.captured, inputs.reference, inputs.variance)
     )
-    score = ecr_from_bin_sums(sums)
-    return (score if inputs.with_candidates else score[0]).to(inputs.out_dtype)
+    total_variance = noise + tau2
+    valid = None if inputs.pair_weight is None else inputs.pair_weight.to(torch.float64)
+    if response == "linear":
+        score = _linear_ecr(captured, reference, total_variance, valid)
+    else:
+        score = ecr_from_bin_sums(bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range))
+    remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
+    return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
 
 
 def ecr_model_variance(
