@@ -259,6 +259,18 @@ def check_mask_not_empty(name: str, valid: Tensor) -> None:
         raise ValueError(f"{name} selects no pixel in sample(s) {samples}; every sample needs at least one pixel")
 
 
+def check_some_pixel(name: str, valid: Tensor, reason: str) -> None:
+    """Raise ``ValueError`` if the mask ``valid`` selects no pixel at all (a value check); ``reason`` says why not."""
+    if _values_checked(valid) and not bool(valid.any()):
+        raise ValueError(f"{name} selects no pixel, got an all-False mask of shape {tuple(valid.shape)}: {reason}")
+
+
+def check_no_overflow(name: str, result: Tensor, cause: str) -> None:
+    """Raise ``ValueError`` if ``result`` holds inf or NaN that finite inputs overflowed into (a value check)."""
+    if _values_checked(result) and not bool(torch.isfinite(result).all()):
+        raise ValueError(f"{name} overflows {result.dtype} (largest {torch.finfo(result.dtype).max:.3g}): {cause}")
+
+
 def check_log_prior(log_prior: Any, bins: int, batch: int) -> Tensor:
     """Raise unless ``log_prior`` is a float ``(bins,)``, ``(1, bins)`` or ``(batch, bins)`` without NaN or +inf.
 

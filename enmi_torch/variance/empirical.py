@@ -16,6 +16,7 @@ from enmi_torch._checks import (
     check_finite_where,
     check_floating,
     check_image_shape,
+    check_no_overflow,
     check_non_negative_int,
     check_not_empty,
 )
@@ -73,8 +74,13 @@ def _accumulate(captured: Tensor, reference: Tensor, valid_mask: Tensor | None) 
     else:
         valid = mask_map("valid_mask", valid_mask, captured, "captured", require_pixels=False)
     check_finite_where("captured - reference", residual, valid)
-    squares = torch.where(valid, residual, 0.0).square()
-    return valid.sum(dim=0).reshape(shape), squares.sum(dim=0).reshape(shape)
+    sum_squares = torch.where(valid, residual, 0.0).square().sum(dim=0)
+    check_no_overflow(
+        "the sum of squared residuals",
+        sum_squares,
+        "captured - reference holds residuals too large to square (beyond ~1.3e154); rescale both images",
+    )
+    return valid.sum(dim=0).reshape(shape), sum_squares.reshape(shape)
 
 
 def _compute(count: Tensor, sum_squares: Tensor, ddof: int) -> tuple[Tensor, Tensor]:

@@ -30,6 +30,7 @@ from enmi_torch._checks import (
     check_not_empty,
     check_option,
     check_positive_number,
+    check_some_pixel,
     check_tensor,
 )
 from enmi_torch._files import load_plain_torch, read_npy
@@ -87,7 +88,9 @@ def gaussian_nll(
         check_finite_where("log_variance", log_map, used)
     else:
         check_finite_where("log_variance", log_map, None)
-    terms = 0.5 * (flat.square() * torch.exp(-log_map) + log_map + _LOG_2PI)
+    # A zero residual adds 0 whatever sigma^2: exp(-log_map) may overflow there (log_variance=-1000) and 0 * inf is NaN.
+    zero = flat == 0
+    terms = 0.5 * (flat.square() * torch.exp(-torch.where(zero, 0.0, log_map)) + log_map + _LOG_2PI)
     if valid is not None:
         terms = torch.where(valid, terms, 0.0)
     if reduction == "none":
@@ -95,8 +98,10 @@ def gaussian_nll(
     total = terms.sum()
     if reduction == "sum":
         return total
-    pixels = flat.numel() if valid is None else valid.sum()
-    return total / pixels
+    if valid is None:
+        return total / flat.numel()
+    check_some_pixel("valid_mask", valid, "the mean NLL over no pixel is undefined; pass reduction='sum'")
+    return total / valid.sum()
 
 
 def smoothness_penalty(log_variance: Tensor, valid: Tensor | None = None) -> Tensor:

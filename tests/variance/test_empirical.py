@@ -172,3 +172,11 @@ def test_a_fully_masked_pair_adds_nothing(generator):
     expected, expected_defined = empirical_variance(captured[[0, 2]], reference[[0, 2]])
     torch.testing.assert_close(variance, expected)
     assert torch.equal(defined, expected_defined)
+
+
+def test_residuals_whose_squares_overflow_float64_are_refused_not_inf():
+    huge = torch.full((2, 1, 2, 2), 1e200, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"sum of squared residuals overflows torch.float64.*rescale both images"):
+        empirical_variance(huge, torch.zeros_like(huge))
+    variance, _ = empirical_variance(torch.full((2, 1, 2, 2), 1e30), torch.zeros(2, 1, 2, 2))
+    assert torch.allclose(variance, torch.full((2, 2), 2e60, dtype=torch.float64))

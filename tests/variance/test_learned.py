@@ -360,3 +360,19 @@ def test_load_checks_path(tmp_path):
 def test_invalid_inputs(make, error, match):
     with pytest.raises(error, match=match):
         make()
+
+
+def test_nll_of_a_zero_residual_at_a_huge_precision_is_finite_with_finite_gradients():
+    residual = torch.zeros(1, 1, 2, 2, requires_grad=True)
+    log_variance = torch.full((2, 2), -1000.0, requires_grad=True)
+    loss = gaussian_nll(residual, log_variance)
+    loss.backward()
+    assert loss.item() == pytest.approx(0.5 * (-1000.0 + math.log(2 * math.pi)))
+    assert torch.isfinite(residual.grad).all() and torch.isfinite(log_variance.grad).all()
+
+
+def test_mean_nll_over_an_all_false_mask_is_refused_and_its_sum_is_zero():
+    residual, none = torch.randn(2, 1, 3, 3), torch.zeros(2, 1, 3, 3, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"valid_mask selects no pixel.*mean NLL over no pixel is undefined"):
+        gaussian_nll(residual, torch.zeros(3, 3), none)
+    assert gaussian_nll(residual, torch.zeros(3, 3), none, reduction="sum").item() == 0.0
