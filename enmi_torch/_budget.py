@@ -289,3 +289,13 @@ def check_search_memory(
         + f" and the surfaces {surfaces}",
         "lower shifts, search coarse to fine (a larger coarse_factor)" + ("" if bins is None else " or lower bins"),
     )
+
+
+def check_cells_memory(cause: str, cells: int, bytes_per_cell: int, what: str, remedy: str) -> None:
+    """Refuse ``cells`` cells of ``bytes_per_cell`` bytes each (maps, grids, kernels) over the budget.
+
+    ``cause`` names the arguments as passed (``"shape=(100000, 100000)"``), ``what`` the tensors counted.
+    """
+    needed = cells * bytes_per_cell
+    if not within_budget(needed):
+        raise budget_error(needed, cause, what, remedy)

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from enmi_torch._budget import MemoryBudgetError, budget_error, check_cells_memory, within_budget
 from enmi_torch._checks import (
     check_finite_where,
     check_floating,
@@ -235,6 +236,16 @@ class LearnedVariance(VarianceModel):
         self.shape = check_image_shape("shape", shape)
         self.form = check_option("form", form, FORMS)
         self.degree = check_non_negative_int("degree", degree)
+        # float32 maps per pixel: the log-variance (or the radial basis, degree + 1 planes, or the analytic map and its
+        # two basis planes), the variance map forward() returns, and the bool valid map.
+        planes = {"pixel": 2, "radial": self.degree + 2, "perspective": 4}[self.form]
+        check_cells_memory(
+            f"shape={shape!r}",
+            self.shape[0] * self.shape[1],
+            4 * planes + 1,
+            f"{planes} float32 map(s) and a bool mask of {self.shape[0]} x {self.shape[1]}",
+            "pass a smaller shape",
+        )
         self.center = _center(center, self.shape)
         if isinstance(smoothness, bool) or not isinstance(smoothness, (int, float)) or not smoothness >= 0:
             raise ValueError(f"smoothness must be a finite number >= 0, got {smoothness!r}")
@@ -429,6 +440,11 @@ class LearnedVariance(VarianceModel):
             raise refuse("state must be a dict of tensors")
         if "reference" in state:  # files written before the analytic map's buffer was renamed
             state = {("analytic_variance" if name == "reference" else name): value for name, value in state.items()}
+        # Sizes from the shapes alone: a stride-0 tensor of a few bytes on disk can claim gigabytes once copied.
+        stored = sum(value.shape.numel() * value.element_size() for value in state.values())
+        if not within_budget(stored):
+            shapes = ", ".join(f"{name} {tuple(value.shape)}" for name, value in state.items())
+            raise budget_error(stored, str(path), f"the tensors of its state ({shapes})", "check the file")
         valid = state.get("valid")
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
             raise refuse("state['valid'] must be a bool tensor")
@@ -442,6 +458,8 @@ class LearnedVariance(VarianceModel):
                 analytic_variance=state.get("analytic_variance"),
                 smoothness=config["smoothness"],
             )
+        except MemoryBudgetError as error:
+            raise MemoryBudgetError(f"{path}: {error}") from None
         except (TypeError, ValueError) as error:
             raise refuse(str(error)) from None
         expected = model.state_dict()

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from _pickle_payload import EXECUTED, Payload
 
-from enmi_torch import ENMILoss, enmi
+from enmi_torch import ENMILoss, MemoryBudgetError, enmi, memory_budget
 from enmi_torch.data import SyntheticPairs, camera_truth, lidar_truth
 from enmi_torch.variance import (
     LearnedVariance,
@@ -376,3 +376,21 @@ def test_mean_nll_over_an_all_false_mask_is_refused_and_its_sum_is_zero():
     with pytest.raises(ValueError, match=r"valid_mask selects no pixel.*mean NLL over no pixel is undefined"):
         gaussian_nll(residual, torch.zeros(3, 3), none)
     assert gaussian_nll(residual, torch.zeros(3, 3), none, reduction="sum").item() == 0.0
+
+
+def test_a_shape_over_the_memory_budget_is_refused_before_allocating():
+    with pytest.raises(MemoryBudgetError, match=r"shape=\(100000, 100000\) needs about 83.8 GiB"):
+        LearnedVariance((100_000, 100_000))
+
+
+def test_load_sizes_a_stride_zero_tensor_from_its_shape_before_copying_it(tmp_path):
+    path = LearnedVariance((4, 4)).save(tmp_path / "mask.pt")
+    payload = torch.load(path)
+    payload["state"]["valid"] = torch.ones(1, dtype=torch.bool).expand(60_000, 60_000)  # a few bytes on disk
+    payload["config"]["shape"] = [60_000, 60_000]
+    torch.save(payload, path)
+    assert path.stat().st_size < 10_000
+    with pytest.raises(MemoryBudgetError, match=r"mask.pt: shape=\(60000, 60000\) needs about 30.2 GiB"):
+        LearnedVariance.load(path)
+    with memory_budget(1 << 30), pytest.raises(MemoryBudgetError, match=r"mask.pt needs about 3.4 GiB for the tensor"):
+        LearnedVariance.load(path)
