@@ -14,6 +14,7 @@ from enmi_torch import (
     NMI,
     ConstantVariance,
     Localization,
+    MemoryBudgetError,
     NoCandidateError,
     as_score,
     localize,
@@ -502,3 +503,24 @@ def test_a_restart_moves_the_window_to_the_pose_on_the_yaw_lattice():
     likelihood = torch.zeros(2, 5, 5, 7, dtype=torch.float64)
     likelihood[1, 3, 4, 1] = 1.0  # yaw bin 3, row 4 of 5, column 1 of 7 (a non-square window)
     assert _peak_position(belief, likelihood, 1).tolist() == [30 + 1 - 3, 40 + 4 - 2]
+
+
+@pytest.mark.parametrize(
+    ("noise", "yaw_step", "message"),
+    [
+        ((1e3, 1e3, 0.1), 1.0, r"noise 1e\+03 cells .* needs about 6.2 GiB for the float64 blur kernels"),
+        ((0.5, 0.5, 0.5), 1e-12, r"5e\+11 yaw bins \(yaw_step=1e-12\) needs about .* TiB"),
+    ],
+)
+def test_predict_refuses_blur_kernels_over_the_memory_budget_before_allocating(noise, yaw_step, message):
+    belief = initial_belief(torch.zeros(1, 3), shifts=8, yaw_bins=5, yaw_step=yaw_step, std=(1.0, 1.0, 1.0))
+    with pytest.raises(MemoryBudgetError, match=message):
+        predict(belief, torch.tensor([[1.0, 0.0, 0.0]]), noise)
+
+
+def test_update_refuses_a_positive_infinite_log_likelihood_instead_of_taking_it_for_the_weakest_cell():
+    belief = initial_belief(torch.zeros(1, 3), shifts=1, yaw_bins=1)
+    likelihood = torch.zeros(1, 1, 3, 3)
+    likelihood[0, 0, 1, 1] = math.inf
+    with pytest.raises(ValueError, match=r"log_likelihood must be finite, -inf or NaN .* got 1 cell\(s\) of \+inf"):
+        update(belief, likelihood)

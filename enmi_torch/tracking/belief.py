@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from enmi_torch._budget import check_cells_memory
 from enmi_torch._checks import check_floating, check_positive_int, check_positive_number, check_shifts
 
 # Chi-square quantile with 2 degrees of freedom at 95 %: the (x, y) ellipse radius squared.
@@ -162,7 +163,9 @@ def predict(belief: Belief, odometry: Tensor, noise: Sequence[float] | Tensor) -
     # Grid offsets of each bin's move: the increment minus the window's own move.
     offset_x = step_x - (center[:, 1] - belief.center[:, 1]).double()[:, None]
     offset_y = step_y - (center[:, 0] - belief.center[:, 0]).double()[:, None]
-    translated = _translate(mass, offset_x, offset_y, _map_covariance(cos, sin, noise))
+    covariance = _map_covariance(cos, sin, noise)
+    _check_blur_memory(mass, covariance, noise[:, 2] / belief.yaw_step, belief.yaw_step)
+    translated = _translate(mass, offset_x, offset_y, covariance)
     yaw_offset = odometry[:, 2] / belief.yaw_step - yaw_shift
     mixing = _yaw_mixing(yaw_count, yaw_offset, noise[:, 2] / belief.yaw_step)
     predicted = torch.einsum("bij,bjyx->biyx", mixing, translated)
@@ -173,7 +176,8 @@ def predict(belief: Belief, odometry: Tensor, noise: Sequence[float] | Tensor) -
 def update(belief: Belief, log_likelihood: Tensor) -> Belief:
     """The measurement step: add ``(B, Y, Sy, Sx)`` log-likelihoods to the log belief and normalise.
 
-    ``-inf`` or NaN likelihoods (candidates a search left out) count as the smallest finite value of the sample.
+    ``-inf`` or NaN likelihoods (candidates a search left out) count as the smallest finite value of the sample;
+    ``+inf`` is refused (a certainty: no score gives one, and no weaker cell could be told from another).
 
     Example:
         >>> belief = initial_belief(torch.zeros(1, 3), shifts=1, yaw_bins=1)
@@ -188,6 +192,12 @@ def update(belief: Belief, log_likelihood: Tensor) -> Belief:
         raise ValueError(
             f"log_likelihood must have the belief's shape {tuple(belief.log_prob.shape)}, got "
             f"{tuple(log_likelihood.shape)}"
+        )
+    # +inf would claim a certainty no score gives, and its logsumexp is inf - inf: NaN for the whole belief.
+    infinite = int(torch.isposinf(log_likelihood).sum())
+    if infinite:
+        raise ValueError(
+            f"log_likelihood must be finite, -inf or NaN (a left-out candidate), got {infinite} cell(s) of +inf"
         )
     return belief._replace(log_prob=normalized(belief.log_prob + finite_floor(log_likelihood.double())))
 
@@ -282,6 +292,32 @@ def finite_floor(values: Tensor) -> Tensor:
     return torch.where(finite, values, floor)
 
 
+def _reach(sigma: float) -> int:
+    """Taps on each side of a discrete Gaussian of ``sigma`` bins: three standard deviations."""
+    return math.ceil(3 * sigma)
+
+
+def _check_blur_memory(mass: Tensor, covariance: Tensor, yaw_sigma: Tensor, yaw_step: float) -> None:
+    """Refuse the motion step's blur kernels over the memory budget: they grow with the noise in cells and yaw bins.
+
+    :func:`_translate` holds ``(B Y, size, size)`` kernels (Gaussian, bilinear product, the grid of taps) and a full
+    convolution of each plane; :func:`_yaw_mixing` a ``(B, Y, Y, taps)`` split.
+    """
+    batch, yaw_count, rows, cols = mass.shape
+    sigma = float(covariance.diagonal(dim1=-2, dim2=-1).amax().sqrt())
+    size = 2 * _reach(sigma) + 2
+    yaw_taps = 2 * (_reach(float(yaw_sigma.amax())) if yaw_count > 1 else 0) + 1
+    planes = batch * yaw_count
+    cells = planes * (3 * size * size + (rows + size) * (cols + size)) + 3 * size * size + planes * yaw_count * yaw_taps
+    check_cells_memory(
+        f"noise {sigma:.3g} cells and {float(yaw_sigma.amax()):.3g} yaw bins (yaw_step={yaw_step!r})",
+        cells,
+        8,
+        f"the float64 blur kernels of {planes} plane(s) of {rows} x {cols} ({size} x {size} taps, {yaw_taps} in yaw)",
+        "lower the motion noise or raise yaw_step (a kernel spans six standard deviations)",
+    )
+
+
 def _map_covariance(cos: Tensor, sin: Tensor, noise: Tensor) -> Tensor:
     """``(B, Y, 2, 2)`` covariance of the map move ``(dx, dy)`` from the odometry's ``(du, dv)`` noise per yaw bin."""
     rotation = torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2)
@@ -296,7 +332,7 @@ def _translate(mass: Tensor, offset_x: Tensor, offset_y: Tensor, covariance: Ten
     whole-cell offset is a shift of the full convolution with zero fill.
     """
     batch, yaw_count, rows, cols = mass.shape
-    reach = math.ceil(3 * float(covariance.diagonal(dim1=-2, dim2=-1).amax().sqrt()))
+    reach = _reach(float(covariance.diagonal(dim1=-2, dim2=-1).amax().sqrt()))
     taps = torch.arange(-reach, reach + 1, dtype=torch.float64, device=mass.device)
     grid_y, grid_x = torch.meshgrid(taps, taps, indexing="ij")
     points = torch.stack([grid_x, grid_y], -1)
@@ -335,7 +371,7 @@ def _translate(mass: Tensor, offset_x: Tensor, offset_y: Tensor, covariance: Ten
 
 def _yaw_mixing(yaw_count: int, offset: Tensor, noise: Tensor) -> Tensor:
     """``(B, Y, Y)`` transfer ``[b, target, source]`` of mass between yaw bins moved by ``offset`` bins."""
-    reach = math.ceil(3 * float(noise.amax())) if yaw_count > 1 else 0
+    reach = _reach(float(noise.amax())) if yaw_count > 1 else 0
     taps = torch.arange(-reach, reach + 1, dtype=torch.float64, device=offset.device)
     gaussian = (-0.5 * (taps / noise.clamp_min(1e-6)[:, None]).square()).exp()
     gaussian = gaussian / gaussian.sum(1, keepdim=True)
