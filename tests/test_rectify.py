@@ -10,6 +10,7 @@ from _geometry import pinhole_pixels
 from kornia.geometry.linalg import transform_points
 from kornia.geometry.transform import get_perspective_transform
 
+from enmi_torch import MemoryBudgetError
 from enmi_torch.geometry.camera import RoadCamera, ground_to_pixel, pixel_to_ground, projected_area
 from enmi_torch.geometry.rectify import (
     GroundGrid,
@@ -274,3 +275,39 @@ def test_runs_on_the_device_of_its_input(device, small_camera):
     torch.testing.assert_close(birds_eye.cpu(), rectify(images, small_camera, grid, supersample=2)[0])
     back, on_grid = unrectify(birds_eye, small_camera, grid)
     assert back.device.type == device.type and on_grid.device.type == device.type
+
+
+FINE_GRID = GroundGrid((-150.0, 150.0), (40.0, 200.0), 0.001)  # 160000 x 300000 cells
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (
+            lambda camera, grid: rectify(torch.rand(1, 1, 48, 64), camera, grid, supersample=100_000),
+            r"cell_size=20.0 with supersample=100000 needs about .* TiB.*: lower supersample",
+        ),
+        (
+            lambda camera, grid: rectify(
+                torch.rand(1, 1, 48, 64), camera, GroundGrid((-150.0, 150.0), (40.0, 200.0), 0.001)
+            ),
+            r"cell_size=0.001 with supersample=1 needs about .* of the 160000 x 300000 ground grid",
+        ),
+        (
+            lambda camera, grid: visible_cells(camera, FINE_GRID),
+            r"cell_size=0.001 needs about 1.4 TiB for the float64 maps of the 160000 x 300000 ground grid",
+        ),
+        (
+            lambda camera, grid: pixels_on_grid(RoadCamera.paper((100_000, 100_000)), grid),
+            r"image_size=\(100000, 100000\) needs about .* GiB for the float64 maps of the 100000 x 100000 camera",
+        ),
+        (
+            lambda camera, grid: unrectify(torch.ones(1, 1, 8, 15), RoadCamera.paper((100_000, 100_000)), grid),
+            r"image_size=\(100000, 100000\) needs about .* GiB for the sampled planes",
+        ),
+    ],
+)
+def test_sizes_over_the_memory_budget_are_refused_before_allocating(call, message):
+    camera, grid = RoadCamera.paper((48, 64)), GroundGrid((-150.0, 150.0), (40.0, 200.0), 20.0)
+    with pytest.raises(MemoryBudgetError, match=message):
+        call(camera, grid)

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor
 
+from enmi_torch._budget import check_cells_memory
 from enmi_torch._checks import (
     check_floating,
     check_image_shape,
@@ -188,10 +189,31 @@ def visible_cells(camera: RoadCamera, grid: GroundGrid, *, device=None) -> Tenso
         [13, 13, 11, 9, 9, 7, 7, 5]
     """
     _check_grid(camera, grid)
+    _check_grid_memory(grid, f"cell_size={grid.cell_size!r}", _MAP_BYTES, "the float64 maps")
     return _visible_cells(camera, grid).to(device, copy=True)
 
 
 @functools.lru_cache(maxsize=32)
+def _check_grid_memory(
+    grid: GroundGrid, cause: str, bytes_per_cell: int, what: str, remedy: str = "raise cell_size"
+) -> None:
+    """Refuse maps over ``grid`` (``bytes_per_cell`` each cell) over the memory budget, before allocating them."""
+    rows, cols = grid.shape
+    what = f"{what} of the {rows} x {cols} ground grid"
+    check_cells_memory(cause, rows * cols, bytes_per_cell, what, f"{remedy} or narrow the grid's ranges")
+
+
+def _check_image_memory(camera: RoadCamera, bytes_per_pixel: int, what: str) -> None:
+    """Refuse maps over the camera's pixels (``bytes_per_pixel`` each) over the memory budget, before allocating."""
+    rows, cols = camera.image_size
+    what = f"{what} of the {rows} x {cols} camera image"
+    check_cells_memory(f"image_size={camera.image_size}", rows * cols, bytes_per_pixel, what, "lower image_size")
+
+
+# visible_cells and pixels_on_grid: about four float64 maps (coordinates, projections) and the bool result.
+_MAP_BYTES = 4 * 8 + 1
+
+
 def _visible_cells(camera: RoadCamera, grid: GroundGrid) -> Tensor:
     lateral, distance = grid.cell_centers()
     focal_x, focal_y = project_ground(camera, lateral[None, :], distance[:, None])
@@ -202,6 +224,7 @@ def _visible_cells(camera: RoadCamera, grid: GroundGrid) -> Tensor:
 def pixels_on_grid(camera: RoadCamera, grid: GroundGrid, *, device=None) -> Tensor:
     """Bool ``(H, W)``: the camera pixels whose road point lies on the grid (inside its outer cell edges)."""
     _check_grid(camera, grid)
+    _check_image_memory(camera, _MAP_BYTES, "the float64 maps")
     return _pixels_on_grid(camera, grid).to(device, copy=True)
 
 
@@ -262,6 +285,16 @@ def rectify(
     _check_images("image", image, camera.image_size, "camera.image_size")
     check_option("mode", mode, INTERPOLATIONS)
     check_positive_int("supersample", supersample)
+    _check_grid(camera, grid)
+    # Per fine cell: kornia's sampling grid (2 per image), the samples, their weighted copy, and the visibility maps.
+    planes = 2 * image.shape[0] + 3 * image.shape[0] * image.shape[1]
+    _check_grid_memory(
+        grid,
+        f"cell_size={grid.cell_size!r} with supersample={supersample}",
+        supersample**2 * (planes * image.element_size() + _MAP_BYTES),
+        f"the {supersample} x {supersample} samples per cell of {image.shape[0]} x {image.shape[1]} image plane(s)",
+        "lower supersample, raise cell_size",
+    )
     fine = grid.refine(supersample)
     image_to_grid = torch.linalg.inv(ground_to_image_homography(camera, fine))
     samples = warp_perspective(
@@ -304,6 +337,9 @@ def unrectify(
     """
     _check_images("birds_eye", birds_eye, grid.shape, "grid.shape")
     check_option("mode", mode, INTERPOLATIONS)
+    _check_grid(camera, grid)
+    planes = 2 * birds_eye.shape[0] + 2 * birds_eye.shape[0] * birds_eye.shape[1]
+    _check_image_memory(camera, planes * birds_eye.element_size() + _MAP_BYTES, "the sampled planes")
     homography = ground_to_image_homography(camera, grid)
     image = warp_perspective(
         birds_eye,
