@@ -12,6 +12,7 @@ import copy
 import json
 import logging
 import math
+import signal
 import time
 import warnings
 from collections.abc import Sequence
@@ -21,6 +22,7 @@ import torch
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from enmi_torch._files import load_plain_torch
 from enmi_torch._resources import config_file
@@ -29,6 +31,7 @@ from enmi_torch.data import PairDataModule
 from enmi_torch.training.localization_figure import METHOD_LABELS, held_out_order
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
+from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
 
 PROG = "enmi-fit-mask"
 # A learned mask farther than this from the paper's empirical mask has not converged yet.
@@ -426,8 +429,16 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
                     f"--data.batch_size must be divisible by the number of processes {world}, "
                     f"got {cli.datamodule.batch_size}"
                 )
+            for callback in cli.trainer.callbacks:
+                if isinstance(callback, Preemption):
+                    callback.command = [PROG, *argv]
         start = time.perf_counter()
-        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path, weights_only=True)
+        try:
+            cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path, weights_only=True)
+        except SIGTERMException as stop:  # Lightning ends a SIGTERM with exit code 0: a preemption is not a success
+            if isinstance(stop, Preempted):
+                raise
+            raise Preempted(EXIT_CODES[signal.SIGTERM]) from stop
     except MisconfigurationException as error:  # Lightning's word for a bad option (devices, strategy, ...)
         raise ValueError(str(error)) from error
     except (ValueError, TypeError, FileNotFoundError) as error:
