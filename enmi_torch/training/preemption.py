@@ -47,12 +47,13 @@ class Preemption(Callback):
         self.command: Sequence[str] = ("enmi-fit-mask",)
         self._signal: int | None = None
         self._previous_sigint = None
+        self._saved: tuple[int, int, Path] | None = None  # epoch, step and path of the last checkpoint written
 
     # Signals -------------------------------------------------------------------------------------------------------
 
     def on_train_start(self, trainer, pl_module) -> None:
         """Turn SIGINT into a request to stop after the current step (Lightning already notes SIGTERM so)."""
-        self._signal = None
+        self._signal, self._saved = None, None
         try:
             self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
         except ValueError:  # not the main thread: Ctrl+C stays Lightning's
@@ -73,18 +74,26 @@ class Preemption(Callback):
         self._restore_sigint()
 
     def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
-        """Lightning's own SIGTERM stop (in validation, or at an epoch's end): the hint names the last checkpoint."""
+        """Lightning's own SIGTERM stop (between steps, at an epoch's end, in validation): a checkpoint and the hint."""
         self._restore_sigint()
-        if isinstance(exception, SIGTERMException) and not isinstance(exception, Preempted) and trainer.is_global_zero:
-            checkpoint = trainer.checkpoint_callback
-            path = getattr(checkpoint, "last_model_path", "") or ""
-            if path and Path(path).is_file():
-                resume = shlex.join([*_without_ckpt_path(self.command), "--ckpt_path", path])
-                hint = f"checkpoint {path}; resume with: {resume}"
-            else:
-                hint = f"no checkpoint yet; start again with: {shlex.join(_without_ckpt_path(self.command))}"
-            sys.stderr.write(f"{self.command[0]}: stopped by SIGTERM at epoch {trainer.current_epoch}; {hint}\n")
-            sys.stderr.flush()
+        if isinstance(exception, SIGTERMException) and not isinstance(exception, Preempted):
+            if trainer.training and (self._saved is None or self._saved[1] != trainer.global_step):
+                self.save(trainer)  # between two training steps; in validation, the last checkpoint stands
+            self._report(trainer, signal.SIGTERM)
+
+    def _report(self, trainer, stop: int) -> None:
+        """One line on stderr: which signal, the checkpoint and its epoch and step, the command that resumes."""
+        if not trainer.is_global_zero:
+            return
+        name = signal.Signals(stop).name
+        if self._saved is None:
+            line = f"stopped by {name} before a checkpoint; start again with: {shlex.join(self.command)}"
+        else:
+            epoch, step, path = self._saved
+            resume = shlex.join([*_without_ckpt_path(self.command), "--ckpt_path", str(path)])
+            line = f"stopped by {name} at epoch {epoch}, step {step}; checkpoint {path}; resume with: {resume}"
+        sys.stderr.write(f"{self.command[0]}: {line}\n")
+        sys.stderr.flush()
 
     def _stop_signal(self, trainer) -> int | None:
         if trainer.received_sigterm:
@@ -97,16 +106,9 @@ class Preemption(Callback):
         """A checkpoint every ``every_n_train_steps`` steps within an epoch; on a signal, a checkpoint and the end."""
         stop = self._stop_signal(trainer)
         if stop is not None:
-            path = self.save(trainer)
+            self.save(trainer)
             self._restore_sigint()
-            name = signal.Signals(stop).name
-            if trainer.is_global_zero:
-                resume = shlex.join([*_without_ckpt_path(self.command), "--ckpt_path", str(path)])
-                sys.stderr.write(
-                    f"{self.command[0]}: stopped by {name} at epoch {trainer.current_epoch}, step "
-                    f"{trainer.global_step}; checkpoint {path}; resume with: {resume}\n"
-                )
-                sys.stderr.flush()
+            self._report(trainer, stop)
             raise Preempted(EXIT_CODES[stop])
         last_of_epoch = batch_idx + 1 >= trainer.num_training_batches  # the epoch's own checkpoint follows
         if self.every_n_train_steps and trainer.global_step % self.every_n_train_steps == 0 and not last_of_epoch:
@@ -126,12 +128,13 @@ class Preemption(Callback):
             folder, name = Path(trainer.log_dir or trainer.default_root_dir) / "checkpoints", "last.ckpt"
         path = folder / name
         partial = folder / f".{name}.partial"
-        trainer.save_checkpoint(partial)
+        trainer.save_checkpoint(partial, weights_only=False)  # the whole state: optimizer, schedule, loops
         if trainer.is_global_zero:
             os.replace(partial, path)
         trainer.strategy.barrier("preemption_checkpoint")
         if isinstance(checkpoint, ModelCheckpoint):
             checkpoint.last_model_path = str(path)
+        self._saved = (trainer.current_epoch, trainer.global_step, path)
         return path
 
 
