@@ -284,11 +284,14 @@ def _prepare(
     log_prior,
     variance_name="captured_variance",
     captured_binned=True,
+    reference_binned=True,
 ) -> _Inputs:
     """Check the arguments of :func:`joint_histogram` and bring them to the flat layout and compute dtype.
 
     ``variance_name`` is the name the caller's users give ``captured_variance`` (``"variance"`` for ENMI);
-    ``captured_binned``: the captured values are binned (not for ECR), so they must not all fall in one bin.
+    ``captured_binned``: the captured values are binned (not for ECR), so they must not all fall in one bin;
+    ``reference_binned``: the reference is binned (not for NCC): for ECR, whose captured values are not binned, it
+    must not all fall in one bin either.
     """
     check_floating("captured", captured)
     check_tensor("reference", reference)
@@ -325,6 +328,9 @@ def _prepare(
     check_finite_where("reference", reference_flat, valid)
     if captured_binned:
         check_resolved_by_bins("captured", captured_flat, valid, bins, value_range)
+    elif reference_binned:  # ECR bins the reference: a map varying within one bin would score 0 everywhere
+        flat_valid = None if valid is None else valid.expand_as(reference_flat).reshape(-1, pixels)
+        check_resolved_by_bins("reference", reference_flat.reshape(-1, pixels), flat_valid, bins, value_range)
     if valid is not None:
         # Masked pixels may hold NaN (out-of-range regions): replace them so 0 * NaN never reaches the counts.
         captured_flat = torch.where(valid, captured_flat, value_range[0])

@@ -142,7 +142,6 @@ def test_the_default_range_refuses_images_that_vary_within_one_bin(name, pair, s
         )
 
 
-@pytest.mark.xfail(reason="issue 23 item 1: ECR, the default score, scores images in [0, 1] 0", strict=False)
 def test_the_default_score_refuses_images_in_0_1_with_the_default_range():
     captured = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(0))
     with pytest.raises(ValueError, match="value_range"):

@@ -40,7 +40,19 @@ def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None
         (tensor([0.9844]), tensor([-1.]))
     """
     # The layout and mask checks of the histograms; nothing is binned (bins and range only fill masked pixels).
-    inputs = _prepare(captured, reference, 2, (0.0, 1.0), None, valid_mask, "hard", "hard", None, captured_binned=False)
+    inputs = _prepare(
+        captured,
+        reference,
+        2,
+        (0.0, 1.0),
+        None,
+        valid_mask,
+        "hard",
+        "hard",
+        None,
+        captured_binned=False,
+        reference_binned=False,
+    )
     weight = torch.ones_like(inputs.captured) if inputs.pair_weight is None else inputs.pair_weight
     count = weight.sum(-1, keepdim=True)
 
