@@ -7,15 +7,24 @@ from pathlib import Path
 from typing import Any
 
 
-def load_yaml_section(path: str | Path, key: str) -> Mapping[str, Any]:
-    """The mapping under top-level ``key`` of the YAML file at ``path``."""
+def load_yaml_section(path: str | Path, key: str, source: str = "config file") -> Mapping[str, Any]:
+    """The mapping under top-level ``key`` of the YAML file at ``path``.
+
+    A file that is not plain YAML (a syntax error, a ``!!python`` tag, binary, too deeply nested) raises one
+    ``ValueError`` naming ``source`` and the file (:func:`~enmi_torch._files.yaml_error_message`); nothing in it runs.
+    """
     import yaml
+
+    from enmi_torch._files import yaml_error_message
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"config file {str(path)!r} does not exist")
-    with path.open() as stream:
-        document = yaml.safe_load(stream)
+        raise FileNotFoundError(f"{source} {str(path)!r} does not exist")
+    try:
+        with path.open() as stream:
+            document = yaml.safe_load(stream)
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as error:
+        raise ValueError(yaml_error_message(path, source, error)) from None
     if not isinstance(document, Mapping):
         raise ValueError(f"config file {str(path)!r} must hold a mapping at top level, got {type(document).__name__}")
     if key not in document:

@@ -19,6 +19,7 @@ from enmi_torch._checks import (
     check_log_prior,
     check_option,
     check_resolved_by_bins,
+    check_same_device,
     check_tensor,
     check_value_range,
 )
@@ -295,6 +296,8 @@ def _prepare(
     """
     check_floating("captured", captured)
     check_tensor("reference", reference)
+    check_same_device("reference", reference, "captured", captured)
+    check_same_device(variance_name, captured_variance, "captured", captured)
     with_candidates = reference.ndim == captured.ndim + 1 and reference.shape[1:] == captured.shape
     if reference.shape != captured.shape and not with_candidates:
         raise ValueError(

@@ -25,6 +25,7 @@ from enmi_torch.geometry.camera import (
     tile_noise_variance,
     visible_projected_area,
 )
+from enmi_torch.geometry.rectify import GroundGrid
 
 PAPER_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "camera" / "paper.yaml"
 RECTANGLES = [  # (x_l, x_u, d_near, d_far): a paper tile, a wide slab, a thin strip far away, a tile off-axis
@@ -252,3 +253,6 @@ def test_from_yaml_refuses_a_malformed_file_naming_it(tmp_path, content, message
     with pytest.raises(ValueError, match=message) as raised:
         RoadCamera.from_yaml(path)
     assert f"camera config file {str(path)!r}" in str(raised.value)
+    with pytest.raises(ValueError, match=message) as raised:  # the grid's loader reads the same files
+        GroundGrid.from_yaml(path)
+    assert f"grid config file {str(path)!r}" in str(raised.value)

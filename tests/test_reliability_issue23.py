@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import ECR, Localization, NoCandidateError, enmi, localize, nmi, nmi_from_joint_histogram
+from enmi_torch import ECR, Localization, NoCandidateError, ecr, enmi, localize, ncc, nmi, nmi_from_joint_histogram
 from enmi_torch._files import read_image
 from enmi_torch.localization.cli import main as localize_main
 
@@ -67,6 +67,9 @@ def test_local_to_map_names_a_wrong_center_or_shape():
         (lambda x: enmi(x, x.to("meta"), variance=4.0), "reference must hold data, got a meta tensor"),
         (lambda x: enmi(x, x, variance=torch.ones_like(x, device="meta")), "variance must hold data"),
         (lambda x: localize(x[..., :8, :8], x.to("meta"), 64.0, shifts=2), "reference must hold data"),
+        (lambda x: ecr(x, x.to("meta"), 4.0), "reference must hold data, got a meta tensor"),
+        (lambda x: ecr(x, x, torch.ones_like(x, device="meta")), "variance must hold data"),
+        (lambda x: ncc(x, x.to("meta")), "reference must hold data, got a meta tensor"),
     ],
 )
 def test_a_reference_without_data_on_the_device_is_named(call, message):

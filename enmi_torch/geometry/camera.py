@@ -28,7 +28,6 @@ from torch import Tensor
 
 from enmi_torch._checks import check_image_shape, check_positive_number
 from enmi_torch._config import check_config_keys, load_yaml_section
-from enmi_torch._files import yaml_error_message
 
 
 @dataclass(frozen=True)
@@ -145,13 +144,7 @@ class RoadCamera:
                 ``!!python/object``, which is refused without running anything) or lacks the section; naming the
                 key, when a value is wrong.
         """
-        import yaml
-
-        try:
-            section = load_yaml_section(path, key)
-        except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as error:
-            raise ValueError(yaml_error_message(path, "camera config file", error)) from None
-        return cls.from_dict(section)
+        return cls.from_dict(load_yaml_section(path, key, "camera config file"))
 
     @property
     def tilt(self) -> float:

@@ -101,7 +101,7 @@ class GroundGrid:
     @classmethod
     def from_yaml(cls, path: str | Path, key: str = "grid") -> GroundGrid:
         """The grid in section ``key`` of a YAML file, e.g. ``configs/camera/paper.yaml``."""
-        return cls.from_dict(load_yaml_section(path, key))
+        return cls.from_dict(load_yaml_section(path, key, "grid config file"))
 
     @property
     def shape(self) -> tuple[int, int]:
