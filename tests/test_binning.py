@@ -203,3 +203,10 @@ def test_truncated_weights_mix_their_near_and_tail_forms_consistently():
 def test_public_binning_functions_refuse_arguments_that_gave_garbage(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+def test_triangular_parzen_weights_on_a_range_that_does_not_start_at_zero():
+    # Bin centres -6, -2, 2, 6 of (-8, 8): -5 lies a quarter of a bin above the first centre.
+    weights = parzen_weights(torch.tensor([-5.0, 3.0], dtype=torch.float64), 4, (-8.0, 8.0), kernel="triangular")
+    expected = torch.tensor([[0.75, 0.25, 0.0, 0.0], [0.0, 0.0, 0.75, 0.25]], dtype=torch.float64)
+    torch.testing.assert_close(weights, expected)
