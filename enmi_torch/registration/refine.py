@@ -103,23 +103,29 @@ def warp_reference(
         >>> warped.flatten().tolist(), valid.flatten().tolist()  # centre pixel (0, 1) on column 2.5 of row 1
         ([6.5, 7.5], [True, True])
     """
-    batch = pose.shape[0]
     height, width = reference.shape[-2:]
     positions = sample_positions(pose, shape)
-    scale = torch.tensor([max(width - 1, 1), max(height - 1, 1)], dtype=pose.dtype, device=pose.device)
-    grid = positions / scale * 2 - 1
-    expanded = reference.expand(batch, -1, -1, -1) if reference.shape[0] == 1 else reference
-    warped = F.grid_sample(expanded.to(pose.dtype), grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    warped = _sample(reference.to(pose.dtype), positions)
     x, y = positions.detach().unbind(-1)
     valid = (x >= margin) & (x <= width - 1 - margin) & (y >= margin) & (y <= height - 1 - margin)
     if reference_mask is not None:
-        unobserved = (~reference_mask).to(pose.dtype).expand(batch, -1, -1, -1)
-        touched = F.grid_sample(unobserved, grid.detach(), mode="bilinear", padding_mode="zeros", align_corners=True)
-        # A cell the bilinear sample leans on at all (weight > 0) must be observed.
-        spread = F.max_pool2d(unobserved, 3, 1, 1)
-        near = F.grid_sample(spread, grid.detach(), mode="nearest", padding_mode="zeros", align_corners=True)
-        valid = valid & (touched[:, 0] <= 0) & (near[:, 0] <= 0)
+        # A cell the bilinear sample leans on at all (weight > 0) must be observed: each lies within the 3 x 3 cells
+        # around the nearest one.
+        near_unobserved = F.max_pool2d((~reference_mask).to(pose.dtype), 3, 1, 1)
+        near = _sample(near_unobserved, positions.detach(), mode="nearest")
+        valid = valid & (near[:, 0] <= 0)
     return warped, valid[:, None]
+
+
+def _sample(reference: Tensor, positions: Tensor, mode: str = "bilinear") -> Tensor:
+    """Bilinear (or nearest) samples ``(B, 1, h, w)`` of a map ``(1 or B, 1, Hm, Wm)`` at positions ``(B, h, w, 2)``.
+
+    Positions are map ``(x, y)`` in cells; a sample off the map is 0.
+    """
+    height, width = reference.shape[-2:]
+    scale = torch.tensor([max(width - 1, 1), max(height - 1, 1)], dtype=positions.dtype, device=positions.device)
+    expanded = reference.expand(positions.shape[0], -1, -1, -1) if reference.shape[0] == 1 else reference
+    return F.grid_sample(expanded, positions / scale * 2 - 1, mode=mode, padding_mode="zeros", align_corners=True)
 
 
 class _Fit:
@@ -408,13 +414,9 @@ class _Stage:
 
     def _residuals(self, fit: _Fit, pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Residuals ``(B, N)``, their Jacobian ``(B, N, 3)`` in the pose, and the scores."""
-        batch = pose.shape[0]
-        height, width = self.reference.shape[-2:]
-        scale = torch.tensor([max(width - 1, 1), max(height - 1, 1)], dtype=pose.dtype, device=pose.device)
-        expanded = self.reference.expand(batch, -1, -1, -1) if self.reference.shape[0] == 1 else self.reference
         with torch.enable_grad():
             positions = sample_positions(pose.detach(), self.shape).requires_grad_(True)
-            warped = F.grid_sample(expanded, positions / scale * 2 - 1, mode="bilinear", align_corners=True)
+            warped = _sample(self.reference, positions)
             # Each sample depends on its own position only: the gradient of the sum is every pixel's own.
             (gradient,) = torch.autograd.grad(warped.sum(), positions)
         # d position / d pose per pixel: x and y move one to one; the yaw turns the pixel about the image's centre.
