@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from skimage import color, data
 
 from enmi_torch import ECR, NCC, localize, register, value_checks, warp_reference
 from enmi_torch.data.scene_change import scene_change
@@ -70,18 +69,12 @@ METHODS = (
 
 
 def _yardstick():
+    """``data_tools/yardstick/yardstick.py``: its grey photographs (``map_image``) and noise profiles."""
     path = Path(__file__).resolve().parents[1] / "yardstick" / "yardstick.py"
     spec = importlib.util.spec_from_file_location("_yardstick", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-def photograph(name: str) -> torch.Tensor:
-    image = getattr(data, name)()
-    if image.ndim == 3:
-        image = color.rgb2gray(image[..., :3]) * 255
-    return torch.from_numpy(image.astype(np.float64))
 
 
 def parse_cell(cell: str) -> tuple[str, float, str | None]:
@@ -93,14 +86,14 @@ def parse_cell(cell: str) -> tuple[str, float, str | None]:
     return sensor, float(sigma), change or None
 
 
-def make_trials(cell: str, count: int, seed: int, profiles):
+def make_trials(cell: str, count: int, seed: int, yardstick):
     """Maps ``(count, 1, H, W)``, captured ``(count, 1, 64, 64)``, variance, integer centres ``(count, 2)``, truth."""
     sensor, sigma, change = parse_cell(cell)
     generator = torch.Generator().manual_seed(seed)
-    unit, _ = profiles(sensor)
+    unit, _ = yardstick.variance_profile(sensor)
     maps, captured, centres, truths = [], [], [], []
     for index in range(count):
-        image = photograph(PHOTOGRAPHS[index % len(PHOTOGRAPHS)])
+        image = yardstick.map_image(PHOTOGRAPHS[index % len(PHOTOGRAPHS)])  # grey, float64 in [0, 255]
         height, width = image.shape
         row = 60 + int(torch.randint(0, height - 120, (1,), generator=generator))
         col = 60 + int(torch.randint(0, width - 120, (1,), generator=generator))
@@ -238,7 +231,7 @@ def main(argv=None) -> None:
         except ImportError:
             parser.error("the SimpleITK methods need SimpleITK: pip install -e '.[bench]' (or leave them out)")
     torch.set_num_threads(1)
-    profiles = _yardstick().variance_profile
+    yardstick = _yardstick()
     print(f"{args.trials} paired trials per cell; torch threads 1; errors in cells (yaw in degrees)", flush=True)
     lines = [
         "| cell | method | found | RMS error, found | RMS error, all | median error | within 0.25 cell "
@@ -247,7 +240,7 @@ def main(argv=None) -> None:
     ]
     began = time.perf_counter()
     for number, cell in enumerate(args.cells):
-        maps, captured, variance, centres, truth = make_trials(cell, args.trials, args.seed + number, profiles)
+        maps, captured, variance, centres, truth = make_trials(cell, args.trials, args.seed + number, yardstick)
         with value_checks(False):
             start_began = time.perf_counter()
             start = start_poses(maps, captured, variance, centres)
