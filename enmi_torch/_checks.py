@@ -197,6 +197,19 @@ def check_resolved_by_bins(
             f"its valid pixels fall in one of the {bins} bins of value_range={value_range}, so the score could not see "
             f"it; pass a value_range that covers the values (e.g. value_range=(0.0, 1.0) for images in [0, 1])"
         )
+    # Most valid pixels far outside the range (0-255 images against value_range=(0, 1)): they all clip into the edge
+    # bins and the few inside decide the score. Noise spilling past the range's edges stays well under this.
+    width = high - low
+    far = ((values < low - width) | (values > high + width)) & keep
+    far_share = far.sum(-1) / keep.sum(-1).clamp_min(1)
+    if bool((far_share > 0.5).any()):
+        sample = int((far_share > 0.5).nonzero()[0, 0])
+        raise ValueError(
+            f"{name} lies far outside value_range={value_range}: {float(far_share[sample]):.0%} of its valid pixels "
+            f"in sample {sample} are more than one range width beyond it ({float(smallest[sample]):.4g} to "
+            f"{float(largest[sample]):.4g}), so they would all clip into the edge bins; pass a value_range that "
+            f"covers the values (e.g. value_range=(0.0, 256.0) for 8-bit images)"
+        )
 
 
 def check_finite_where(name: str, values: Tensor, valid: Tensor | None, mask_name: str = "valid_mask") -> None:

@@ -89,3 +89,29 @@ def test_nmi_from_a_histogram_of_bad_counts_is_refused(count):
     counts[0, 0, 0] = count
     with pytest.raises(ValueError, match="counts must be finite counts >= 0"):
         nmi_from_joint_histogram(counts)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda x, r: nmi(x, r, value_range=(0.0, 1.0)),
+        lambda x, r: enmi(x, r, variance=4.0, value_range=(0.0, 1.0)),
+        lambda x, r: ecr(x, r, 4.0, value_range=(0.0, 1.0)),
+    ],
+)
+def test_images_mostly_far_outside_value_range_are_refused(call):
+    # 0-255 images against value_range=(0, 1), with a few pixels below 1 so that not all fall in one bin: the score
+    # of the few pixels inside was returned (nmi gave 1.0006).
+    generator = torch.Generator().manual_seed(3)
+    captured = torch.rand(1, 1, 24, 20, generator=generator) * 255
+    captured[..., :2, :] = torch.rand(1, 1, 2, 20, generator=generator)
+    with pytest.raises(ValueError, match=r"lies far outside value_range=\(0\.0, 1\.0\): 9\d% of its valid pixels"):
+        call(captured, captured.flip(-1))
+
+
+def test_noise_spilling_past_value_range_is_still_scored():
+    generator = torch.Generator().manual_seed(4)
+    reference = torch.rand(1, 1, 24, 20, generator=generator, dtype=torch.float64) * 256
+    captured = reference + 150.0 * torch.randn(reference.shape, generator=generator, dtype=torch.float64)
+    assert ((captured < 0) | (captured > 256)).double().mean() > 0.3
+    assert torch.isfinite(nmi(captured, reference)).all()
