@@ -247,6 +247,56 @@ def fitted_to(name: str, values: Tensor, dtype: torch.dtype, remedy: str) -> Ten
     return result
 
 
+FLOAT32_MAGNITUDE = 1e18  # float32 sums of squares of larger values overflow (its largest value is 3.4e38)
+
+
+def check_magnitude(name: str, values: Tensor, valid: Tensor | None, mask_name: str = "valid_mask") -> None:
+    """Raise ``ValueError`` if float32 ``values`` exceed :data:`FLOAT32_MAGNITUDE` at a valid position (a value check).
+
+    The scores form squares and products of the values; in float32 those overflow into inf or NaN past ~1e19.
+    """
+    if values.dtype != torch.float32 or not _values_checked(values):
+        return
+    large = values.abs() > FLOAT32_MAGNITUDE
+    if valid is not None:
+        large = large & valid.expand_as(large)
+    if bool(large.any()):
+        raise ValueError(
+            f"{name} holds {int(large.sum())} value(s) beyond +-{FLOAT32_MAGNITUDE:.0e} where {mask_name} is True "
+            f"(largest {float(values[large].abs().max()):.3g}); float32 sums of their squares would overflow: pass "
+            f"float64 images (.double()), rescale them, or mask those pixels out"
+        )
+
+
+def check_variance_fits(name: str, variance: Tensor | float, dtype: torch.dtype, valid: Tensor | None = None) -> None:
+    """Raise ``ValueError`` if a positive finite variance underflows or overflows ``dtype`` (a value check).
+
+    ``variance``: a number, or a tensor broadcast like ``valid`` (``None``: every entry counts). A variance of 1e-40 is
+    0 or subnormal in float32 (NaN weights) and one of 1e39 is inf there.
+    """
+    info = torch.finfo(dtype)
+    if isinstance(variance, Tensor):
+        if not _values_checked(variance) or torch.finfo(variance.dtype).max <= info.max / 1e3:
+            return
+        keep = torch.isfinite(variance) & (variance > 0)
+        if valid is not None:
+            keep = keep & valid
+        positive = variance[keep]
+        if positive.numel() == 0:
+            return
+        low, high = float(positive.min()), float(positive.max())
+    else:
+        if not (0 < variance < float("inf")):
+            return
+        low = high = float(variance)
+    if low < info.tiny or high > info.max / 1e3:
+        value = low if low < info.tiny else high
+        raise ValueError(
+            f"{name} must lie within {info.tiny:.3g} to {info.max / 1e3:.3g} to be held in {dtype}, got {value:.3g}; "
+            f"pass float64 images (.double()) or rescale the images and their variance"
+        )
+
+
 def check_positive_where(name: str, values: Tensor, valid: Tensor | None) -> None:
     """Raise ``ValueError`` if ``values`` is not finite and > 0 at a valid position (a value check)."""
     if not _values_checked(values):

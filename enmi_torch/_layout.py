@@ -15,6 +15,7 @@ from enmi_torch._checks import (
     check_not_empty,
     check_positive_where,
     check_tensor,
+    check_variance_fits,
 )
 
 
@@ -90,6 +91,11 @@ def variance_map(name: str, variance: Tensor | float, like: Tensor, dtype: torch
 
     ``valid`` is ``None`` (every pixel) or a bool ``(B, N)``.
     """
-    flat = scalar_or_map(name, variance, like).to(dtype).expand(like.shape[0], like[0].numel())
+    if isinstance(variance, (int, float)) and not isinstance(variance, bool):
+        check_variance_fits(name, float(variance), dtype)
+        variance = torch.tensor(float(variance), dtype=dtype, device=like.device)
+    given = scalar_or_map(name, variance, like).expand(like.shape[0], like[0].numel())
+    check_variance_fits(name, given, dtype, valid)
+    flat = given.to(dtype)
     check_positive_where(name, flat, valid)
     return flat if valid is None else torch.where(valid, flat, 1.0)

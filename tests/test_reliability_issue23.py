@@ -115,3 +115,40 @@ def test_noise_spilling_past_value_range_is_still_scored():
     captured = reference + 150.0 * torch.randn(reference.shape, generator=generator, dtype=torch.float64)
     assert ((captured < 0) | (captured > 256)).double().mean() > 0.3
     assert torch.isfinite(nmi(captured, reference)).all()
+
+
+def test_float32_surfaces_refuse_values_whose_squares_overflow_and_float64_scores_them():
+    from enmi_torch import ecr_surface
+
+    captured, reference = _scene()
+    captured[..., 3, 3] = 1e30  # one wild pixel: float32 squares overflowed into a NaN surface
+    with pytest.raises(ValueError, match=r"captured holds 1 value\(s\) beyond \+-1e\+18 where captured_mask is True"):
+        ecr_surface(captured, reference, 4.0, bins=16)
+    with pytest.raises(ValueError, match=r"captured holds 1 value\(s\) beyond"):  # was 'no candidate passes'
+        localize(captured, reference, 4.0, score=ECR(bins=16), shifts=3)
+    surface = ecr_surface(captured.double(), reference.double(), 4.0, bins=16)
+    assert torch.isfinite(surface.score).all()
+
+
+@pytest.mark.parametrize(("scale", "variance", "shown"), [(1e-20, 4.0, "4e-40"), (1e19, 4.0, r"4e\+38")])
+def test_a_variance_float32_cannot_hold_is_refused_and_float64_scores_it(scale, variance, shown):
+    from enmi_torch import ecr_surface
+
+    captured, reference = _scene()
+    captured, reference = (captured * scale).double(), (reference * scale).double()
+    options = {"bins": 16, "value_range": (0.0, 256 * scale)}
+    wide = ecr_surface(captured, reference, variance * scale**2, **options)
+    assert torch.isfinite(wide.score).all() and divmod(int(wide.score[0].argmax()), 33) == (14, 19)
+    for given in (variance * scale**2, torch.full_like(captured, variance * scale**2)):
+        with pytest.raises(ValueError, match=rf"variance must lie within 1.18e-38 to 3.4e\+35 .* got {shown}"):
+            enmi(captured.float(), captured.float(), variance=given, value_range=options["value_range"])
+
+
+def test_float32_ncc_of_a_wild_pixel_equals_float64():
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(1, 1, 16, 16, generator=generator) * 256
+    captured = reference + 3 * torch.randn(1, 1, 16, 16, generator=generator)
+    captured[..., 3, 3] = 1e30  # the squares overflowed float32: the score came out 0, float64 says 0.114
+    expected = ncc(captured.double(), reference.double())
+    assert 0.05 < float(expected) < 0.5
+    torch.testing.assert_close(ncc(captured, reference), expected.float())

@@ -14,7 +14,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_captured_in_reference, check_finite_where, check_resolved_by_bins
+from enmi_torch._checks import (
+    check_captured_in_reference,
+    check_finite_where,
+    check_magnitude,
+    check_resolved_by_bins,
+)
 from enmi_torch._layout import mask_map, variance_map
 
 
@@ -64,6 +69,8 @@ def check_inputs(
     reference_valid = _mask("reference_mask", reference_mask, reference)
     check_finite_where("captured", local_flat, captured_valid, "captured_mask")
     check_finite_where("reference", window_flat, reference_valid, "reference_mask")
+    check_magnitude("captured", local_flat, captured_valid, "captured_mask")
+    check_magnitude("reference", window_flat, reference_valid, "reference_mask")
     if bins is not None:
         check_resolved_by_bins("captured", local_flat, captured_valid, bins, value_range)
     if reference_bins is not None:

@@ -57,6 +57,10 @@ def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None
     count = weight.sum(-1, keepdim=True)
 
     def centred(values: Tensor) -> Tensor:
+        # Pearson does not see a positive scale: dividing by the largest valid magnitude first keeps the squares of
+        # large values (1e30 in float32) from overflowing into a score of 0.
+        scale = (values.detach().abs() * weight).amax(-1, keepdim=True)
+        values = values / torch.where(scale > 0, scale, 1.0)
         return (values - (values * weight).sum(-1, keepdim=True) / count.clamp_min(1)) * weight
 
     captured_centred, reference_centred = centred(inputs.captured), centred(inputs.reference)
