@@ -10,6 +10,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Subset
 
 from enmi_torch._checks import check_non_negative_int, check_option, check_positive_int, check_positive_number
 from enmi_torch.data.pairs import PairDataset
+from enmi_torch.data.resumable import ResumableLoader, ResumableSampler
 from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs, gravel_texture
 from enmi_torch.data.truth import FLAVOURS, VarianceTruth, make_truth
 
@@ -83,6 +84,8 @@ class PairDataModule(LightningDataModule):
         if not isinstance(keep_pairs, bool):
             raise TypeError(f"keep_pairs must be a bool, got {type(keep_pairs).__name__}")
         self.keep_pairs = keep_pairs
+        self._train_loader: ResumableLoader | None = None
+        self._train_loader_state: dict[str, int] | None = None  # from a checkpoint, for the next training loader
         # Checked for synthetic data too (where val_pairs holds out instead): a wrong value is never passed over.
         if not 0 < check_positive_number("val_fraction", val_fraction) < 1:
             raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
@@ -128,8 +131,10 @@ class PairDataModule(LightningDataModule):
             raise ValueError(f"batch_size must be divisible by the number of processes {world}, got {self.batch_size}")
         return world, rank, self.batch_size // world
 
-    def _loader(self, dataset: Dataset, sampler: DistributedSampler, batch_size: int) -> DataLoader:
-        return DataLoader(
+    def _loader(
+        self, dataset: Dataset, sampler: DistributedSampler, batch_size: int, loader: type[DataLoader] = DataLoader
+    ) -> DataLoader:
+        return loader(
             dataset,
             batch_size=batch_size,
             sampler=sampler,
@@ -138,10 +143,34 @@ class PairDataModule(LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        """Shuffled each epoch by ``seed + epoch``; global batches are the same whatever the number of processes."""
+        """Shuffled each epoch by ``seed + epoch``; global batches are the same whatever the number of processes.
+
+        A :class:`~enmi_torch.data.resumable.ResumableLoader`: a fit resumed from a checkpoint written mid-epoch goes
+        on from the batch where it stopped.
+        """
         world, rank, batch_size = self._world()
-        sampler = DistributedSampler(self.train_set, num_replicas=world, rank=rank, shuffle=True, seed=self.seed)
-        return self._loader(self.train_set, sampler, batch_size)
+        sampler = ResumableSampler(self.train_set, num_replicas=world, rank=rank, shuffle=True, seed=self.seed)
+        self._train_loader = self._loader(self.train_set, sampler, batch_size, ResumableLoader)
+        if self._train_loader_state is not None:
+            self._train_loader.load_state_dict(self._train_loader_state)
+            self._train_loader_state = None
+        return self._train_loader
+
+    def state_dict(self) -> dict[str, dict[str, int]]:
+        """The training loader's place in its epoch, saved in checkpoints.
+
+        Lightning also saves the loader's own state, but restores it only if the training loader is built after the
+        checkpoint's loops are loaded; a learning-rate schedule over ``estimated_stepping_batches`` builds it before.
+        This state is restored earlier, with the data module's.
+        """
+        return {} if self._train_loader is None else {"train_loader": self._train_loader.state_dict()}
+
+    def load_state_dict(self, state_dict: dict[str, dict[str, int]]) -> None:
+        """Resume the next training loader where the checkpoint's stopped (see :meth:`state_dict`)."""
+        if "train_loader" in state_dict:
+            self._train_loader_state = state_dict["train_loader"]
+            if self._train_loader is not None:
+                self._train_loader.load_state_dict(self._train_loader_state)
 
     def val_dataloader(self) -> DataLoader:
         """Held-out pairs, each seen once over all processes."""

@@ -7,9 +7,8 @@ SIGTERM (what a cluster scheduler sends before preempting a job) or SIGINT (Ctrl
 writes ``last.ckpt``, prints one line saying how to resume and ends the run with :class:`Preempted` (exit code 143
 for SIGTERM, 130 for SIGINT). A second Ctrl+C stops at once, without a checkpoint.
 
-Resuming from an end-of-epoch checkpoint gives the mask of an uninterrupted run; from a checkpoint written within an
-epoch, the resumed run draws the rest of that epoch from the epoch's first batches (Lightning's loaders here are not
-resumable), close to, not the same as, an uninterrupted run.
+Resuming gives the mask of an uninterrupted run, from an epoch's end or from within an epoch: the training loader
+(:class:`~enmi_torch.data.resumable.ResumableLoader`) goes on from the batch after the checkpoint's.
 """
 
 from __future__ import annotations

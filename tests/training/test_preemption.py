@@ -12,10 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from lightning.pytorch import Trainer
+from lightning.pytorch import Callback, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
+from torch.utils._pytree import tree_leaves
 
 from enmi_torch.data import PairDataModule
+from enmi_torch.data.resumable import ResumableLoader, ResumableSampler
 from enmi_torch.training.fit_mask import fit_mask
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import Preemption, _without_ckpt_path
@@ -152,3 +154,83 @@ def test_a_checkpoint_every_n_training_steps_within_an_epoch(tmp_path):
     trainer.fit(MaskFitModule(shape=datamodule.shape), datamodule=datamodule, weights_only=True)
     assert saved == [(2, 2), (3, 3), (4, 4), (6, 6)]  # steps 2 and 4, the ends of epochs (3, 6), not twice at 6
     assert not list(tmp_path.glob(".*partial"))
+
+
+class _Seen(Callback):
+    """The sum of each training batch's first tensor, in the order the fit sees them; SIGTERM noted at ``stop_at``."""
+
+    def __init__(self, preemption: Preemption | None = None, stop_at: int | None = None) -> None:
+        self.sums, self.preemption, self.stop_at = [], preemption, stop_at
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.sums.append(float(tree_leaves(batch)[0].double().sum()))
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == self.stop_at:  # as if the scheduler sent SIGTERM during this step
+            self.preemption._signal = signal.SIGTERM
+
+
+def _mid_epoch_trainer(tmp_path, *callbacks):
+    return Trainer(
+        accelerator="cpu",
+        max_epochs=3,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=100,
+        default_root_dir=tmp_path,
+        callbacks=[ModelCheckpoint(dirpath=tmp_path, save_top_k=0, save_last=True), *callbacks],
+    )
+
+
+def test_a_fit_stopped_mid_epoch_resumes_on_the_next_batch_to_the_uninterrupted_weights(tmp_path):
+    def fit(folder, callbacks, ckpt_path=None):
+        datamodule = PairDataModule(train_pairs=48, val_pairs=8, size=16, batch_size=16, seed=3)  # 3 steps per epoch
+        module = MaskFitModule(shape=datamodule.shape)
+        trainer = _mid_epoch_trainer(tmp_path / folder, *callbacks)
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=ckpt_path is None)
+        return module
+
+    torch.manual_seed(0)
+    whole = _Seen()
+    uninterrupted = fit("whole", [whole])
+    assert len(whole.sums) == 9 and len(set(whole.sums)) == 9
+
+    torch.manual_seed(0)
+    preemption = Preemption()
+    stopped = _Seen(preemption, stop_at=5)  # the 2nd of epoch 1's 3 steps
+    with pytest.raises(SystemExit) as stop:
+        fit("stopped", [stopped, preemption])
+    assert stop.value.code == 143 and stopped.sums == whole.sums[:5]
+    checkpoint = tmp_path / "stopped" / "last.ckpt"
+    state = torch.load(checkpoint, weights_only=False)
+    assert state["global_step"] == 5 and state["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [
+        {"epoch": 1, "batches": 2}
+    ]
+
+    rest = _Seen()
+    resumed = fit("resumed", [rest], ckpt_path=checkpoint)
+    assert stopped.sums + rest.sums == whole.sums  # the last batch of epoch 1, then epoch 2: no batch twice
+    for (name, value), (_, expected) in zip(
+        resumed.state_dict().items(), uninterrupted.state_dict().items(), strict=True
+    ):
+        torch.testing.assert_close(value, expected, rtol=0, atol=0, msg=name)
+
+
+def test_a_resumable_loader_skips_only_within_the_epoch_it_stopped_in():
+    dataset = torch.arange(10.0)
+    loader = ResumableLoader(dataset, batch_size=4, sampler=ResumableSampler(dataset, 1, 0, shuffle=False))
+    assert [batch.tolist() for batch in loader] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9]]
+    assert loader.state_dict() == {"epoch": 0, "batches": 3}
+    loader.load_state_dict({"epoch": 0, "batches": 1})
+    assert [batch.tolist() for batch in loader] == [[4, 5, 6, 7], [8, 9]] and loader.state_dict()["batches"] == 3
+    loader.load_state_dict({"epoch": 0, "batches": 3})  # the epoch's end: the next pass is whole
+    assert len(list(loader)) == 3
+    loader.load_state_dict({"epoch": 4, "batches": 1})  # another epoch's state
+    assert len(list(loader)) == 3
+    with pytest.raises(ValueError, match="a ResumableLoader state must be"):
+        loader.load_state_dict({"batches": 1})
+    with pytest.raises(TypeError, match="sampler must be a ResumableSampler, got SequentialSampler"):
+        ResumableLoader(dataset, batch_size=4)
