@@ -116,11 +116,13 @@ def test_sigterm_and_sigint_write_a_checkpoint_and_say_how_to_resume(tmp_path, s
     hint = shlex.split(found.group(4))
     assert hint[0] == "enmi-fit-mask" and hint[-2:] == ["--ckpt_path", str(checkpoint)]
     assert hint[1:-2] == arguments(tmp_path, "stopped")
-    if stop == signal.SIGTERM:  # the hint's command finishes the run
+    if stop == signal.SIGTERM:  # the hint's command finishes the run, to the uninterrupted run's mask
         resumed = fit_mask(hint[1:])
         assert resumed["epochs"] == 200 and np.isfinite(mask(resumed)).any()
         final = torch.load(resumed["last_checkpoint"], weights_only=True)
         assert final["global_step"] == 4 * 200
+        uninterrupted = fit_mask(arguments(tmp_path, "uninterrupted"))
+        np.testing.assert_allclose(mask(resumed), mask(uninterrupted), rtol=1e-6, atol=0)
 
 
 def test_the_resume_hint_replaces_an_earlier_ckpt_path():
