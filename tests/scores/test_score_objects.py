@@ -343,6 +343,17 @@ def test_ncc_has_a_gradient():
     assert torch.autograd.gradcheck(lambda image: ncc_loss(image, candidates[0], reduction="sum"), (captured,))
 
 
+def test_ncc_loss_is_one_minus_ncc_zero_for_a_match_and_two_for_an_inverted_one():
+    captured, candidates, _, valid = _pairs(torch.float64)
+    reference = candidates[0]
+    expected = 1 - ncc(captured, reference, valid_mask=valid)
+    torch.testing.assert_close(ncc_loss(captured, reference, valid_mask=valid, reduction="none"), expected)
+    assert ncc_loss(captured, 3 * captured + 1).abs().max() < 1e-12
+    torch.testing.assert_close(
+        ncc_loss(captured, -captured, reduction="sum"), torch.tensor(2.0 * len(captured)).double()
+    )
+
+
 def test_score_loss_is_the_score_loss_with_a_variance_model_and_buffers():
     captured, candidates, _, valid = _pairs(torch.float64)
     reference = candidates[0]
