@@ -279,6 +279,29 @@ def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
     assert float(error) < 0.5
 
 
+def test_a_lone_match_elsewhere_after_weak_frames_does_not_move_a_filter_that_was_right(generator):
+    # Two frames without a match (noise), then one frame that matches another place (as a static occluder or a
+    # repeated pattern can), then the vehicle's own frames again: one frame's best match over the wide window is no
+    # reason to jump (it jumped 27 cells before the wide searches of two frames had to agree).
+    reference = _texture(generator, (120, 240))
+    settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
+    tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
+    tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
+    x, y = 40, 60
+    noise = torch.Generator().manual_seed(5)
+    for step in range(12):
+        x += 3
+        frame = _cut(reference, x, y)
+        if step in (5, 6):
+            frame = torch.rand(frame.shape, generator=noise, dtype=frame.dtype) * 256
+        if step == 7:
+            frame = _cut(reference, x + 25, y - 12)
+        output = tracker(frame.float(), torch.tensor([[3.0, 0.0, 0.0]]), 1.0)
+        assert not bool(output.relocalized[0]), step
+    assert float((output.pose[0, :2] - torch.tensor([x, y], dtype=torch.float64)).abs().max()) < 0.5
+    assert bool(output.healthy[0]) and not bool(output.lost[0])
+
+
 def test_batched_vehicles_equal_one_at_a_time(generator):
     reference = _texture(generator, (80, 120)).float()
     starts = torch.tensor([[40.0, 30.0, 0.0], [70.0, 45.0, 0.0]])
@@ -524,3 +547,38 @@ def test_update_refuses_a_positive_infinite_log_likelihood_instead_of_taking_it_
     likelihood[0, 0, 1, 1] = math.inf
     with pytest.raises(ValueError, match=r"log_likelihood must be finite, -inf or NaN .* got 1 cell\(s\) of \+inf"):
         update(belief, likelihood)
+
+
+def test_the_peak_z_score_of_a_nearly_flat_log_likelihood_stays_small():
+    from enmi_torch.tracking.health import peak_z_score
+
+    # A featureless frame: a few nats of bump on a log-likelihood whose MAD is a hundredth of a nat. Its z-score was
+    # ~3e8, which passed every peak rule and, averaged into the recent matches' z, made every later match look weak.
+    generator = torch.Generator().manual_seed(0)
+    flat = 0.01 * torch.randn(5, 17, 17, generator=generator, dtype=torch.float64)
+    flat[2, 8, 8] = 2.5
+    median = flat.median()
+    assert float(peak_z_score(flat)) > 100
+    torch.testing.assert_close(peak_z_score(flat, min_spread=1.0), 2.5 - median)
+    # A clear peak on a spread surface is not changed by the floor.
+    spread = 30.0 * torch.randn(5, 17, 17, generator=generator, dtype=torch.float64)
+    spread[2, 8, 8] = 400.0
+    torch.testing.assert_close(peak_z_score(spread, min_spread=1.0), peak_z_score(spread))
+    assert 8 < float(peak_z_score(spread)) < 20
+
+
+def test_one_freak_peak_counts_at_most_twice_the_running_mean_of_the_matches():
+    from enmi_torch.tracking.health import check_health, next_health
+
+    health = check_health(None, 2, torch.device("cpu"))
+    yes, no = torch.tensor([True, True]), torch.tensor([False, False])
+    no_candidate = torch.full((2, 3), math.nan, dtype=torch.float64)
+    health = next_health(
+        health, yes, no, torch.zeros(2), torch.tensor([5.0, 5.0]), torch.tensor([8.0, 8.0]), no_candidate
+    )
+    health = next_health(
+        health, yes, no, torch.zeros(2), torch.tensor([91.0, 6.0]), torch.tensor([8.0, 8.0]), no_candidate
+    )
+    torch.testing.assert_close(health.typical_z, torch.tensor([0.7 * 5 + 0.3 * 10, 0.7 * 5 + 0.3 * 6]).double())
+    relocalized = next_health(health, yes, yes, torch.zeros(2), torch.tensor([91.0, 2.0]), torch.ones(2), no_candidate)
+    assert relocalized.typical_z.tolist() == [91.0, 2.0]  # a relocalization starts afresh

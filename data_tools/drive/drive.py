@@ -56,6 +56,8 @@ from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
 from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
+from enmi_torch.tracking.belief import finite_floor
+from enmi_torch.tracking.health import peak_z_score
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
 
@@ -264,7 +266,8 @@ def calibrate(drive: Drive, method: str) -> Calibration:
         yaws = (yaw_centers[index] + torch.arange(-2.0, 3.0) * YAW_STEP).tolist()
         surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, score)
         surfaces.append(surface.surface[0].double())
-        aligned_z.append(_peak_z(surface.surface[0]))
+        # The tracker's z-score: over the log-likelihood in nats, its spread at least one nat.
+        aligned_z.append(float(peak_z_score(finite_floor(surface.surface[0].double()) * count, min_spread=1.0)))
     grid_truth = torch.stack(
         [
             truth_cells[:, 0] - centers[:, 0] + SHIFTS,
@@ -277,13 +280,6 @@ def calibrate(drive: Drive, method: str) -> Calibration:
     # Aligned frames pass 95 % of the time; wrong windows are caught by the prediction (surprise) instead.
     threshold = float(torch.tensor(aligned_z).quantile(0.05))
     return Calibration(score.name, temperature, threshold)
-
-
-def _peak_z(surface: torch.Tensor) -> float:
-    values = surface.double().flatten()
-    values = values[torch.isfinite(values)]
-    median = values.median()
-    return float((values.max() - median) / (1.4826 * (values - median).abs().median()).clamp_min(1e-12))
 
 
 def search(frame, reference, variance, valid, center, yaws, score: Score) -> Localization:

@@ -1,6 +1,6 @@
 """The filter's health: which frames' matches are used, by the peak-z and surprise rules.
 
-A frame whose surface has no clear peak (the best score's robust z-score, :func:`peak_z_score`, below
+A frame whose surface has no clear peak (the robust z-score of its log-likelihood's peak, :func:`peak_z_score`, below
 ``min_peak_z``, or below ``z_drop`` times the recent matches') or whose peak the prediction rules out
 (:func:`prediction_surprise`: more than ``max_surprise`` nats below the prediction's best) is not used
 (:func:`usable`); :class:`Health` counts such frames per vehicle (after ``patience`` of them the tracker
@@ -26,30 +26,45 @@ class Health(NamedTuple):
         typical_temperature: ``(B,)`` float64 running mean of the used matches' grid temperatures
             (:func:`~enmi_torch.tracking.calibration.grid_temperature`; NaN before the first): a frame with no clear
             peak is read at the scale of the recent clear ones.
+        candidate: ``(B, 3)`` float64 where the last frame's wide search found its best match, ``(x, y, yaw)``
+            relative to that frame's predicted window centre (NaN when the last frame made no wide search): the
+            tracker relocalizes only where two frames' wide searches agree.
     """
 
     weak_frames: Tensor
     typical_z: Tensor
     typical_temperature: Tensor
+    candidate: Tensor
 
 
 def check_health(health: object, batch: int, device: torch.device) -> Health:
     """The previous step's :class:`Health` checked against the batch, or a fresh one for ``None``."""
     if health is None:
         nothing = torch.full((batch,), math.nan, dtype=torch.float64, device=device)
-        return Health(torch.zeros(batch, dtype=torch.int64, device=device), nothing, nothing.clone())
-    if not isinstance(health, Health) or any(part.shape != (batch,) for part in health):
+        no_candidate = torch.full((batch, 3), math.nan, dtype=torch.float64, device=device)
+        return Health(torch.zeros(batch, dtype=torch.int64, device=device), nothing, nothing.clone(), no_candidate)
+    if (
+        not isinstance(health, Health)
+        or any(part.shape != (batch,) for part in health[:3])
+        or health.candidate.shape != (batch, 3)
+    ):
         raise ValueError(
-            f"health must be a Health of ({batch},) tensors from the previous step or None, got {health!r}"
+            f"health must be a Health of ({batch},) tensors and a ({batch}, 3) candidate from the previous step or "
+            f"None, got {health!r}"
         )
     return health
 
 
-def peak_z_score(surface: Tensor) -> Tensor:
-    """Robust z-score of the best value of a surface: ``(best - median) / (1.4826 MAD)``."""
+def peak_z_score(surface: Tensor, min_spread: float = 0.0) -> Tensor:
+    """Robust z-score of the best value of a surface: ``(best - median) / max(1.4826 MAD, min_spread)``.
+
+    ``min_spread``: the smallest spread counted, in the surface's units. The tracker passes log-likelihoods in nats
+    with ``min_spread=1``: a nearly flat surface (a featureless frame, a MAD of hundredths of a nat) would otherwise
+    get an enormous z-score for a peak of a few nats.
+    """
     values = surface.flatten()
     median = values.median()
-    spread = 1.4826 * (values - median).abs().median()
+    spread = (1.4826 * (values - median).abs().median()).clamp_min(min_spread)
     return (values.max() - median) / spread.clamp_min(1e-12 * values.abs().max().clamp_min(1e-300))
 
 
@@ -68,20 +83,33 @@ def usable(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, 
 
 
 def next_health(
-    health: Health, healthy: Tensor, relocalized: Tensor, weak_frames: Tensor, peak_z: Tensor, temperature: Tensor
+    health: Health,
+    healthy: Tensor,
+    relocalized: Tensor,
+    weak_frames: Tensor,
+    peak_z: Tensor,
+    temperature: Tensor,
+    candidate: Tensor,
 ) -> Health:
     """The health after a frame: ``weak_frames`` so far, the running peak z-score and temperature of the used matches.
 
-    ``temperature`` ``(B,)`` is each frame's own grid temperature (NaN where it has none).
+    ``temperature`` ``(B,)`` is each frame's own grid temperature (NaN where it has none); ``candidate`` ``(B, 3)``
+    this frame's wide-search match (NaN where none was made), dropped where the frame was used.
     """
     weak_frames = torch.where(healthy, 0, weak_frames)
     typical_z = _running(health.typical_z, peak_z, healthy, relocalized)
     typical_temperature = _running(health.typical_temperature, temperature, healthy, relocalized)
-    return Health(weak_frames, typical_z, typical_temperature)
+    candidate = torch.where(healthy[:, None], math.nan, candidate)
+    return Health(weak_frames, typical_z, typical_temperature, candidate)
 
 
 def _running(old: Tensor, new: Tensor, healthy: Tensor, relocalized: Tensor) -> Tensor:
-    """A running mean (0.3 on the newest) over the used matches; a relocalization or the first match resets it."""
+    """A running mean (0.3 on the newest) over the used matches; a relocalization or the first match resets it.
+
+    A new value counts at most twice the running mean: one freak peak (a z-score of 90 where the matches run at 7)
+    would otherwise make every later match look weak next to it.
+    """
     fresh = relocalized | ~torch.isfinite(old)
     used = healthy & torch.isfinite(new)
+    new = torch.where(fresh, new, torch.minimum(new, 2 * old))
     return torch.where(used, torch.where(fresh, new, 0.7 * old + 0.3 * new), old)

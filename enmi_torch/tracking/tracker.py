@@ -11,7 +11,8 @@ One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of fra
 * health (:mod:`~enmi_torch.tracking.health`): a frame whose surface has no clear peak, or whose peak the prediction
   rules out, is not used; after ``patience`` such frames the filter searches a wider window (a coarse-to-fine
   :func:`~enmi_torch.localize`): if that search lands on the window's own peak the frame is used after all, and if it
-  finds a match better than the window's by ``relocalize_odds`` nats the filter restarts there (relocalization);
+  finds a match better than the window's by ``relocalize_odds`` nats where the previous frame's wide search found its
+  own (two frames agreeing), the filter restarts there (relocalization);
 * a window with no candidate at all (off the map, a frame fully masked: :class:`~enmi_torch.NoCandidateError` from
   the search) is a frame without a match: the belief coasts on the odometry. ``lost`` says that the filter has gone
   ``patience`` frames without a match and the wide search has not found the vehicle again.
@@ -63,7 +64,8 @@ class TrackOutput(NamedTuple):
         healthy: ``(B,)`` bool: this frame's match was used (a clear peak that the prediction allows).
         relocalized: ``(B,)`` bool: the filter searched the wide window this frame and restarted there.
         score: ``(B,)`` best score of the frame's surface (NaN where the window had no candidate).
-        peak_z: ``(B,)`` the best score's robust z-score over the surface (``(best - median) / (1.4826 MAD)``; NaN
+        peak_z: ``(B,)`` the peak's robust z-score over the frame's log-likelihood ``score * n_valid``
+            (``(best - median) / max(1.4826 MAD, 1 nat)``, :func:`~enmi_torch.tracking.health.peak_z_score`; NaN
             where the window had no candidate).
         lost: ``(B,)`` bool: ``patience`` or more frames in a row without a usable match, and no relocalization
             yet: the pose is dead reckoning and the belief grows with the odometry's noise.
@@ -131,8 +133,9 @@ def track_step(
         relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
         coarse_factor: pooling factor of the coarse-to-fine relocalization search.
         relocalize_odds: the relocalization moves the belief only if its match beats the window's best by this
-            many nats of (tempered) log-likelihood and its peak is as clear and as sharp as the recent matches'
-            (``z_drop``), or lands within 1.5 cells of the window's own peak. With the
+            many nats of (tempered) log-likelihood, its peak is as clear and as sharp as the recent matches'
+            (``z_drop``) and the previous frame's wide search found the same place (within 2 cells and 2 yaw bins of
+            the predicted window), or lands within 1.5 cells of the window's own peak. With the
             ``"auto"`` temperature a clear match's peak stands ~10 nats above no match: 5 nats are odds of ~150 to 1.
         refine: also register each used frame from the posterior pose (``TrackOutput.refined``): ECR or NCC only.
 
@@ -183,6 +186,7 @@ def track_step(
     relocalized = torch.zeros_like(healthy)
     log_prob = prior.log_prob.clone()
     center, yaw_center = prior.center.clone(), prior.yaw_center.clone()
+    candidate = torch.full_like(health.candidate, math.nan)
     for vehicle in (weak_frames >= patience).nonzero()[:, 0].tolist():
         found = search.wide(vehicle, prior, relocalize_shifts, relocalize_yaw_bins, coarse_factor)
         if found is None:
@@ -190,6 +194,17 @@ def track_step(
         window_peak = _peak_position(prior, log_likelihood, vehicle)
         if bool((window_peak - found[:2].to(window_peak)).abs().max() <= 1.5) and bool(peak_z[vehicle] >= min_peak_z):
             healthy[vehicle] = True  # the wide search confirms the window's own peak: use the frame
+            continue
+        # One frame's best match over the wide window is the best of many noisy candidates: jump only where the
+        # previous frame's wide search found the same place (relative to the predicted window, within 2 cells and
+        # 2 yaw bins). A lone false peak in a noisy stretch no longer moves a filter that was right.
+        offset = found.to(candidate) - torch.stack([center[vehicle, 1], center[vehicle, 0], yaw_center[vehicle]]).to(
+            candidate
+        )
+        previous = health.candidate[vehicle]
+        candidate[vehicle] = offset
+        agrees = bool(torch.isfinite(previous).all()) and bool((offset[:2] - previous[:2]).abs().max() <= 2.0)
+        if not (agrees and bool((offset[2] - previous[2]).abs() <= 2 * prior.yaw_step)):
             continue
         fresh = _restart(prior, vehicle, found)
         fresh_raw, fresh_score, fresh_z, fresh_temperature = search.window(fresh, vehicle)
@@ -211,7 +226,8 @@ def track_step(
     healthy = healthy | relocalized
     posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
-    health = next_health(health, healthy, relocalized, weak_frames, peak_z, frame_temperature)
+    candidate = torch.where(relocalized[:, None], math.nan, candidate)
+    health = next_health(health, healthy, relocalized, weak_frames, peak_z, frame_temperature, candidate)
     lost = health.weak_frames >= patience
     refined = torch.full_like(pose, math.nan)
     if refine:
@@ -398,7 +414,7 @@ class _Searcher:
             log_likelihood = surface * self.valid_count[vehicle].to(surface.device)
             likelihoods.append(log_likelihood)
             scores.append(surface.max())
-            z_scores.append(peak_z_score(surface))
+            z_scores.append(peak_z_score(log_likelihood, min_spread=1.0))
             temperatures.append(grid_temperature(log_likelihood[None])[0])
         return torch.stack(likelihoods), torch.stack(scores), torch.stack(z_scores), torch.stack(temperatures)
 
