@@ -105,15 +105,16 @@ def test_images_mostly_far_outside_value_range_are_refused(call):
     generator = torch.Generator().manual_seed(3)
     captured = torch.rand(1, 1, 24, 20, generator=generator) * 255
     captured[..., :2, :] = torch.rand(1, 1, 2, 20, generator=generator)
-    with pytest.raises(ValueError, match=r"lies far outside value_range=\(0\.0, 1\.0\): 9\d% of its valid pixels"):
+    with pytest.raises(ValueError, match=r"lies far outside value_range=\(0\.0, 1\.0\): [89]\d% of its valid pixels .* more than 8 range widths"):
         call(captured, captured.flip(-1))
 
 
 def test_noise_spilling_past_value_range_is_still_scored():
     generator = torch.Generator().manual_seed(4)
     reference = torch.rand(1, 1, 24, 20, generator=generator, dtype=torch.float64) * 256
-    captured = reference + 150.0 * torch.randn(reference.shape, generator=generator, dtype=torch.float64)
-    assert ((captured < 0) | (captured > 256)).double().mean() > 0.3
+    # std 640: the paper's simulation at its largest noise power, on its farthest tiles
+    captured = reference + 640.0 * torch.randn(reference.shape, generator=generator, dtype=torch.float64)
+    assert ((captured < 0) | (captured > 256)).double().mean() > 0.7
     assert torch.isfinite(nmi(captured, reference)).all()
 
 
