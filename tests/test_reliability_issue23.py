@@ -105,7 +105,11 @@ def test_images_mostly_far_outside_value_range_are_refused(call):
     generator = torch.Generator().manual_seed(3)
     captured = torch.rand(1, 1, 24, 20, generator=generator) * 255
     captured[..., :2, :] = torch.rand(1, 1, 2, 20, generator=generator)
-    with pytest.raises(ValueError, match=r"lies far outside value_range=\(0\.0, 1\.0\): [89]\d% of its valid pixels .* more than 8 range widths"):
+    far = r"lies far outside value_range=\(0\.0, 1\.0\): [89]\d% of its valid pixels .* more than 8 range widths"
+    with pytest.raises(
+        ValueError,
+        match=far,
+    ):
         call(captured, captured.flip(-1))
 
 

@@ -302,18 +302,40 @@ def test_a_lone_match_elsewhere_after_weak_frames_does_not_move_a_filter_that_wa
     assert bool(output.healthy[0]) and not bool(output.lost[0])
 
 
+def test_a_weak_frame_whose_wide_search_lands_on_the_window_peak_is_used_without_a_jump(generator):
+    # After clear frames (peak z ~60), noisy ones (z ~10) fall under z_drop times the recent matches' z: skipped. The
+    # second such frame searches wide; its best match is the window's own peak, so the frame is used, no restart.
+    reference = _texture(generator, (120, 240))
+    settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
+    tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
+    tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
+    x, noise, outputs = 40, torch.Generator().manual_seed(1), []
+    for step in range(7):
+        x += 3
+        frame, variance = _cut(reference, x, 60), 1.0
+        if step >= 5:
+            frame, variance = frame + 100.0 * torch.randn(frame.shape, generator=noise, dtype=frame.dtype), 1e4
+        outputs.append(tracker(frame.float(), torch.tensor([[3.0, 0.0, 0.0]]), variance))
+    assert not bool(outputs[5].healthy[0]) and 3.0 <= float(outputs[5].peak_z[0]) < 0.3 * float(outputs[4].peak_z[0])
+    assert bool(outputs[6].healthy[0]) and not bool(outputs[6].relocalized[0])
+    assert float((outputs[6].pose[0, :2] - torch.tensor([x, 60.0], dtype=torch.float64)).abs().max()) < 0.1
+
+
 def test_batched_vehicles_equal_one_at_a_time(generator):
     reference = _texture(generator, (80, 120)).float()
     starts = torch.tensor([[40.0, 30.0, 0.0], [70.0, 45.0, 0.0]])
     odometry = torch.tensor([[2.0, 1.0, 0.0], [-1.0, 2.0, 0.0]])
     frames = torch.cat([_cut(reference, 42, 31), _cut(reference, 69, 47)])
+    # One variance map per vehicle (the second 4x noisier in its far half), sliced per vehicle by the searches.
+    variance = torch.ones(2, 1, *frames.shape[-2:])
+    variance[1, :, : frames.shape[-2] // 2] = 4.0
     batched = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
     batched.start(starts)
-    together = batched(frames, odometry, 1.0)
+    together = batched(frames, odometry, variance)
     for vehicle in range(2):
         alone = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
         alone.start(starts[vehicle : vehicle + 1])
-        single = alone(frames[vehicle : vehicle + 1], odometry[vehicle : vehicle + 1], 1.0)
+        single = alone(frames[vehicle : vehicle + 1], odometry[vehicle : vehicle + 1], variance[vehicle : vehicle + 1])
         torch.testing.assert_close(together.pose[vehicle], single.pose[0])
         torch.testing.assert_close(together.covariance[vehicle], single.covariance[0])
 
@@ -582,3 +604,10 @@ def test_one_freak_peak_counts_at_most_twice_the_running_mean_of_the_matches():
     torch.testing.assert_close(health.typical_z, torch.tensor([0.7 * 5 + 0.3 * 10, 0.7 * 5 + 0.3 * 6]).double())
     relocalized = next_health(health, yes, yes, torch.zeros(2), torch.tensor([91.0, 2.0]), torch.ones(2), no_candidate)
     assert relocalized.typical_z.tolist() == [91.0, 2.0]  # a relocalization starts afresh
+
+
+def test_the_map_is_not_saved_with_the_tracker_state(generator):
+    reference = _texture(generator, (40, 60)).float()
+    tracker = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
+    assert torch.equal(tracker.reference, reference[None, None] if reference.ndim == 2 else reference)
+    assert "reference" not in tracker.state_dict()  # a non-persistent buffer: checkpoints stay small
