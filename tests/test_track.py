@@ -272,6 +272,8 @@ def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
         if bool(output.relocalized[0]):
             relocalized.append(step)
             assert bool(output.healthy[0])  # a relocalized frame is a used match
+            # The belief restarts from the frame's tempered likelihood: no sharper than one cell (variance 1 / 12).
+            assert float(output.covariance[0, :2, :2].diagonal().min()) > 0.5 / 12, output.covariance
         if step >= 5 and recovered_after is None and float(error) < 1:
             recovered_after = step - 5
     assert len(relocalized) == 1 and relocalized[0] == 5 + recovered_after
