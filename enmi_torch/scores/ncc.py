@@ -56,11 +56,13 @@ def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None
     weight = torch.ones_like(inputs.captured) if inputs.pair_weight is None else inputs.pair_weight
     count = weight.sum(-1, keepdim=True)
 
+    # Pearson does not see a positive scale: dividing values whose squares could overflow (1e30 in float32) by their
+    # largest valid magnitude keeps the score from collapsing to 0; other values are left as they are (no rounding).
+    large = torch.finfo(inputs.captured.dtype).max ** 0.5 / 1e4
+
     def centred(values: Tensor) -> Tensor:
-        # Pearson does not see a positive scale: dividing by the largest valid magnitude first keeps the squares of
-        # large values (1e30 in float32) from overflowing into a score of 0.
         scale = (values.detach().abs() * weight).amax(-1, keepdim=True)
-        values = values / torch.where(scale > 0, scale, 1.0)
+        values = values / torch.where(scale > large, scale, 1.0)
         return (values - (values * weight).sum(-1, keepdim=True) / count.clamp_min(1)) * weight
 
     captured_centred, reference_centred = centred(inputs.captured), centred(inputs.reference)
