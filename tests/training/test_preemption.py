@@ -125,6 +125,22 @@ def test_sigterm_and_sigint_write_a_checkpoint_and_say_how_to_resume(tmp_path, s
         np.testing.assert_allclose(mask(resumed), mask(uninterrupted), rtol=1e-6, atol=0)
 
 
+def _quiet_trainer(folder, max_epochs, *callbacks):
+    """A CPU trainer without logger, progress bar or validation, writing under ``folder``."""
+    return Trainer(
+        accelerator="cpu",
+        max_epochs=max_epochs,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=100,
+        default_root_dir=folder,
+        callbacks=list(callbacks),
+    )
+
+
 def test_the_resume_hint_replaces_an_earlier_ckpt_path():
     command = ["enmi-fit-mask", "--ckpt_path", "a.ckpt", "--data.size", "32", "--ckpt-path=b.ckpt"]
     assert _without_ckpt_path(command) == ["enmi-fit-mask", "--data.size", "32"]
@@ -142,16 +158,8 @@ def test_a_checkpoint_every_n_training_steps_within_an_epoch(tmp_path):
             return path
 
     datamodule = PairDataModule(train_pairs=48, val_pairs=8, size=16, batch_size=16)  # 3 steps per epoch
-    trainer = Trainer(
-        accelerator="cpu",
-        max_epochs=2,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        use_distributed_sampler=False,
-        num_sanity_val_steps=0,
-        check_val_every_n_epoch=100,
-        callbacks=[ModelCheckpoint(dirpath=tmp_path, save_last=True), Watched(every_n_train_steps=2)],
+    trainer = _quiet_trainer(
+        tmp_path, 2, ModelCheckpoint(dirpath=tmp_path, save_last=True), Watched(every_n_train_steps=2)
     )
     trainer.fit(MaskFitModule(shape=datamodule.shape), datamodule=datamodule, weights_only=True)
     assert saved == [(2, 2), (3, 3), (4, 4), (6, 6)]  # steps 2 and 4, the ends of epochs (3, 6), not twice at 6
@@ -172,26 +180,12 @@ class _Seen(Callback):
             self.preemption._signal = signal.SIGTERM
 
 
-def _mid_epoch_trainer(tmp_path, *callbacks):
-    return Trainer(
-        accelerator="cpu",
-        max_epochs=3,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        use_distributed_sampler=False,
-        num_sanity_val_steps=0,
-        check_val_every_n_epoch=100,
-        default_root_dir=tmp_path,
-        callbacks=[ModelCheckpoint(dirpath=tmp_path, save_top_k=0, save_last=True), *callbacks],
-    )
-
-
 def test_a_fit_stopped_mid_epoch_resumes_on_the_next_batch_to_the_uninterrupted_weights(tmp_path):
     def fit(folder, callbacks, ckpt_path=None):
         datamodule = PairDataModule(train_pairs=48, val_pairs=8, size=16, batch_size=16, seed=3)  # 3 steps per epoch
         module = MaskFitModule(shape=datamodule.shape)
-        trainer = _mid_epoch_trainer(tmp_path / folder, *callbacks)
+        folder = tmp_path / folder
+        trainer = _quiet_trainer(folder, 3, ModelCheckpoint(dirpath=folder, save_top_k=0, save_last=True), *callbacks)
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=ckpt_path is None)
         return module
 
