@@ -1,25 +1,16 @@
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from _data_tools import load_data_tool
 from PIL import Image
 from scipy import ndimage
 from skimage import data
 
-REPO = Path(__file__).resolve().parent.parent
-
 
 @pytest.fixture(scope="module")
 def prep():
-    path = REPO / "data_tools" / "yardstick" / "prepare_scene_change.py"
-    spec = importlib.util.spec_from_file_location("prepare_scene_change", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
+    return load_data_tool("yardstick/prepare_scene_change.py", "prepare_scene_change")
 
 
 @pytest.fixture(scope="module")

@@ -1,23 +1,17 @@
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from _data_tools import load_data_tool
 
 from enmi_torch.data.pairs import PairDataset
-
-REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
 def pairs_tool():
-    path = REPO / "data_tools" / "mask" / "scene_change_pairs.py"
-    spec = importlib.util.spec_from_file_location("scene_change_pairs", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_data_tool("mask/scene_change_pairs.py", "scene_change_pairs")
 
 
 def _real_folders(root: Path) -> None:

@@ -1,11 +1,11 @@
 import csv
-import importlib.util
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from _data_tools import load_data_tool
 
 from enmi_torch import enmi, gaussian_log_prior, nmi
 from enmi_torch.geometry.camera import RoadCamera
@@ -23,10 +23,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def _load_data_tool(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "data_tools" / "paper" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_data_tool(f"paper/{name}.py", name)
 
 
 @pytest.fixture(scope="module")

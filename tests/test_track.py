@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
 import torch
+from _data_tools import load_data_tool
 
 from enmi_torch import (
     ECR,
@@ -35,7 +34,6 @@ from enmi_torch.tracking import (
     update,
 )
 
-REPO = Path(__file__).resolve().parents[1]
 FRAME = (24, 32)  # non-square frames: a swapped axis fails
 
 
@@ -491,10 +489,7 @@ def _started(tracker: Tracker) -> Tracker:
 
 
 def _drive_module():
-    spec = importlib.util.spec_from_file_location("drive", REPO / "data_tools" / "drive" / "drive.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_data_tool("drive/drive.py", "drive")
 
 
 @pytest.mark.slow

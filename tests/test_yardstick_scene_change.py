@@ -1,21 +1,14 @@
 import csv
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-
-REPO = Path(__file__).resolve().parent.parent
+from _data_tools import load_data_tool
 
 
 @pytest.fixture(scope="module")
 def yardstick():
-    path = REPO / "data_tools" / "yardstick" / "scene_change.py"
-    spec = importlib.util.spec_from_file_location("scene_change_yardstick", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_data_tool("yardstick/scene_change.py", "scene_change_yardstick")
 
 
 def _crop(trials, index, size):

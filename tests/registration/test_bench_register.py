@@ -2,20 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
-
-PATH = Path(__file__).resolve().parents[2] / "data_tools" / "benchmarks" / "bench_register.py"
+from _data_tools import load_data_tool
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("_bench_register", PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_data_tool("benchmarks/bench_register.py", "_bench_register")
 
 
 def test_a_tiny_run_prints_its_table(bench, capsys):
