@@ -198,9 +198,8 @@ def track_step(
         # One frame's best match over the wide window is the best of many noisy candidates: jump only where the
         # previous frame's wide search found the same place (relative to the predicted window, within 2 cells and
         # 2 yaw bins). A lone false peak in a noisy stretch no longer moves a filter that was right.
-        offset = found.to(candidate) - torch.stack([center[vehicle, 1], center[vehicle, 0], yaw_center[vehicle]]).to(
-            candidate
-        )
+        window_center = torch.stack([center[vehicle, 1], center[vehicle, 0], yaw_center[vehicle]]).to(candidate)
+        offset = found.to(candidate) - window_center
         previous = health.candidate[vehicle]
         candidate[vehicle] = offset
         agrees = bool(torch.isfinite(previous).all()) and bool((offset[:2] - previous[:2]).abs().max() <= 2.0)
@@ -226,7 +225,6 @@ def track_step(
     healthy = healthy | relocalized
     posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
-    candidate = torch.where(relocalized[:, None], math.nan, candidate)
     health = next_health(health, healthy, relocalized, weak_frames, peak_z, frame_temperature, candidate)
     lost = health.weak_frames >= patience
     refined = torch.full_like(pose, math.nan)
