@@ -91,11 +91,13 @@ def variance_map(name: str, variance: Tensor | float, like: Tensor, dtype: torch
 
     ``valid`` is ``None`` (every pixel) or a bool ``(B, N)``.
     """
-    if isinstance(variance, (int, float)) and not isinstance(variance, bool):
-        check_variance_fits(name, float(variance), dtype)
+    number = isinstance(variance, (int, float)) and not isinstance(variance, bool)
+    if number:
+        check_variance_fits(name, float(variance), dtype)  # before the cast, which would make it 0 or inf
         variance = torch.tensor(float(variance), dtype=dtype, device=like.device)
     given = scalar_or_map(name, variance, like).expand(like.shape[0], like[0].numel())
-    check_variance_fits(name, given, dtype, valid)
+    if not number:
+        check_variance_fits(name, given, dtype, valid)
     flat = given.to(dtype)
     check_positive_where(name, flat, valid)
     return flat if valid is None else torch.where(valid, flat, 1.0)
