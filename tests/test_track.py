@@ -33,6 +33,7 @@ from enmi_torch.tracking import (
     track_step,
     update,
 )
+from enmi_torch.tracking.belief import grid_poses, normalized
 
 FRAME = (24, 32)  # non-square frames: a swapped axis fails
 
@@ -205,6 +206,40 @@ def test_a_fully_masked_frame_coasts_on_the_odometry(generator):
     _, last = outputs[-1]
     assert bool(last.healthy[0]) and not bool(last.lost[0])
     assert last.pose[0, :2].tolist() == pytest.approx([55.0, 30.0], abs=0.05)
+
+
+def _position_variance(belief: Belief) -> torch.Tensor:
+    """The ``(x, y)`` variance of a belief's bins, from their moments (no read-out rule in between)."""
+    weights = normalized(belief.log_prob).exp()
+    x, y, _ = grid_poses(belief)
+    spread = []
+    for values in (x.expand_as(weights), y.expand_as(weights)):
+        mean = (weights * values).sum()
+        spread.append((weights * (values - mean).square()).sum())
+    return torch.stack(spread)
+
+
+@pytest.mark.parametrize(
+    ("coasting", "growth"), [(None, lambda k: k), ("linear", lambda k: k * k), ("random_walk", lambda k: k)]
+)
+def test_a_coasting_belief_widens_as_a_random_walk_by_default_or_as_a_bias(generator, coasting, growth):
+    # Frames that see nothing: "random_walk" (the default) adds sigma^2 a frame; "linear" adds (2k + 1) sigma^2 after k
+    # coasted frames, k^2 sigma^2 in all, a constant bias's spread. Unequal noise along u (x, the map's columns
+    # at yaw 0) and v (y, rows) catches swapped axes.
+    reference = _texture(generator, (80, 120)).float()
+    settings = {"shifts": 20, "yaw_bins": 1, "motion_noise": (1.0, 0.6, 0.1)}
+    if coasting is not None:  # None: the default
+        settings["coasting"] = coasting
+    tracker = Tracker(reference, score=ECR(bins=16), **settings)
+    tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.5, 1.5, 0.1))
+    start_variance = _position_variance(tracker.belief)
+    blind = torch.zeros(1, 1, *FRAME, dtype=torch.bool)
+    for frames in range(1, 6):
+        output = tracker(_cut(reference, 60, 40).float(), torch.zeros(1, 3), 1.0, blind)
+        added = _position_variance(tracker.belief) - start_variance
+        expected = growth(frames) * torch.tensor([1.0, 0.36], dtype=torch.float64)
+        torch.testing.assert_close(added, expected, rtol=0.04, atol=0.0)  # a discrete Gaussian, cut at 20 cells
+        assert not bool(output.healthy[0]) and bool(output.lost[0]) == (frames >= 2)
 
 
 def test_odometry_off_the_map_is_lost_then_found_again_without_an_exception(generator):
@@ -444,6 +479,8 @@ def _bad_call(case: str):
         "temperature": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature=0.0),
         "temperature name": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature="grid"),
         "patience": lambda: track_step(belief, frame, reference, odometry, 1.0, patience=0),
+        "coasting": lambda: track_step(belief, frame, reference, odometry, 1.0, coasting="constant"),
+        "motion noise": lambda: track_step(belief, frame, reference, odometry, 1.0, motion_noise=(0.1, 0.1)),
         "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
         "unknown setting": lambda: Tracker(reference, shift=3),
         "no start": lambda: Tracker(reference)(frame, odometry, 1.0),
@@ -472,6 +509,8 @@ def _bad_call(case: str):
         ("temperature", ValueError, "temperature must be a finite number > 0"),
         ("temperature name", ValueError, "temperature must be 'auto' or a finite number > 0, got 'grid'"),
         ("patience", ValueError, "patience must be an int >= 1"),
+        ("coasting", ValueError, r"coasting must be one of \['linear', 'random_walk'\], got 'constant'"),
+        ("motion noise", ValueError, "motion_noise must be three standard deviations >= 0"),
         ("truth shape", ValueError, r"truth \(N, 3\)"),
         ("unknown setting", TypeError, r"unknown setting\(s\) \['shift'\]"),
         ("no start", RuntimeError, "call start"),

@@ -289,7 +289,13 @@ def search(frame, reference, variance, valid, center, yaws, score: Score) -> Loc
     )
 
 
-def run_filter(drive: Drive, method: str, calibration: Calibration | None = None, refine: bool = False) -> dict:
+def run_filter(
+    drive: Drive,
+    method: str,
+    calibration: Calibration | None = None,
+    refine: bool = False,
+    coasting: str = "random_walk",
+) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = METHODS[method]
     variance = drive.variance(kind, drive.pixel_noise)
@@ -301,6 +307,7 @@ def run_filter(drive: Drive, method: str, calibration: Calibration | None = None
         yaw_bins=YAW_BINS,
         yaw_step=YAW_STEP,
         motion_noise=drive.motion_noise,
+        coasting=coasting,
         refine=refine and method != "nmi",
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
@@ -588,6 +595,12 @@ def main(argv=None) -> None:
     parser.add_argument("--noise-scale", type=float, default=1.0, help="factor on the pixel noise")
     parser.add_argument("--calibrate", action="store_true", help="fit each score's temperature on held-out frames")
     parser.add_argument("--refine", action="store_true", help="also register each used frame (ECR and NCC)")
+    parser.add_argument(
+        "--coasting",
+        choices=["random_walk", "linear"],
+        default="random_walk",
+        help="how the belief widens without a match (Tracker's coasting)",
+    )
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
@@ -608,7 +621,7 @@ def main(argv=None) -> None:
                 if calibration is not None:
                     calibrations[method] = calibration
                 try:
-                    filtered = run_filter(drive, method, calibration, args.refine)
+                    filtered = run_filter(drive, method, calibration, args.refine, args.coasting)
                 except Exception as error:  # a drive that raises is a result, reported as such
                     print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)
                     filtered = None

@@ -142,7 +142,7 @@ def predict(belief: Belief, odometry: Tensor, noise: Sequence[float] | Tensor) -
     check_belief(belief)
     batch, yaw_count = belief.log_prob.shape[:2]
     odometry = check_pose("odometry", odometry, batch)
-    noise = _check_noise(noise, batch)
+    noise = check_noise("noise", noise, batch)
     peak = belief.log_prob.flatten(1).amax(1).clamp_min(-1e300)
     mass = (belief.log_prob - peak[:, None, None, None]).exp()
     # Map increment per yaw bin: local_to_map's linear part at the bin's yaw.
@@ -409,13 +409,14 @@ def check_pose(name: str, pose: object, batch: int | None = None) -> Tensor:
     return pose.double()
 
 
-def _check_noise(noise: object, batch: int) -> Tensor:
+def check_noise(name: str, noise: object, batch: int) -> Tensor:
+    """``(B, 3)`` float64 odometry noise from three standard deviations or ``(B, 3)`` of them; else a ValueError."""
     values = noise if isinstance(noise, Tensor) else torch.tensor(list(noise), dtype=torch.float64)
     values = values.double()
     if values.shape == (3,):
         values = values.expand(batch, 3)
     if values.shape != (batch, 3) or not bool(torch.isfinite(values).all()) or bool((values < 0).any()):
         raise ValueError(
-            f"noise must be three standard deviations >= 0 (du, dv, dyaw) or ({batch}, 3) of them, got {noise!r}"
+            f"{name} must be three standard deviations >= 0 (du, dv, dyaw) or ({batch}, 3) of them, got {noise!r}"
         )
     return values

@@ -2,7 +2,9 @@
 
 One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of frames):
 
-* predict: the belief (:mod:`~enmi_torch.tracking.belief`) moves by the odometry and is blurred by its noise;
+* predict: the belief (:mod:`~enmi_torch.tracking.belief`) moves by the odometry and is blurred by its noise, over
+  frames without a used match as a random walk (default) or as an odometry bias would (``coasting="linear"``,
+  :func:`coasting_noise`);
 * update: the score surface over the belief's window, turned into a log-likelihood ``score * n_valid /
   temperature`` (``n_valid`` the captured image's valid pixels; by default each frame's temperature is
   :func:`~enmi_torch.tracking.calibration.grid_temperature`, which needs no calibration, or one fitted on surveyed
@@ -33,6 +35,7 @@ from torch import Tensor, nn
 from enmi_torch._checks import (
     check_floating,
     check_non_negative_int,
+    check_option,
     check_positive_int,
     check_positive_number,
     check_shifts,
@@ -45,6 +48,7 @@ from enmi_torch.tracking.belief import (
     Belief,
     belief_pose,
     check_belief,
+    check_noise,
     finite_floor,
     initial_belief,
     normalized,
@@ -93,6 +97,7 @@ def track_step(
     captured_mask: Tensor | None = None,
     *,
     motion_noise: Sequence[float] | Tensor = (0.5, 0.5, 0.5),
+    coasting: str = "random_walk",
     score: Score | str = "ecr",
     temperature: float | str = "auto",
     min_peak_z: float = 3.0,
@@ -118,6 +123,12 @@ def track_step(
             NCC.
         captured_mask: bool, like ``variance``: ``False`` pixels are unobserved.
         motion_noise: standard deviations of the odometry's error ``(du, dv, dyaw)`` per frame.
+        coasting: how the belief widens over frames without a used match. ``"random_walk"`` (default): each
+            frame's odometry error independent (the standard deviation grows as the square root of the frames).
+            ``"linear"``: the error taken as a bias over the frames coasted (a scale error, a yaw-rate bias), its
+            standard deviation growing in proportion to them: after ``k`` such frames the prediction adds
+            ``(2k + 1) motion_noise^2``, ``k^2 motion_noise^2`` in all. On the drive benchmark neither wins
+            everywhere (``data_tools/README.md``, "Tracking a drive").
         score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
             :func:`~enmi_torch.localize`).
         temperature: ``score * n_valid / temperature`` is the log-likelihood: ``"auto"`` (default) each frame's
@@ -169,10 +180,11 @@ def track_step(
     patience = check_positive_int("patience", patience)
     relocalize_shifts = check_non_negative_int("relocalize_shifts", relocalize_shifts)
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
+    check_option("coasting", coasting, ("linear", "random_walk"))
     batch = captured.shape[0]
     health = check_health(health, batch, captured.device)
     search = _Searcher(captured, reference, variance, captured_mask, score)
-    prior = predict(belief, odometry, motion_noise)
+    prior = predict(belief, odometry, coasting_noise(motion_noise, health.weak_frames, coasting))
     raw, best_score, peak_z, frame_temperature = search.window(prior)
     if temperature == "auto":
         # A frame without a clear peak (a featureless stretch) is read at the scale of the recent clear matches.
@@ -338,6 +350,7 @@ class Tracker(nn.Module):
 
 _STEP_SETTINGS = (
     "motion_noise",
+    "coasting",
     "score",
     "temperature",
     "min_peak_z",
@@ -350,6 +363,22 @@ _STEP_SETTINGS = (
     "relocalize_odds",
     "refine",
 )
+
+
+def coasting_noise(motion_noise: Sequence[float] | Tensor, weak_frames: Tensor, coasting: str) -> Tensor:
+    """``(B, 3)`` odometry noise of the next prediction after ``weak_frames`` ``(B,)`` frames without a used match.
+
+    ``"linear"``: ``motion_noise * sqrt(2k + 1)``, so that ``k + 1`` predictions in a row add ``(k + 1)^2`` times
+    one frame's variance, the spread of a constant bias; ``"random_walk"``: ``motion_noise`` as it is.
+
+    Example:
+        >>> coasting_noise((0.5, 0.5, 0.1), torch.tensor([0, 4]), "linear").round(decimals=6).tolist()
+        [[0.5, 0.5, 0.1], [1.5, 1.5, 0.3]]
+    """
+    noise = check_noise("motion_noise", motion_noise, weak_frames.shape[0]).to(weak_frames.device)
+    if coasting == "random_walk":
+        return noise
+    return noise * (2 * weak_frames.double() + 1).sqrt()[:, None]
 
 
 class _Searcher:
