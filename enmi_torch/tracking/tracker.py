@@ -100,7 +100,7 @@ def track_step(
     coasting: str = "random_walk",
     score: Score | str = "ecr",
     temperature: float | str = "auto",
-    min_peak_z: float = 3.0,
+    min_peak_z: float = 2.5,
     max_surprise: float = 30.0,
     z_drop: float = 0.3,
     health: Health | None = None,
