@@ -180,7 +180,6 @@ def track_step(
     patience = check_positive_int("patience", patience)
     relocalize_shifts = check_non_negative_int("relocalize_shifts", relocalize_shifts)
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
-    check_option("coasting", coasting, ("linear", "random_walk"))
     batch = captured.shape[0]
     health = check_health(health, batch, captured.device)
     search = _Searcher(captured, reference, variance, captured_mask, score)
@@ -375,6 +374,7 @@ def coasting_noise(motion_noise: Sequence[float] | Tensor, weak_frames: Tensor, 
         >>> coasting_noise((0.5, 0.5, 0.1), torch.tensor([0, 4]), "linear").round(decimals=6).tolist()
         [[0.5, 0.5, 0.1], [1.5, 1.5, 0.3]]
     """
+    check_option("coasting", coasting, ("linear", "random_walk"))
     noise = check_noise("motion_noise", motion_noise, weak_frames.shape[0]).to(weak_frames.device)
     if coasting == "random_walk":
         return noise
