@@ -531,6 +531,23 @@ def _drive_module():
     return load_data_tool("drive/drive.py", "drive")
 
 
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--scene-change", "2"], "--scene-change must be in [0, 1], got 2.0"),
+        (["--noise-scale", "0"], "--noise-scale must be > 0, got 0.0"),
+        (["--uniform-scale", "nan"], "--uniform-scale must be a finite number > 0, got nan"),
+        (["--coasting", "bias"], "argument --coasting: invalid choice: 'bias'"),
+    ],
+)
+def test_the_drive_command_refuses_a_bad_argument_in_one_line(capsys, arguments, message):
+    with pytest.raises(SystemExit) as stop:
+        _drive_module().main(arguments)
+    assert stop.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert message in error[-1] and not any("Traceback" in line for line in error)
+
+
 @pytest.mark.slow
 def test_uncalibrated_filter_ellipses_cover_the_truth_on_the_benchmark_drive():
     drive_tools = _drive_module()

@@ -239,13 +239,16 @@ class Drive:
         errors = measured_odometry(increments, generator) - increments
         self.motion_noise = tuple(errors[1:].square().mean(0).sqrt().tolist())
 
-    def variance(self, kind: str | None, pixel_noise: torch.Tensor) -> torch.Tensor | None:
-        """``(N, 1, 64, 64)`` variance of frames with these pixel noise levels, or ``None``."""
+    def variance(self, kind: str | None, pixel_noise: torch.Tensor, uniform_scale: float = 1.0) -> torch.Tensor | None:
+        """``(N, 1, 64, 64)`` variance of frames with these pixel noise levels, or ``None``.
+
+        ``uniform_scale``: the uniform variance is this factor times the learned map's mean (the grid of controls).
+        """
         if kind is None:
             return None
         unit = {"analytic": analytic_variance(), "learned": self.learned_unit}.get(kind)
         if kind == "uniform":
-            unit = torch.full_like(self.learned_unit, float(self.learned_unit[self.valid].mean()))
+            unit = torch.full_like(self.learned_unit, uniform_scale * float(self.learned_unit[self.valid].mean()))
         return (unit * pixel_noise[:, None, None, None].square()).float()
 
 
@@ -295,10 +298,11 @@ def run_filter(
     calibration: Calibration | None = None,
     refine: bool = False,
     coasting: str = "random_walk",
+    uniform_scale: float = 1.0,
 ) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = METHODS[method]
-    variance = drive.variance(kind, drive.pixel_noise)
+    variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
     tracker = Tracker(
         drive.map.float(),
         calibration=calibration,
@@ -338,10 +342,10 @@ def run_filter(
     }
 
 
-def run_argmax(drive: Drive, method: str) -> dict:
+def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0) -> dict:
     """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
     score, kind = METHODS[method]
-    variance = drive.variance(kind, drive.pixel_noise)
+    variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
         guess = _moved(poses[-1], drive.odometry[index])
@@ -601,6 +605,12 @@ def main(argv=None) -> None:
         default="random_walk",
         help="how the belief widens without a match (Tracker's coasting)",
     )
+    parser.add_argument(
+        "--uniform-scale",
+        type=float,
+        default=1.0,
+        help="the uniform variance as this factor times the learned map's mean (default 1: the mean)",
+    )
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
@@ -608,7 +618,11 @@ def main(argv=None) -> None:
         parser.error(f"--scene-change must be in [0, 1], got {args.scene_change}")
     if not args.noise_scale > 0:
         parser.error(f"--noise-scale must be > 0, got {args.noise_scale}")
+    if not (math.isfinite(args.uniform_scale) and args.uniform_scale > 0):
+        parser.error(f"--uniform-scale must be a finite number > 0, got {args.uniform_scale}")
     torch.set_num_threads(1)
+    if args.uniform_scale != 1:
+        print(f"ECR, uniform variance: {args.uniform_scale:g} x the learned map's mean", flush=True)
     start = time.perf_counter()
     rows = {(method, estimator): [] for method in args.methods for estimator in ("filter", "per-frame argmax")}
     for number, seed in enumerate(args.seeds):
@@ -621,11 +635,11 @@ def main(argv=None) -> None:
                 if calibration is not None:
                     calibrations[method] = calibration
                 try:
-                    filtered = run_filter(drive, method, calibration, args.refine, args.coasting)
+                    filtered = run_filter(drive, method, calibration, args.refine, args.coasting, args.uniform_scale)
                 except Exception as error:  # a drive that raises is a result, reported as such
                     print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)
                     filtered = None
-                argmax = run_argmax(drive, method)
+                argmax = run_argmax(drive, method, args.uniform_scale)
             rows[method, "filter"].append(None if filtered is None else _drive_row(drive, filtered, True))
             rows[method, "per-frame argmax"].append(_drive_row(drive, argmax, False))
             if filtered is not None:
