@@ -361,18 +361,23 @@ def test_batched_vehicles_equal_one_at_a_time(generator):
     starts = torch.tensor([[40.0, 30.0, 0.0], [70.0, 45.0, 0.0]])
     odometry = torch.tensor([[2.0, 1.0, 0.0], [-1.0, 2.0, 0.0]])
     frames = torch.cat([_cut(reference, 42, 31), _cut(reference, 69, 47)])
-    # One variance map per vehicle (the second 4x noisier in its far half), sliced per vehicle by the searches.
+    # One variance map and one mask per vehicle (the second 4x noisier in its far half, the first blind in its left
+    # third), sliced per vehicle by the searches.
     variance = torch.ones(2, 1, *frames.shape[-2:])
     variance[1, :, : frames.shape[-2] // 2] = 4.0
+    mask = torch.ones(2, 1, *frames.shape[-2:], dtype=torch.bool)
+    mask[0, :, :, : frames.shape[-1] // 3] = False
     batched = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
     batched.start(starts)
-    together = batched(frames, odometry, variance)
+    together = batched(frames, odometry, variance, mask)
     for vehicle in range(2):
         alone = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
         alone.start(starts[vehicle : vehicle + 1])
-        single = alone(frames[vehicle : vehicle + 1], odometry[vehicle : vehicle + 1], variance[vehicle : vehicle + 1])
+        one = slice(vehicle, vehicle + 1)
+        single = alone(frames[one], odometry[one], variance[one], mask[one])
         torch.testing.assert_close(together.pose[vehicle], single.pose[0])
         torch.testing.assert_close(together.covariance[vehicle], single.covariance[0])
+        torch.testing.assert_close(together.score[vehicle], single.score[0])
 
 
 def test_module_agrees_with_the_function(generator):

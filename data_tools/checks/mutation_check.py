@@ -164,8 +164,9 @@ def run_mutant(root: Path, mutant: tuple[str, int, str, str], timeout: float) ->
         shutil.copytree(root / "enmi_torch", copy / "enmi_torch")
         shutil.copytree(root / "tests", copy / "tests")
         shutil.copy(root / "pyproject.toml", copy / "pyproject.toml")
-        if (root / "configs").is_dir():
-            shutil.copytree(root / "configs", copy / "configs")
+        for folder_name in ("configs", "data_tools"):  # some tests load a data_tools script (tests/_data_tools.py)
+            if (root / folder_name).is_dir():
+                shutil.copytree(root / folder_name, copy / folder_name)
         path = module_file(copy, module)
         if index >= 0:
             lines = path.read_text().splitlines()
