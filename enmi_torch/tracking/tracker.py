@@ -4,7 +4,7 @@ One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of fra
 
 * predict: the belief (:mod:`~enmi_torch.tracking.belief`) moves by the odometry and is blurred by its noise, over
   frames without a used match as a random walk (default) or as an odometry bias would (``coasting="linear"``,
-  :func:`coasting_noise`);
+  :func:`~enmi_torch.tracking.coasting_noise`);
 * update: the score surface over the belief's window, turned into a log-likelihood ``score * n_valid /
   temperature`` (``n_valid`` the captured image's valid pixels; by default each frame's temperature is
   :func:`~enmi_torch.tracking.calibration.grid_temperature`, which needs no calibration, or one fitted on surveyed
