@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from _data_tools import load_data_tool
@@ -551,6 +552,40 @@ def test_the_drive_command_refuses_a_bad_argument_in_one_line(capsys, arguments,
     assert stop.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert message in error[-1] and not any("Traceback" in line for line in error)
+
+
+def _photo_pair(folder, generator) -> None:
+    """A pair folder as prepare_scene_change.py writes it; the other date is the map in another tone (0.7 v + 40)."""
+    reference = _texture(generator, (120, 132))[0, 0].numpy()
+    folder.mkdir(parents=True)
+    np.save(folder / "reference.npy", reference.astype(np.float32))
+    np.save(folder / "captured.npy", (40 + 0.7 * reference).astype(np.float32))
+
+
+def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, capsys, generator):
+    _photo_pair(tmp_path / "another-date" / "pair-a", generator)
+    tool = load_data_tool("drive/photo_drive.py", "photo_drive")
+    tool.main(
+        ["--pairs", str(tmp_path), "--frames", "12", "--radius", "6", "--sigma", "8", "--uniform-scales", "1", "4"]
+    )
+    table = {}
+    for line in capsys.readouterr().out.splitlines():
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        if len(cells) == 6 and cells[2][:1].isdigit():
+            table[cells[0], cells[1]] = cells[2:]
+    labels = ["ECR, true variance", "ECR, uniform variance x 1", "ECR, uniform variance x 4", "NMI", "NCC"]
+    assert set(table) == {(label, estimator) for label in labels for estimator in ("filter", "per-frame argmax")}
+    within, lost, _, raised = table["ECR, true variance", "filter"]
+    assert float(within) >= 0.9 and float(lost) == 0.0 and raised == "0"  # one drive: no standard error
+
+
+def test_the_photograph_drive_refuses_a_loop_that_leaves_the_map_in_one_line(tmp_path, capsys, generator):
+    _photo_pair(tmp_path / "pair-a", generator)
+    tool = load_data_tool("drive/photo_drive.py", "photo_drive")
+    with pytest.raises(SystemExit) as stop:
+        tool.main(["--pairs", str(tmp_path), "--radius", "40"])
+    assert stop.value.code == 2
+    assert "--radius 40.0: the loop and its frames leave the map of ['pair-a']" in capsys.readouterr().err
 
 
 @pytest.mark.slow
