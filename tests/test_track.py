@@ -486,6 +486,7 @@ def _bad_call(case: str):
         "temperature name": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature="grid"),
         "patience": lambda: track_step(belief, frame, reference, odometry, 1.0, patience=0),
         "coasting": lambda: track_step(belief, frame, reference, odometry, 1.0, coasting="constant"),
+        "weak update": lambda: track_step(belief, frame, reference, odometry, 1.0, weak_update="use"),
         "motion noise": lambda: track_step(belief, frame, reference, odometry, 1.0, motion_noise=(0.1, 0.1)),
         "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
         "unknown setting": lambda: Tracker(reference, shift=3),
@@ -516,6 +517,7 @@ def _bad_call(case: str):
         ("temperature name", ValueError, "temperature must be 'auto' or a finite number > 0, got 'grid'"),
         ("patience", ValueError, "patience must be an int >= 1"),
         ("coasting", ValueError, r"coasting must be one of \['linear', 'random_walk'\], got 'constant'"),
+        ("weak update", ValueError, r"weak_update must be one of \['nudge', 'skip'\], got 'use'"),
         ("motion noise", ValueError, "motion_noise must be three standard deviations >= 0"),
         ("truth shape", ValueError, r"truth \(N, 3\)"),
         ("unknown setting", TypeError, r"unknown setting\(s\) \['shift'\]"),
@@ -707,3 +709,42 @@ def test_the_map_is_not_saved_with_the_tracker_state(generator):
     tracker = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
     assert torch.equal(tracker.reference, reference[None, None] if reference.ndim == 2 else reference)
     assert "reference" not in tracker.state_dict()  # a non-persistent buffer: checkpoints stay small
+
+
+def test_clearness_is_one_for_a_usable_peak_the_squared_ratio_below_and_zero_where_ruled_out():
+    from enmi_torch.tracking.health import Health, check_health, clearness
+
+    fresh = check_health(None, 5, torch.device("cpu"))
+    peak_z = torch.tensor([4.0, 1.5, 1.5, math.nan, 6.0], dtype=torch.float64)
+    surprise = torch.tensor([0.0, 0.0, 40.0, 0.0, 0.0], dtype=torch.float64)
+    weight = clearness(peak_z, surprise, fresh, min_peak_z=3.0, z_drop=0.3, max_surprise=30.0)
+    # usable; (1.5 / 3)^2; ruled out by the prediction; no candidate; usable
+    torch.testing.assert_close(weight, torch.tensor([1.0, 0.25, 0.0, 0.0, 1.0], dtype=torch.float64))
+    # After matches of z 40, z_drop * 40 = 12 is the bar: a peak of 6 weighs (6 / 12)^2.
+    seasoned = Health(
+        fresh.weak_frames, torch.full((5,), 40.0, dtype=torch.float64), fresh.typical_temperature, fresh.candidate
+    )
+    weight = clearness(peak_z, surprise, seasoned, min_peak_z=3.0, z_drop=0.3, max_surprise=30.0)
+    torch.testing.assert_close(
+        weight, torch.tensor([(4 / 12) ** 2, (1.5 / 12) ** 2, 0.0, 0.0, 0.25], dtype=torch.float64)
+    )
+
+
+def test_a_weak_frame_nudges_the_belief_by_its_clearness_squared_or_is_skipped(generator):
+    # One step from the same belief, three ways: a peak of z below min_peak_z = 2 z weighs (1 / 2)^2 = 1/4, so the
+    # nudged log belief moves by a quarter of what the used frame's does; "skip" leaves the prediction.
+    reference = _texture(generator, (80, 120)).float()
+    belief = initial_belief(torch.tensor([[60.0, 40.0, 0.0]]), shifts=(4, 5), yaw_bins=1, std=(2.0, 1.5, 1.0))
+    frame, odometry = _cut(reference, 61, 39), torch.zeros(1, 3)
+    settings = {"score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1)}
+    used, output, _ = track_step(belief, frame, reference, odometry, 1.0, **settings)
+    assert bool(output.healthy[0])
+    bar = 2 * float(output.peak_z[0])
+    nudged, weak, _ = track_step(belief, frame, reference, odometry, 1.0, min_peak_z=bar, **settings)
+    skipped, _, _ = track_step(belief, frame, reference, odometry, 1.0, min_peak_z=bar, weak_update="skip", **settings)
+    assert not bool(weak.healthy[0])
+    prior = predict(belief, odometry, (0.3, 0.3, 0.1)).log_prob
+    torch.testing.assert_close(skipped.log_prob, prior)
+    moved, full = nudged.log_prob - prior, used.log_prob - prior
+    torch.testing.assert_close(moved - moved.max(), 0.25 * (full - full.max()), rtol=1e-6, atol=1e-6)
+    assert abs(float(weak.pose[0, 0]) - 60.0) > 0.05  # the nudge moves the pose towards the match at (61, 39)

@@ -82,6 +82,21 @@ def usable(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, 
     return (peak_z >= min_peak_z) & (peak_z >= z_drop * typical) & (surprise <= max_surprise)
 
 
+def clearness(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, z_drop: float, max_surprise: float):
+    """``(B,)`` float64 in ``[0, 1]``: how much of a frame's log-likelihood the belief takes.
+
+    1 for a frame :func:`usable` passes; for a peak the prediction allows but too weak to pass,
+    ``(peak_z / threshold)^2`` with ``threshold`` the larger of ``min_peak_z`` and ``z_drop`` times the recent matches'
+    z-score (a weak frame nudges the belief instead of being dropped); 0 for a peak the prediction rules out
+    (``surprise > max_surprise``) or a frame without candidates.
+    """
+    typical = torch.where(torch.isfinite(health.typical_z), health.typical_z, peak_z)
+    threshold = torch.maximum(torch.full_like(peak_z, min_peak_z), z_drop * typical)
+    weight = (peak_z.double() / threshold.double()).clamp(0, 1).square()
+    allowed = torch.isfinite(weight) & (surprise <= max_surprise)
+    return torch.where(allowed, weight, 0.0)
+
+
 def next_health(
     health: Health,
     healthy: Tensor,

@@ -55,7 +55,15 @@ from enmi_torch.tracking.belief import (
     predict,
 )
 from enmi_torch.tracking.calibration import Calibration, grid_temperature
-from enmi_torch.tracking.health import Health, check_health, next_health, peak_z_score, prediction_surprise, usable
+from enmi_torch.tracking.health import (
+    Health,
+    check_health,
+    clearness,
+    next_health,
+    peak_z_score,
+    prediction_surprise,
+    usable,
+)
 from enmi_torch.variance.base import VarianceModel, call_variance
 
 
@@ -98,6 +106,7 @@ def track_step(
     *,
     motion_noise: Sequence[float] | Tensor = (0.5, 0.5, 0.5),
     coasting: str = "random_walk",
+    weak_update: str = "nudge",
     score: Score | str = "ecr",
     temperature: float | str = "auto",
     min_peak_z: float = 2.5,
@@ -129,6 +138,11 @@ def track_step(
             standard deviation growing in proportion to them: after ``k`` such frames the prediction adds
             ``(2k + 1) motion_noise^2``, ``k^2 motion_noise^2`` in all. On the drive benchmark neither wins
             everywhere (``data_tools/README.md``, "Tracking a drive").
+        weak_update: what a frame whose peak is too weak to use (``min_peak_z``, ``z_drop``) does to the belief:
+            ``"nudge"`` (default) adds its log-likelihood scaled by ``(peak_z / threshold)^2``
+            (:func:`~enmi_torch.tracking.health.clearness`), so a run of weak but right frames still holds the
+            filter; ``"skip"`` leaves the belief to the odometry. A peak the prediction rules out
+            (``max_surprise``) is skipped either way.
         score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
             :func:`~enmi_torch.localize`).
         temperature: ``score * n_valid / temperature`` is the log-likelihood: ``"auto"`` (default) each frame's
@@ -180,6 +194,7 @@ def track_step(
     patience = check_positive_int("patience", patience)
     relocalize_shifts = check_non_negative_int("relocalize_shifts", relocalize_shifts)
     relocalize_yaw_bins = check_positive_int("relocalize_yaw_bins", relocalize_yaw_bins)
+    check_option("weak_update", weak_update, ("nudge", "skip"))
     batch = captured.shape[0]
     health = check_health(health, batch, captured.device)
     search = _Searcher(captured, reference, variance, captured_mask, score)
@@ -193,6 +208,7 @@ def track_step(
     log_likelihood = raw / temperature
     surprise = prediction_surprise(prior.log_prob, log_likelihood)
     healthy = usable(peak_z, surprise, health, min_peak_z, z_drop, max_surprise)
+    weight = clearness(peak_z, surprise, health, min_peak_z, z_drop, max_surprise)
     weak_frames = torch.where(healthy, 0, health.weak_frames + 1)
     relocalized = torch.zeros_like(healthy)
     log_prob = prior.log_prob.clone()
@@ -233,6 +249,10 @@ def track_step(
             frame_temperature[vehicle] = fresh_temperature[0]  # the match the belief restarts from
     used = healthy & ~relocalized
     log_prob = torch.where(used[:, None, None, None], normalized(log_prob + log_likelihood), log_prob)
+    if weak_update == "nudge":
+        nudged = ~healthy & ~relocalized & (weight > 0)
+        nudge = normalized(log_prob + weight.to(log_likelihood)[:, None, None, None] * log_likelihood)
+        log_prob = torch.where(nudged[:, None, None, None], nudge, log_prob)
     healthy = healthy | relocalized
     posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
@@ -350,6 +370,7 @@ class Tracker(nn.Module):
 _STEP_SETTINGS = (
     "motion_noise",
     "coasting",
+    "weak_update",
     "score",
     "temperature",
     "min_peak_z",
