@@ -10,8 +10,9 @@ One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of fra
   :func:`~enmi_torch.tracking.calibration.grid_temperature`, which needs no calibration, or one fitted on surveyed
   frames by :func:`~enmi_torch.tracking.calibrate_temperature`), is added to the log belief;
 * read: pose and covariance are the posterior's moments;
-* health (:mod:`~enmi_torch.tracking.health`): a frame whose surface has no clear peak, or whose peak the prediction
-  rules out, is not used; after ``patience`` such frames the filter searches a wider window (a coarse-to-fine
+* health (:mod:`~enmi_torch.tracking.health`): a frame whose surface has no clear peak only nudges the belief (its
+  log-likelihood scaled by its :func:`~enmi_torch.tracking.health.clearness`), one whose peak the prediction rules
+  out is not used; after ``patience`` such frames the filter searches a wider window (a coarse-to-fine
   :func:`~enmi_torch.localize`): if that search lands on the window's own peak the frame is used after all, and if it
   finds a match better than the window's by ``relocalize_odds`` nats where the previous frame's wide search found its
   own (two frames agreeing), the filter restarts there (relocalization);
@@ -73,7 +74,8 @@ class TrackOutput(NamedTuple):
     Attributes:
         pose: ``(B, 3)`` posterior mean ``(x, y, yaw)``: map column and row in cells, yaw in degrees.
         covariance: ``(B, 3, 3)`` posterior covariance of ``(x, y, yaw)`` (cells², cells x degrees, degrees²).
-        healthy: ``(B,)`` bool: this frame's match was used (a clear peak that the prediction allows).
+        healthy: ``(B,)`` bool: this frame's match was used in full (a clear peak that the prediction allows); a weak
+            frame only nudges the belief (``weak_update``).
         relocalized: ``(B,)`` bool: the filter searched the wide window this frame and restarted there.
         score: ``(B,)`` best score of the frame's surface (NaN where the window had no candidate).
         peak_z: ``(B,)`` the peak's robust z-score over the frame's log-likelihood ``score * n_valid``
@@ -274,9 +276,10 @@ class Tracker(nn.Module):
     ``covariance``, ``healthy``, ``lost``, ...).
 
     It needs no calibration: by default (``temperature="auto"``) each frame's log-likelihood is flattened to the
-    belief's bin size (:func:`~enmi_torch.tracking.calibration.grid_temperature`). A frame it cannot use (no clear
-    peak, fully masked, off the map) is skipped and the belief coasts on the odometry; ``output.lost`` is ``True``
-    from ``patience`` such frames in a row until a match is used or a relocalization succeeds.
+    belief's bin size (:func:`~enmi_torch.tracking.calibration.grid_temperature`). A frame without a clear peak only
+    nudges the belief (``weak_update``); one it cannot use (fully masked, off the map, a peak the prediction rules
+    out) is skipped and the belief coasts on the odometry; ``output.lost`` is ``True`` from ``patience`` frames
+    without a clear match in a row until a match is used or a relocalization succeeds.
 
     Args:
         reference: ``(1, 1, Hm, Wm)`` or ``(Hm, Wm)`` map (a non-persistent buffer).
