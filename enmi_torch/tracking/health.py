@@ -2,8 +2,9 @@
 
 A frame whose surface has no clear peak (the robust z-score of its log-likelihood's peak, :func:`peak_z_score`, below
 ``min_peak_z``, or below ``z_drop`` times the recent matches') or whose peak the prediction rules out
-(:func:`prediction_surprise`: more than ``max_surprise`` nats below the prediction's best) is not used
-(:func:`usable`); :class:`Health` counts such frames per vehicle (after ``patience`` of them the tracker
+(:func:`prediction_surprise`: more than ``max_surprise`` nats below the prediction's best) is not used in full: its
+:func:`clearness` says how much of it the belief takes (none where the prediction rules it out); :class:`Health`
+counts such frames per vehicle (after ``patience`` of them the tracker
 relocalizes) and keeps the running peak z-score and likelihood temperature of the used matches
 (:func:`next_health`).
 """
@@ -75,20 +76,14 @@ def prediction_surprise(log_prior: Tensor, log_likelihood: Tensor) -> Tensor:
     return flat_prior.amax(1) - flat_prior.gather(1, index)[:, 0]
 
 
-def usable(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, z_drop: float, max_surprise: float):
-    """``(B,)`` bool: a clear peak (``min_peak_z``, ``z_drop`` times the recent matches') the prediction allows."""
-    # A peak far weaker than the recent matches' is a match of some other place (a kidnap, a wrong window).
-    typical = torch.where(torch.isfinite(health.typical_z), health.typical_z, peak_z)
-    return (peak_z >= min_peak_z) & (peak_z >= z_drop * typical) & (surprise <= max_surprise)
-
-
 def clearness(peak_z: Tensor, surprise: Tensor, health: Health, min_peak_z: float, z_drop: float, max_surprise: float):
     """``(B,)`` float64 in ``[0, 1]``: how much of a frame's log-likelihood the belief takes.
 
-    1 for a frame :func:`usable` passes; for a peak the prediction allows but too weak to pass,
-    ``(peak_z / threshold)^2`` with ``threshold`` the larger of ``min_peak_z`` and ``z_drop`` times the recent matches'
-    z-score (a weak frame nudges the belief instead of being dropped); 0 for a peak the prediction rules out
-    (``surprise > max_surprise``) or a frame without candidates.
+    1 for a clear peak the prediction allows, a frame used in full: ``peak_z`` at least ``threshold``, the larger of
+    ``min_peak_z`` and ``z_drop`` times the recent matches' z-score (a peak far weaker than those is a match of some
+    other place: a kidnap, a wrong window). ``(peak_z / threshold)^2`` for a weaker peak the prediction allows (it
+    nudges the belief instead of being dropped); 0 for a peak the prediction rules out (``surprise > max_surprise``)
+    or a frame without candidates.
     """
     typical = torch.where(torch.isfinite(health.typical_z), health.typical_z, peak_z)
     threshold = torch.maximum(torch.full_like(peak_z, min_peak_z), z_drop * typical)

@@ -63,7 +63,6 @@ from enmi_torch.tracking.health import (
     next_health,
     peak_z_score,
     prediction_surprise,
-    usable,
 )
 from enmi_torch.variance.base import VarianceModel, call_variance
 
@@ -209,8 +208,8 @@ def track_step(
         temperature = torch.where(torch.isfinite(temperature), temperature, 1.0)[:, None, None, None]
     log_likelihood = raw / temperature
     surprise = prediction_surprise(prior.log_prob, log_likelihood)
-    healthy = usable(peak_z, surprise, health, min_peak_z, z_drop, max_surprise)
     weight = clearness(peak_z, surprise, health, min_peak_z, z_drop, max_surprise)
+    healthy = weight >= 1
     weak_frames = torch.where(healthy, 0, health.weak_frames + 1)
     relocalized = torch.zeros_like(healthy)
     log_prob = prior.log_prob.clone()
