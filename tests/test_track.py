@@ -581,13 +581,27 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     assert float(within) >= 0.9 and float(lost) == 0.0 and raised == "0"  # one drive: no standard error
 
 
-def test_the_photograph_drive_refuses_a_loop_that_leaves_the_map_in_one_line(tmp_path, capsys, generator):
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--radius", "40"], "--radius 40.0: the loop and its frames leave the map of ['pair-a']"),
+        (["--sigma", "0"], "--sigma must be finite numbers > 0, got 0.0"),
+        (["--uniform-scales", "1", "nan"], "--uniform-scales must be finite numbers > 0, got nan"),
+        (["--frames", "1"], "--frames must be an int >= 2, got 1"),
+        (["--mismatched"], "--pairs: "),
+    ],
+)
+def test_the_photograph_drive_refuses_a_bad_argument_in_one_line(tmp_path, capsys, generator, arguments, message):
     _photo_pair(tmp_path / "pair-a", generator)
+    if arguments == ["--mismatched"]:  # a pair whose two dates differ in shape
+        np.save(tmp_path / "pair-a" / "captured.npy", np.zeros((5, 5), dtype=np.float32))
+        arguments = []
     tool = load_data_tool("drive/photo_drive.py", "photo_drive")
     with pytest.raises(SystemExit) as stop:
-        tool.main(["--pairs", str(tmp_path), "--radius", "40"])
+        tool.main(["--pairs", str(tmp_path), *arguments])
     assert stop.value.code == 2
-    assert "--radius 40.0: the loop and its frames leave the map of ['pair-a']" in capsys.readouterr().err
+    error = capsys.readouterr().err.strip().splitlines()
+    assert message in error[-1] and not any("Traceback" in line for line in error)
 
 
 @pytest.mark.slow

@@ -180,9 +180,21 @@ def main(argv=None) -> None:
         help="the uniform controls: factors on the true variance's mean",
     )
     args = parser.parse_args(argv)
+    if args.frames < 2:
+        parser.error(f"--frames must be an int >= 2, got {args.frames}")
+    for name, value in (
+        ("--radius", args.radius),
+        ("--sigma", args.sigma),
+        *(("--uniform-scales", scale) for scale in args.uniform_scales),
+    ):
+        if not (math.isfinite(value) and value > 0):
+            parser.error(f"{name} must be finite numbers > 0, got {value}")
     if not args.pairs.is_dir():
         parser.error(f"--pairs: {args.pairs} is not a folder")
-    pairs = load_pairs(args.pairs)
+    try:
+        pairs = load_pairs(args.pairs)
+    except ValueError as error:
+        parser.error(f"--pairs: {error}")
     if not pairs:
         parser.error(f"--pairs: no reference.npy under {args.pairs}")
     margin = args.radius + FRAME // 2 + SHIFTS + 1
