@@ -248,12 +248,12 @@ def track_step(
             center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
             best_score[vehicle], peak_z[vehicle], relocalized[vehicle] = fresh_score[0], fresh_z[0], True
             frame_temperature[vehicle] = fresh_temperature[0]  # the match the belief restarts from
-    used = healthy & ~relocalized
-    log_prob = torch.where(used[:, None, None, None], normalized(log_prob + log_likelihood), log_prob)
-    if weak_update == "nudge":
-        nudged = ~healthy & ~relocalized & (weight > 0)
-        nudge = normalized(log_prob + weight.to(log_likelihood)[:, None, None, None] * log_likelihood)
-        log_prob = torch.where(nudged[:, None, None, None], nudge, log_prob)
+    # How much of the frame the belief takes: all of a used match (a wide search may have confirmed a weak peak),
+    # its clearness of a weak one when nudging, none of a relocalized frame (its belief restarted from it).
+    share = torch.where(healthy, 1.0, weight if weak_update == "nudge" else 0.0).masked_fill(relocalized, 0.0)
+    taken = (share > 0)[:, None, None, None]
+    share = share.to(log_likelihood)[:, None, None, None]
+    log_prob = torch.where(taken, normalized(log_prob + share * log_likelihood), log_prob)
     healthy = healthy | relocalized
     posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
