@@ -111,12 +111,12 @@ def variance_of(drive: PhotoDrive, kind: str | None, uniform_scale: float) -> to
 def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0) -> dict:
     _, family, kind = METHODS[method]
     variance = variance_of(drive, kind, uniform_scale)
+    variance = None if variance is None else variance.float()
     tracker = Tracker(drive.map.float(), score=family(), **SETTINGS)
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances = [drive.truth[0]], [torch.zeros(3, 3, dtype=torch.float64)]
     for index in range(1, len(drive.truth)):
-        frame_variance = None if variance is None else variance.float()
-        output = tracker(drive.frames[index : index + 1].float(), drive.odometry[index : index + 1], frame_variance)
+        output = tracker(drive.frames[index : index + 1].float(), drive.odometry[index : index + 1], variance)
         poses.append(output.pose[0].double())
         covariances.append(output.covariance[0].double())
     return {"pose": torch.stack(poses), "covariance": torch.stack(covariances)}
@@ -125,6 +125,7 @@ def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0) -> di
 def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0) -> dict:
     _, family, kind = METHODS[method]
     variance = variance_of(drive, kind, uniform_scale)
+    reference, score = drive.map.float(), family()
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
         guess = poses[-1].clone()
@@ -132,9 +133,7 @@ def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0) -> di
         center = (round(float(guess[1])), round(float(guess[0])))
         frame = drive.frames[index : index + 1].float()
         try:
-            found = localize(
-                frame, drive.map.float(), variance, score=family(), shifts=SHIFTS, center=center, yaws=YAWS
-            )
+            found = localize(frame, reference, variance, score=score, shifts=SHIFTS, center=center, yaws=YAWS)
             poses.append(found.pose[0].double() + torch.tensor([center[1], center[0], 0.0], dtype=torch.float64))
         except NoCandidateError:
             poses.append(guess)
