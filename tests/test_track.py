@@ -546,6 +546,7 @@ def _drive_module():
         (["--noise-scale", "0"], "--noise-scale must be > 0, got 0.0"),
         (["--uniform-scale", "nan"], "--uniform-scale must be a finite number > 0, got nan"),
         (["--coasting", "bias"], "argument --coasting: invalid choice: 'bias'"),
+        (["--misfit", "blocks"], "argument --misfit: invalid choice: 'blocks'"),
     ],
 )
 def test_the_drive_command_refuses_a_bad_argument_in_one_line(capsys, arguments, message):
@@ -564,14 +565,17 @@ def _photo_pair(folder, generator) -> None:
     np.save(folder / "captured.npy", (40 + 0.7 * reference).astype(np.float32))
 
 
-def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, capsys, generator):
+@pytest.mark.parametrize("misfit", ["independent", "correlated"])
+def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, capsys, generator, misfit):
     _photo_pair(tmp_path / "another-date" / "pair-a", generator)
     tool = load_data_tool("drive/photo_drive.py", "photo_drive")
-    tool.main(
-        ["--pairs", str(tmp_path), "--frames", "12", "--radius", "6", "--sigma", "8", "--uniform-scales", "1", "4"]
-    )
+    arguments = ["--pairs", str(tmp_path), "--frames", "12", "--radius", "6", "--sigma", "8", "--uniform-scales", "1"]
+    tool.main([*arguments, "4", "--misfit", misfit])
+    assert tool.method_score("ecr_true", misfit)[0].misfit == misfit
     table = {}
-    for line in capsys.readouterr().out.splitlines():
+    output = capsys.readouterr().out
+    assert f"ECR's misfit {misfit};" in output
+    for line in output.splitlines():
         cells = [cell.strip() for cell in line.strip("|").split("|")]
         if len(cells) == 6 and cells[2][:1].isdigit():
             table[cells[0], cells[1]] = cells[2:]

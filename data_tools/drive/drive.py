@@ -24,7 +24,8 @@ frames instead (:func:`enmi_torch.tracking.calibrate_temperature`), written as `
 (``tensorboard --logdir runs/drive/tensorboard``).
 ``--scene-change S`` renders the frames from the road changed since the map was made (every change of
 :mod:`enmi_torch.data.scene_change` at strength ``S``, the map unchanged); ``--noise-scale`` multiplies the pixel
-noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them.
+noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them; ``--misfit
+correlated`` gives ECR the spatially correlated misfit (``ECR(misfit="correlated")``).
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
@@ -91,6 +92,12 @@ LABELS = {
     "ncc": "NCC",
 }
 OUT = Path("runs/drive/drive.png")
+
+
+def method_score(method: str, misfit: str = "independent") -> tuple[Score, str | None]:
+    """A method's score and variance kind; ECR's with ``misfit`` (``--misfit``: how its model variance is estimated)."""
+    score, kind = METHODS[method]
+    return (score.replace(misfit=misfit) if isinstance(score, ECR) else score), kind
 
 
 def road_map() -> torch.Tensor:
@@ -252,9 +259,9 @@ class Drive:
         return (unit * pixel_noise[:, None, None, None].square()).float()
 
 
-def calibrate(drive: Drive, method: str) -> Calibration:
+def calibrate(drive: Drive, method: str, misfit: str = "independent") -> Calibration:
     """Temperature and peak z threshold of one method from the held-out frames."""
-    score, kind = METHODS[method]
+    score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.held_out_noise)
     generator = torch.Generator().manual_seed(1)
     offsets = torch.randint(-4, 5, (len(drive.held_out_poses), 2), generator=generator)
@@ -299,9 +306,10 @@ def run_filter(
     refine: bool = False,
     coasting: str = "random_walk",
     uniform_scale: float = 1.0,
+    misfit: str = "independent",
 ) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
-    score, kind = METHODS[method]
+    score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
     tracker = Tracker(
         drive.map.float(),
@@ -342,9 +350,9 @@ def run_filter(
     }
 
 
-def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0) -> dict:
+def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str = "independent") -> dict:
     """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
-    score, kind = METHODS[method]
+    score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
@@ -611,6 +619,12 @@ def main(argv=None) -> None:
         default=1.0,
         help="the uniform variance as this factor times the learned map's mean (default 1: the mean)",
     )
+    parser.add_argument(
+        "--misfit",
+        choices=["independent", "correlated"],
+        default="independent",
+        help="ECR's misfit: how its model variance is estimated (ECR's misfit option)",
+    )
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
@@ -623,6 +637,8 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     if args.uniform_scale != 1:
         print(f"ECR, uniform variance: {args.uniform_scale:g} x the learned map's mean", flush=True)
+    if args.misfit != "independent":
+        print(f"ECR with misfit={args.misfit!r}", flush=True)
     start = time.perf_counter()
     rows = {(method, estimator): [] for method in args.methods for estimator in ("filter", "per-frame argmax")}
     for number, seed in enumerate(args.seeds):
@@ -631,15 +647,17 @@ def main(argv=None) -> None:
         for method in args.methods:
             # Featureless frames (the photograph's sky) are no error here: their flat surfaces are weak matches.
             with value_checks(False):
-                calibration = calibrate(drive, method) if args.calibrate else None
+                calibration = calibrate(drive, method, args.misfit) if args.calibrate else None
                 if calibration is not None:
                     calibrations[method] = calibration
                 try:
-                    filtered = run_filter(drive, method, calibration, args.refine, args.coasting, args.uniform_scale)
+                    filtered = run_filter(
+                        drive, method, calibration, args.refine, args.coasting, args.uniform_scale, args.misfit
+                    )
                 except Exception as error:  # a drive that raises is a result, reported as such
                     print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)
                     filtered = None
-                argmax = run_argmax(drive, method, args.uniform_scale)
+                argmax = run_argmax(drive, method, args.uniform_scale, args.misfit)
             rows[method, "filter"].append(None if filtered is None else _drive_row(drive, filtered, True))
             rows[method, "per-frame argmax"].append(_drive_row(drive, argmax, False))
             if filtered is not None:

@@ -207,10 +207,19 @@ def test_replace_changes_options_checks_them_again_and_leaves_the_original():
 
 
 def test_repr_names_every_option_and_round_trips():
-    assert repr(ECR()) == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='binned')"
+    assert (
+        repr(ECR())
+        == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='binned', misfit='independent')"
+    )
     assert repr(NCC()) == "NCC()"
     assert repr(Mixture(em_steps=2)) == "Mixture(bins=32, value_range=(0.0, 256.0), em_steps=2)"
-    for score in (ECR(bins=8, response="linear"), ENMI(kernel="truncated", reliability=True), NMI(kernel="xu"), NCC()):
+    for score in (
+        ECR(bins=8, response="linear"),
+        ECR(misfit="correlated"),
+        ENMI(kernel="truncated", reliability=True),
+        NMI(kernel="xu"),
+        NCC(),
+    ):
         assert eval(repr(score)) == score
     assert repr(ENMI(bins=12, log_prior=_prior(12))).startswith(
         "ENMI(bins=12, value_range=(0.0, 256.0), kernel='mass', log_prior=tensor((12,), torch.float64)"
