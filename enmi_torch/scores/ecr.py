@@ -40,14 +40,16 @@ the ``K_occ`` fitted means for evidence against ``tau^2``), at least ``bin_width
 
 A changed scene's misfit is spatially correlated: a new building, a shadow or a parked car covers many neighbouring
 pixels, and the per-pixel model counts each quiet pixel of such a patch as independent evidence. ``misfit="correlated"``
-takes the misfit as one value per block of ``m`` pixels: a pixel's weight becomes ``1 / (sigma_n^2 + m tau^2)``, so a
-block of ``m`` pixels of noise ``sigma^2`` weighs ``1 / (tau^2 + sigma^2 / m)``, the generalised-least-squares weight
-of its mean. ``m``, the pixels per independent misfit (:func:`misfit_extent`), is read from the residuals'
-autocovariance where ``tau^2`` is estimated (the sensor noise is white and adds to lag 0 only). The model variance is
-then ``m tau^2``: where the misfit outweighs the noise the weights are nearly uniform, and the log-likelihood ratio is
-about ``m`` times smaller, evidence counted per independent patch instead of per pixel. On drives over real
-photographs of two dates it is the better tracker; on simulated drives with a light scene change it loses more
-frames (``data_tools/README.md``, "Tracking a drive"), so ``"independent"`` stays the default.
+takes the misfit beyond the bins' quantisation as one value per block of ``m`` pixels: a pixel's weight becomes
+``1 / (sigma_n^2 + m tau^2)``, so a block of ``m`` pixels of noise ``sigma^2`` weighs ``1 / (tau^2 + sigma^2 / m)``,
+the generalised-least-squares weight of its mean. ``m``, the pixels per independent misfit (:func:`misfit_extent`), is
+read from the residuals' autocovariance where ``tau^2`` is estimated (the sensor noise is white and adds to lag 0
+only). The model variance is then ``q + m (tau^2 - q)``, ``q = bin_width^2 / 12`` the quantisation floor, which stays
+per pixel as in the independent model (a smooth map's within-bin variation is correlated too, but it is the bins'
+resolution, not a change of the scene). Where the misfit outweighs the noise the weights are nearly uniform, and the
+log-likelihood ratio is about ``m`` times smaller: evidence counted per independent patch instead of per pixel. On
+drives over real photographs of two dates it is the better tracker; on simulated drives with a light scene change it
+is within one cell less often (``data_tools/README.md``, "Tracking a drive"), so ``"independent"`` stays the default.
 
 REML by Fisher scoring: with ``w_n = 1 / (sigma_n^2 + tau^2)``, ``r_n`` the residuals about the weighted bin means and
 ``W_j`` the bins' weight sums, the score ``U = (sum w^2 r^2 - sum w + sum_j sum_{n in j} w_n^2 / W_j) / 2`` over the
@@ -302,8 +304,9 @@ def _estimated_model_variance(
 ) -> Tensor:
     """REML ``tau^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: values, reference, ``sigma^2``, bool valid.
 
-    ``image_shape``: ``(H, W)`` of the ``N = H W`` pixels for ``misfit="correlated"`` (the estimate times
-    :func:`misfit_extent` of the residuals); ``None`` for an independent misfit.
+    ``image_shape``: ``(H, W)`` of the ``N = H W`` pixels for ``misfit="correlated"`` (the floor ``bin_width^2 / 12``
+    plus the estimate's excess over it times :func:`misfit_extent` of the residuals); ``None`` for an independent
+    misfit.
     """
     with torch.no_grad():
         values, reference, noise = (part.detach().to(torch.float64) for part in (captured, reference, noise))
@@ -313,12 +316,14 @@ def _estimated_model_variance(
             fit = _affine_fit(torch.where(valid, reference, 0.0))
         else:
             fit = _binned_fit(hard_bin_index(reference, bins, value_range), bins)
-        tau2 = _reml_model_variance(values, noise, valid, fit, default_model_variance(bins, value_range))
+        floor = default_model_variance(bins, value_range)
+        tau2 = _reml_model_variance(values, noise, valid, fit, floor)
         if image_shape is None:
             return tau2
         residual, _, _ = fit(values, valid / (noise + tau2[:, None]))
         shape = (-1, *image_shape)
-        return tau2 * misfit_extent(residual.view(shape), valid.view(shape), tau2)
+        # The quantisation floor stays per pixel, as in the independent model; the misfit beyond it is correlated.
+        return floor + (tau2 - floor) * misfit_extent(residual.view(shape), valid.view(shape), tau2)
 
 
 def _aligned_model_variance(inputs, response: str, image_shape: tuple[int, int] | None = None) -> Tensor:
@@ -500,9 +505,9 @@ def ecr(
             themselves: the noise-aware form of normalised cross-correlation, with a penalty of one degree of
             freedom; ``bins`` only check that the reference is resolved).
         misfit: how an estimated ``tau^2`` treats the misfit's spatial correlation: ``"independent"`` (the
-            default: pixel by pixel) or ``"correlated"`` (times the pixels per independent misfit,
-            :func:`misfit_extent` of the residuals: see the module docstring; captured must be images). A fixed
-            ``model_variance`` is used as it is.
+            default: pixel by pixel) or ``"correlated"`` (its excess over ``bin_width^2 / 12`` times the pixels per
+            independent misfit, :func:`misfit_extent` of the residuals: see the module docstring; captured must be
+            images). A fixed ``model_variance`` is used as it is.
 
     Returns:
         ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: larger the better the reference bins
@@ -833,8 +838,8 @@ class ECR(Score):
             the data (per aligned pair; per captured image for a surface: see :mod:`~enmi_torch.scores.ecr`);
             ``None`` for ``bin_width^2 / 12`` (the default before the estimate).
         response: ``"binned"`` (one mean per reference bin, any response) or ``"linear"`` (increasing affine).
-        misfit: ``"independent"`` (the default) or ``"correlated"``: an estimated ``tau^2`` times the pixels per
-            independent misfit (:func:`misfit_extent`; see :func:`ecr`).
+        misfit: ``"independent"`` (the default) or ``"correlated"``: an estimated ``tau^2``'s excess over the
+            quantisation floor times the pixels per independent misfit (:func:`misfit_extent`; see :func:`ecr`).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)

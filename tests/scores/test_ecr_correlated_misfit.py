@@ -151,3 +151,28 @@ def test_bad_misfits_are_refused():
     flat = torch.rand(2, 16, generator=torch.Generator().manual_seed(0)) * 256
     with pytest.raises(ValueError, match=r"misfit='correlated' .* captured must be images .* got \(2, 16\)"):
         ecr(flat, flat, 1.0, misfit="correlated")
+
+
+def test_the_quantisation_floor_stays_per_pixel_and_only_the_excess_is_multiplied(generator):
+    # A smooth map seen through white noise: the residual within each bin is the map's own (correlated) variation, and
+    # the estimate sits at the floor, bin_width^2 / 12; the correlated misfit leaves it there.
+    rows = torch.linspace(0, 255, 48, dtype=torch.float64)[:, None]
+    smooth = (rows + torch.linspace(0, 60, 64, dtype=torch.float64)).clamp(0, 255).expand(1, 1, 48, 64)
+    captured = smooth + 2 * torch.randn(1, 1, 48, 64, generator=generator, dtype=torch.float64)
+    floor = 256.0**2 / 16**2 / 12
+    for misfit in ("independent", "correlated"):
+        assert float(ecr_model_variance(captured, smooth, 100.0, bins=16, misfit=misfit)[0]) == floor
+    # With a misfit beyond the floor, the correlated estimate is the floor plus the excess times the extent of the
+    # residuals about the bin means weighted at the independent estimate.
+    captured, _, section = _images(generator, 4)
+    tau2 = ecr_model_variance(captured, section, 100.0, bins=16)
+    weight = 1 / (100.0 + tau2)
+    cells = hard_bin_index(section.flatten(), 16, RANGE)
+    values = captured.flatten() - captured.mean()
+    means = torch.zeros(16, dtype=torch.float64).index_add(0, cells, weight * values) / torch.zeros(
+        16, dtype=torch.float64
+    ).index_add(0, cells, weight.expand(cells.shape)).clamp_min(1e-300)
+    residual = (values - means[cells]).view(1, 48, 64)
+    extent = misfit_extent(residual, torch.ones(1, 48, 64, dtype=torch.bool), tau2)
+    expected = floor + (tau2 - floor) * extent
+    torch.testing.assert_close(ecr_model_variance(captured, section, 100.0, bins=16, misfit="correlated"), expected)
