@@ -646,6 +646,29 @@ def test_a_tracker_takes_the_score_by_name_or_object_alike(generator, name):
     assert torch.equal(calibrated(frame, odometry, variance).pose, outputs[0].pose)
 
 
+def test_the_default_score_is_ecr_with_a_correlated_misfit_and_weighs_a_changed_patch_less(generator):
+    from enmi_torch import ECR
+    from enmi_torch.tracking import default_score
+
+    assert default_score() == ECR(misfit="correlated")
+    reference = _texture(generator, (80, 120)).float()
+    frame = _cut(reference, 62, 41).clone()
+    frame[..., :12, :16] = 255 - frame[..., :12, :16]  # a changed patch of the scene
+    frame = frame + 4 * torch.randn(frame.shape, generator=generator)
+    odometry = torch.tensor([[2.0, 1.0, 0.0]])
+    outputs = {}
+    for name, score in (("default", None), ("correlated", ECR(misfit="correlated")), ("independent", ECR())):
+        tracker = Tracker(reference, score=score, shifts=3, yaw_bins=3)
+        tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
+        outputs[name] = tracker(frame, odometry, 16.0)
+    for first, second in zip(outputs["default"], outputs["correlated"], strict=True):
+        torch.testing.assert_close(first, second, rtol=0, atol=0, equal_nan=True)
+    # Both find the place; the changed patch is one piece of evidence, not 192 independent pixels.
+    assert outputs["default"].pose[0, :2].round().tolist() == [62.0, 41.0]
+    assert outputs["independent"].pose[0, :2].round().tolist() == [62.0, 41.0]
+    assert float(outputs["default"].score[0]) < 0.5 * float(outputs["independent"].score[0])
+
+
 def test_a_calibration_file_that_names_its_score_metric_still_loads(tmp_path):
     (tmp_path / "old.json").write_text('{"metric": "nmi", "temperature": 2.0, "min_peak_z": 3.5}')
     assert Calibration.load(tmp_path / "old.json") == Calibration("nmi", 2.0, 3.5)

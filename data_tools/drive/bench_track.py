@@ -1,12 +1,14 @@
 """One step of the tracking filter against one ``localize`` call of the same window, in one run.
 
 A 64 x 64 frame (the drive's camera model, ``data_tools/drive/drive.py``), a window of +-8 cells and 5 yaws one degree
-apart, ECR with a per-pixel variance: ``track_step`` (predict, the search, update, pose read-out and health) against
+apart, ECR with a per-pixel variance and the tracker's default spatially correlated misfit (``--misfit independent``
+for ECR's own default): ``track_step`` (predict, the search, update, pose read-out and health) against
 the bare ``localize`` call, interleaved in rounds on one thread; the table gives the medians of the per-round times
 and of the per-round ratios.
 
     python data_tools/drive/bench_track.py              # ~1 min on 2 cores
     python data_tools/drive/bench_track.py --bins 16 --rounds 40
+    python data_tools/drive/bench_track.py --misfit independent
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ def main(argv=None) -> None:
     parser.add_argument("--rounds", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=3, help="calls per round and method (the fastest counts)")
     parser.add_argument("--bins", type=int, default=32)
+    parser.add_argument("--misfit", choices=["independent", "correlated"], default="correlated", help="ECR's misfit")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     drive_tools = _drive()
@@ -57,7 +60,7 @@ def main(argv=None) -> None:
     belief = initial_belief(truth, shifts=8, yaw_bins=5, yaw_step=1.0, std=(0.5, 0.5, 0.5))
     center = torch.stack([truth[:, 1], truth[:, 0]], 1).round().long()
     yaws = (truth[0, 2].round() + torch.arange(-2.0, 3.0)).tolist()
-    score = ECR(bins=args.bins)
+    score = ECR(bins=args.bins, misfit=args.misfit)
 
     def search():
         drive_tools.search(frame, reference, variance, drive.valid, center, yaws, score)
@@ -81,7 +84,10 @@ def main(argv=None) -> None:
         searches.append(first)
         steps.append(second)
         ratios.append(second / first)
-    print(f"64 x 64 frame, +-8 cells, 5 yaws, ECR {args.bins} bins, 1 thread, {args.rounds} interleaved rounds\n")
+    print(
+        f"64 x 64 frame, +-8 cells, 5 yaws, ECR {args.bins} bins, misfit {args.misfit}, 1 thread, {args.rounds} "
+        "interleaved rounds\n"
+    )
     print("| call | median time (ms) |")
     print("| --- | --- |")
     print(f"| localize | {1000 * statistics.median(searches):.1f} |")

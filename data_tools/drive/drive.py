@@ -24,8 +24,9 @@ frames instead (:func:`enmi_torch.tracking.calibrate_temperature`), written as `
 (``tensorboard --logdir runs/drive/tensorboard``).
 ``--scene-change S`` renders the frames from the road changed since the map was made (every change of
 :mod:`enmi_torch.data.scene_change` at strength ``S``, the map unchanged); ``--noise-scale`` multiplies the pixel
-noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them; ``--misfit
-correlated`` gives ECR the spatially correlated misfit (``ECR(misfit="correlated")``).
+noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them. ECR's misfit is
+spatially correlated (``ECR(misfit="correlated")``, the tracker's :func:`~enmi_torch.tracking.default_score`);
+``--misfit independent`` gives it ECR's own default instead.
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
@@ -94,7 +95,7 @@ LABELS = {
 OUT = Path("runs/drive/drive.png")
 
 
-def method_score(method: str, misfit: str = "independent") -> tuple[Score, str | None]:
+def method_score(method: str, misfit: str = "correlated") -> tuple[Score, str | None]:
     """A method's score and variance kind; ECR's with ``misfit`` (``--misfit``: how its model variance is estimated)."""
     score, kind = METHODS[method]
     return (score.replace(misfit=misfit) if isinstance(score, ECR) else score), kind
@@ -259,7 +260,7 @@ class Drive:
         return (unit * pixel_noise[:, None, None, None].square()).float()
 
 
-def calibrate(drive: Drive, method: str, misfit: str = "independent") -> Calibration:
+def calibrate(drive: Drive, method: str, misfit: str = "correlated") -> Calibration:
     """Temperature and peak z threshold of one method from the held-out frames."""
     score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.held_out_noise)
@@ -306,7 +307,7 @@ def run_filter(
     refine: bool = False,
     coasting: str = "random_walk",
     uniform_scale: float = 1.0,
-    misfit: str = "independent",
+    misfit: str = "correlated",
 ) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = method_score(method, misfit)
@@ -350,7 +351,7 @@ def run_filter(
     }
 
 
-def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str = "independent") -> dict:
+def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str = "correlated") -> dict:
     """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
     score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
@@ -622,8 +623,8 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--misfit",
         choices=["independent", "correlated"],
-        default="independent",
-        help="ECR's misfit: how its model variance is estimated (ECR's misfit option)",
+        default="correlated",
+        help="ECR's misfit: how its model variance is estimated (default: the tracker's, default_score)",
     )
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
@@ -637,8 +638,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     if args.uniform_scale != 1:
         print(f"ECR, uniform variance: {args.uniform_scale:g} x the learned map's mean", flush=True)
-    if args.misfit != "independent":
-        print(f"ECR with misfit={args.misfit!r}", flush=True)
+    print(f"ECR with misfit={args.misfit!r}", flush=True)
     start = time.perf_counter()
     rows = {(method, estimator): [] for method in args.methods for estimator in ("filter", "per-frame argmax")}
     for number, seed in enumerate(args.seeds):

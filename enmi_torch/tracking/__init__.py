@@ -10,7 +10,7 @@ search with :func:`~enmi_torch.localize`).
 from enmi_torch.tracking.belief import CHI2_95_2D, Belief, belief_pose, initial_belief, predict, update
 from enmi_torch.tracking.calibration import Calibration, calibrate_temperature, grid_temperature
 from enmi_torch.tracking.health import Health
-from enmi_torch.tracking.tracker import Tracker, TrackOutput, coasting_noise, track_step
+from enmi_torch.tracking.tracker import Tracker, TrackOutput, coasting_noise, default_score, track_step
 
 __all__ = [
     "CHI2_95_2D",
@@ -22,6 +22,7 @@ __all__ = [
     "belief_pose",
     "calibrate_temperature",
     "coasting_noise",
+    "default_score",
     "grid_temperature",
     "initial_belief",
     "predict",
