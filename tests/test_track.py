@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -583,6 +584,21 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     assert set(table) == {(label, estimator) for label in labels for estimator in ("filter", "per-frame argmax")}
     within, lost, _, raised = table["ECR, true variance", "filter"]
     assert float(within) >= 0.9 and float(lost) == 0.0 and raised == "0"  # one drive: no standard error
+    record = json.loads(output.strip().splitlines()[-1])
+    assert record["misfit"] == misfit and record["drives"]["ECR, true variance | filter"]["lost"] == [0.0]
+
+
+def test_the_photograph_drive_pairs_each_row_with_the_first_on_the_same_drives():
+    tool = load_data_tool("drive/photo_drive.py", "photo_drive")
+    rows = {
+        "ECR | filter": {"within 1 cell": [0.5, 0.7], "lost": [0.2, 0.1]},
+        "NMI | filter": {"within 1 cell": [0.6, 0.9], "lost": [0.1, 0.1]},
+        "NCC | filter": {"within 1 cell": [0.6], "lost": [0.1]},  # a drive raised: left out of the pairing
+    }
+    lines = tool.paired_rows(rows, drives=2)
+    assert "each row less ECR | filter" in lines[0]
+    assert lines[3:] == ["| NMI | filter | 0.150 ± 0.050 | -0.050 ± 0.050 |"]
+    assert tool.paired_rows(rows, drives=1) == []
 
 
 @pytest.mark.parametrize(

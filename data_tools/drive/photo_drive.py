@@ -14,7 +14,8 @@ Methods: ECR (the default score) with the true per-row variance and with a unifo
 times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
 (``ECR(misfit="correlated")``, the tracker's default score); ``--misfit independent`` gives it ECR's own default
 instead. "Within 1 cell": on both axes; "lost": more than 4 cells from the truth; "covers": the filter's 95 % ellipse
-holds the truth; "raised": drives that ended in an exception.
+holds the truth; "raised": drives that ended in an exception. A second table pairs each row with the first on the
+same drives; the last line is JSON with every drive's values, pair by pair and seed by seed.
 
     python data_tools/yardstick/prepare_scene_change.py --dataset levir-cd --source DIR --out runs/pairs --correct
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2
@@ -162,6 +163,26 @@ def measures(truth: torch.Tensor, result: dict) -> dict:
     return row
 
 
+def paired_rows(rows: dict[str, dict[str, list[float]]], drives: int) -> list[str]:
+    """Each row less the first one, drive by drive: mean ± SE of the differences (rows with every drive only)."""
+    complete = {key: values for key, values in rows.items() if len(values.get("lost", [])) == drives}
+    if len(complete) < 2 or drives < 2:
+        return []
+    (first, baseline), *others = complete.items()
+    lines = [
+        f"\nPaired on the same {drives} drives, each row less {first} (mean ± SE of the differences):\n",
+        "| method | estimator | within 1 cell | lost (> 4 cells) |",
+        "| --- | --- | --- | --- |",
+    ]
+    for key, values in others:
+        cells = [
+            mean_and_error([a - b for a, b in zip(values[measure], baseline[measure], strict=True)])
+            for measure in ("within 1 cell", "lost")
+        ]
+        lines.append(f"| {key} | {' | '.join(cells)} |")
+    return lines
+
+
 def mean_and_error(values: list[float]) -> str:
     if len(values) < 2:
         return f"{values[0]:.3f}" if values else "-"
@@ -254,7 +275,13 @@ def main(argv=None) -> None:
         values = rows.get(key, {})
         cells = [mean_and_error(values.get(measure, [])) for measure in ("within 1 cell", "lost", "covers")]
         print(f"| {key} | {' | '.join(cells)} | {raised.get(key, 0)} |")
-    print(json.dumps({"pairs": [name for name, _, _ in pairs], "seconds": round(time.perf_counter() - start)}))
+    print("\n".join(paired_rows(rows, drives)))
+    per_drive = {
+        key: {measure: [round(value, 6) for value in values] for measure, values in row.items()}
+        for key, row in rows.items()
+    }
+    summary = {"pairs": [name for name, _, _ in pairs], "seeds": args.seeds, "misfit": args.misfit, "drives": per_drive}
+    print(json.dumps({**summary, "seconds": round(time.perf_counter() - start)}))
 
 
 if __name__ == "__main__":
