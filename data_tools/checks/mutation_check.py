@@ -40,6 +40,7 @@ MODULES = {
     "scores/ecr": [
         "tests/test_correlation_ratio.py",
         "tests/scores/test_ecr_model_variance.py",
+        "tests/scores/test_ecr_correlated_misfit.py",
         *SURFACE_TESTS,
         "tests/test_losses.py",
         "tests/test_localize.py",

@@ -71,6 +71,15 @@ def test_the_extent_is_the_tapered_lag_sum_of_a_direct_loop(dtype, generator):
     assert found.dtype == dtype
 
 
+def test_a_single_row_image_sums_its_lags_along_the_row_only(generator):
+    # One row: no row lags exist, the reach along the columns is the smallest side's (at least one lag).
+    residual = _block_field(generator, 1, 200, 1, 3)
+    valid = torch.ones(1, 200, dtype=torch.bool)
+    found = misfit_extent(residual[None], valid[None], torch.ones(1, dtype=torch.float64))
+    assert float(found[0]) == pytest.approx(_direct_extent(residual, valid, 1.0), rel=1e-9)
+    assert float(found[0]) > 1.2  # the lag-1 neighbours along the row count
+
+
 @pytest.mark.parametrize(("block_y", "block_x"), [(1, 1), (4, 4), (2, 6)])
 def test_a_block_constant_misfit_gives_the_closed_form_share_of_its_block(generator, block_y, block_x):
     height, width = 120, 96  # the reach follows the smaller side: round(96 / 8) = 12
@@ -164,15 +173,17 @@ def test_the_quantisation_floor_stays_per_pixel_and_only_the_excess_is_multiplie
         assert float(ecr_model_variance(captured, smooth, 100.0, bins=16, misfit=misfit)[0]) == floor
     # With a misfit beyond the floor, the correlated estimate is the floor plus the excess times the extent of the
     # residuals about the bin means weighted at the independent estimate.
+    # The noise variance varies (tenfold down the rows), so weighted and plain bin means differ.
     captured, _, section = _images(generator, 4)
-    tau2 = ecr_model_variance(captured, section, 100.0, bins=16)
-    weight = 1 / (100.0 + tau2)
+    variance = (10 ** torch.linspace(2, 3, 48, dtype=torch.float64))[:, None].expand(1, 1, 48, 64)
+    tau2 = ecr_model_variance(captured, section, variance, bins=16)
+    weight = (1 / (variance + tau2)).flatten()
     cells = hard_bin_index(section.flatten(), 16, RANGE)
     values = captured.flatten() - captured.mean()
-    means = torch.zeros(16, dtype=torch.float64).index_add(0, cells, weight * values) / torch.zeros(
-        16, dtype=torch.float64
-    ).index_add(0, cells, weight.expand(cells.shape)).clamp_min(1e-300)
+    sums = torch.zeros(16, dtype=torch.float64).index_add(0, cells, weight * values)
+    means = sums / torch.zeros(16, dtype=torch.float64).index_add(0, cells, weight).clamp_min(1e-300)
     residual = (values - means[cells]).view(1, 48, 64)
     extent = misfit_extent(residual, torch.ones(1, 48, 64, dtype=torch.bool), tau2)
     expected = floor + (tau2 - floor) * extent
-    torch.testing.assert_close(ecr_model_variance(captured, section, 100.0, bins=16, misfit="correlated"), expected)
+    found = ecr_model_variance(captured, section, variance, bins=16, misfit="correlated")
+    torch.testing.assert_close(found, expected, rtol=1e-9, atol=0)
