@@ -370,7 +370,7 @@ def _model_variance_at_peaks(
 ) -> Tensor:
     """``tau^2`` ``(B,)`` float64 estimated at each captured image's best placement in ``scores`` ``(B, Sy, Sx)``.
 
-    A captured image without a finite score gets the floor, ``bin_width^2 / 12`` (times 1 for a correlated misfit).
+    A captured image without a finite score gets the floor, ``bin_width^2 / 12``, with either misfit.
     """
     batch, height, width = inputs.captured.shape
     device = inputs.captured.device

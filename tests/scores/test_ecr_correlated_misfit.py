@@ -187,3 +187,12 @@ def test_the_quantisation_floor_stays_per_pixel_and_only_the_excess_is_multiplie
     expected = floor + (tau2 - floor) * extent
     found = ecr_model_variance(captured, section, variance, bins=16, misfit="correlated")
     torch.testing.assert_close(found, expected, rtol=1e-9, atol=0)
+
+
+def test_with_nothing_to_estimate_from_the_correlated_estimate_is_the_floor(generator):
+    captured, _, section = _images(generator, 4)
+    few = torch.zeros(captured.shape, dtype=torch.bool)
+    few[..., 0, :3] = True  # fewer valid pixels than occupied bins
+    for misfit in ("independent", "correlated"):
+        found = ecr_model_variance(captured, section, 100.0, bins=256, valid_mask=few, misfit=misfit)
+        assert float(found[0]) == 256.0**2 / 256**2 / 12
