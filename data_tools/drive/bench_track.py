@@ -22,7 +22,8 @@ from pathlib import Path
 import torch
 
 from enmi_torch.scores import ECR
-from enmi_torch.tracking import initial_belief, track_step
+from enmi_torch.scores.ecr import MISFITS
+from enmi_torch.tracking import default_score, initial_belief, track_step
 
 
 def _drive():
@@ -46,7 +47,9 @@ def main(argv=None) -> None:
     parser.add_argument("--rounds", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=3, help="calls per round and method (the fastest counts)")
     parser.add_argument("--bins", type=int, default=32)
-    parser.add_argument("--misfit", choices=["independent", "correlated"], default="correlated", help="ECR's misfit")
+    parser.add_argument(
+        "--misfit", choices=MISFITS, default=default_score().misfit, help="ECR's misfit (default: the tracker's)"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     drive_tools = _drive()

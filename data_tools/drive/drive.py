@@ -57,7 +57,8 @@ from enmi_torch.data.scene_change import scene_change
 from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
-from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature
+from enmi_torch.scores.ecr import MISFITS
+from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature, default_score
 from enmi_torch.tracking.belief import finite_floor
 from enmi_torch.tracking.health import peak_z_score
 from enmi_torch.variance import empirical_variance
@@ -93,9 +94,10 @@ LABELS = {
     "ncc": "NCC",
 }
 OUT = Path("runs/drive/drive.png")
+MISFIT = default_score().misfit  # ECR's misfit in the benchmark: the tracker's
 
 
-def method_score(method: str, misfit: str = "correlated") -> tuple[Score, str | None]:
+def method_score(method: str, misfit: str = MISFIT) -> tuple[Score, str | None]:
     """A method's score and variance kind; ECR's with ``misfit`` (``--misfit``: how its model variance is estimated)."""
     score, kind = METHODS[method]
     return (score.replace(misfit=misfit) if isinstance(score, ECR) else score), kind
@@ -260,7 +262,7 @@ class Drive:
         return (unit * pixel_noise[:, None, None, None].square()).float()
 
 
-def calibrate(drive: Drive, method: str, misfit: str = "correlated") -> Calibration:
+def calibrate(drive: Drive, method: str, misfit: str = MISFIT) -> Calibration:
     """Temperature and peak z threshold of one method from the held-out frames."""
     score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.held_out_noise)
@@ -307,7 +309,7 @@ def run_filter(
     refine: bool = False,
     coasting: str = "random_walk",
     uniform_scale: float = 1.0,
-    misfit: str = "correlated",
+    misfit: str = MISFIT,
 ) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = method_score(method, misfit)
@@ -351,7 +353,7 @@ def run_filter(
     }
 
 
-def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str = "correlated") -> dict:
+def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
     """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
     score, kind = method_score(method, misfit)
     variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
@@ -622,8 +624,8 @@ def main(argv=None) -> None:
     )
     parser.add_argument(
         "--misfit",
-        choices=["independent", "correlated"],
-        default="correlated",
+        choices=MISFITS,
+        default=MISFIT,
         help="ECR's misfit: how its model variance is estimated (default: the tracker's, default_score)",
     )
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")

@@ -36,13 +36,15 @@ import numpy as np
 import torch
 
 from enmi_torch import ECR, NCC, NMI, NoCandidateError, localize
-from enmi_torch.tracking import CHI2_95_2D, Tracker
+from enmi_torch.scores.ecr import MISFITS
+from enmi_torch.tracking import CHI2_95_2D, Tracker, default_score
 
 FRAME = 64
 SHIFTS = 8
 YAWS = [-1.0, 0.0, 1.0]  # the filter's yaw bins
 OVER_READ = 1.06
 ODOMETRY_NOISE = 0.3
+MISFIT = default_score().misfit  # ECR's misfit in the benchmark: the tracker's
 SETTINGS = {"shifts": SHIFTS, "yaw_bins": 3, "motion_noise": (0.5, 0.5, 0.3)}  # README's Tracker
 
 
@@ -112,13 +114,13 @@ def variance_of(drive: PhotoDrive, kind: str | None, uniform_scale: float) -> to
     return drive.variance
 
 
-def method_score(method: str, misfit: str = "correlated"):
+def method_score(method: str, misfit: str = MISFIT):
     """A method's score (ECR's with ``misfit``) and variance kind."""
     _, family, kind = METHODS[method]
     return (family(misfit=misfit) if family is ECR else family()), kind
 
 
-def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = "correlated") -> dict:
+def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
     score, kind = method_score(method, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     variance = None if variance is None else variance.float()
@@ -132,7 +134,7 @@ def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfi
     return {"pose": torch.stack(poses), "covariance": torch.stack(covariances)}
 
 
-def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = "correlated") -> dict:
+def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
     score, kind = method_score(method, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     reference = drive.map.float()
@@ -203,8 +205,8 @@ def main(argv=None) -> None:
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument(
         "--misfit",
-        choices=["independent", "correlated"],
-        default="correlated",
+        choices=MISFITS,
+        default=MISFIT,
         help="ECR's misfit: how its model variance is estimated (default: the tracker's, default_score)",
     )
     parser.add_argument(
