@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 
@@ -571,7 +572,8 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     _photo_pair(tmp_path / "another-date" / "pair-a", generator)
     tool = load_data_tool("drive/photo_drive.py", "photo_drive")
     arguments = ["--pairs", str(tmp_path), "--frames", "12", "--radius", "6", "--sigma", "8", "--uniform-scales", "1"]
-    tool.main([*arguments, "4", "--misfit", misfit])
+    oracle = misfit == "correlated"  # the oracle gating rows once
+    tool.main([*arguments, "4", "--misfit", misfit, *(["--oracle"] if oracle else [])])
     assert tool.method_score("ecr_true", misfit)[0].misfit == misfit
     table = {}
     output = capsys.readouterr().out
@@ -581,9 +583,13 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
         if len(cells) == 6 and cells[2][:1].isdigit():
             table[cells[0], cells[1]] = cells[2:]
     labels = ["ECR, true variance", "ECR, uniform variance x 1", "ECR, uniform variance x 4", "NMI", "NCC"]
-    assert set(table) == {(label, estimator) for label in labels for estimator in ("filter", "per-frame argmax")}
+    estimators = ("filter", "per-frame argmax", *(["oracle gating"] if oracle else []))
+    assert set(table) == {(label, estimator) for label in labels for estimator in estimators}
     within, lost, _, raised = table["ECR, true variance", "filter"]
     assert float(within) >= 0.9 and float(lost) == 0.0 and raised == "0"  # one drive: no standard error
+    if oracle:
+        within, lost, covers, raised = table["ECR, true variance", "oracle gating"]
+        assert float(within) >= 0.9 and float(lost) == 0.0 and covers == "-" and raised == "0"
     record = json.loads(output.strip().splitlines()[-1])
     assert record["misfit"] == misfit and record["drives"]["ECR, true variance | filter"]["lost"] == [0.0]
 
@@ -599,6 +605,26 @@ def test_the_photograph_drive_pairs_each_row_with_the_first_on_the_same_drives()
     assert "each row less ECR | filter" in lines[0]
     assert lines[3:] == ["| NMI | filter | 0.150 ± 0.050 | -0.050 ± 0.050 |"]
     assert tool.paired_rows(rows, drives=1) == []
+
+
+def test_the_photograph_drive_oracle_takes_only_right_matches_and_dead_reckons_through_the_rest(tmp_path, generator):
+    _photo_pair(tmp_path / "pair-a", generator)
+    tool = load_data_tool("drive/photo_drive.py", "photo_drive")
+    (_, reference, captured), *_ = tool.load_pairs(tmp_path)
+    settings = argparse.Namespace(frames=12, radius=6.0, sigma=8.0)
+    drive = tool.PhotoDrive(reference, captured, 0, settings)
+    other = torch.from_numpy(captured)
+    wrong = [4, 5, 6]
+    for index in wrong:  # the other date 6 cells right and 2 down of the truth: its best match is that place
+        moved = drive.truth[index] + torch.tensor([6.0, 2.0, 0.0], dtype=torch.float64)
+        drive.frames[index] = tool.cut(other, moved)[0]
+    poses = tool.run_oracle_gating(drive, "ecr_true")["pose"]
+    error = (poses[:, :2] - drive.truth[:, :2]).abs().amax(1)
+    assert bool((error[[i for i in range(12) if i not in wrong]] <= 1).all())
+    for index in wrong:  # the last taken pose moved by the odometry, not the wrong match
+        torch.testing.assert_close(poses[index, :2], poses[index - 1, :2] + drive.odometry[index, :2])
+    argmax = tool.run_argmax(drive, "ecr_true")["pose"]  # per-frame argmax takes the wrong match
+    assert float((argmax[4, :2] - drive.truth[4, :2] - torch.tensor([6.0, 2.0], dtype=torch.float64)).abs().max()) <= 1
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,10 @@ standard deviation grows tenfold from the near (bottom) row to the far (top) row
 noisier in variance; its mean over the rows is ``--sigma`` grey levels. The odometry over-reads each move by 6 %
 and adds white noise of 0.3 cells. The filter runs as README shows it (``Tracker(map, shifts=8, yaw_bins=3,
 motion_noise=(0.5, 0.5, 0.3))``, no calibration); per-frame argmax searches the same window around the previous
-estimate moved by the odometry and takes the best candidate.
+estimate moved by the odometry and takes the best candidate. ``--oracle`` adds a reference that no tracker can run,
+oracle gating: each frame is searched in the window centred on the truth, its best candidate taken where it is
+within one cell of the truth, the odometry dead-reckoned through the other frames. It measures how much of a drive
+the frames and the odometry leave to be lost even by a filter that never takes a wrong match.
 
 Methods: ECR (the default score) with the true per-row variance and with a uniform variance (``--uniform-scales``
 times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
@@ -20,6 +23,7 @@ same drives; the last line is JSON with every drive's values, pair by pair and s
     python data_tools/yardstick/prepare_scene_change.py --dataset levir-cd --source DIR --out runs/pairs --correct
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --misfit independent
+    python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --methods ecr_true ncc nmi --oracle
 """
 
 from __future__ import annotations
@@ -134,22 +138,53 @@ def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfi
     return {"pose": torch.stack(poses), "covariance": torch.stack(covariances)}
 
 
+def best_match(drive: PhotoDrive, index: int, center: tuple[int, int], score, variance) -> torch.Tensor | None:
+    """``(3,)`` pose of frame ``index``'s best candidate in the window about ``center`` (row, col); ``None`` if none."""
+    frame = drive.frames[index : index + 1].float()
+    try:
+        found = localize(frame, drive.map.float(), variance, score=score, shifts=SHIFTS, center=center, yaws=YAWS)
+    except NoCandidateError:
+        return None
+    return found.pose[0].double() + torch.tensor([center[1], center[0], 0.0], dtype=torch.float64)
+
+
 def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
     score, kind = method_score(method, misfit)
     variance = variance_of(drive, kind, uniform_scale)
-    reference = drive.map.float()
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
         guess = poses[-1].clone()
         guess[:2] += drive.odometry[index, :2]
-        center = (round(float(guess[1])), round(float(guess[0])))
-        frame = drive.frames[index : index + 1].float()
-        try:
-            found = localize(frame, reference, variance, score=score, shifts=SHIFTS, center=center, yaws=YAWS)
-            poses.append(found.pose[0].double() + torch.tensor([center[1], center[0], 0.0], dtype=torch.float64))
-        except NoCandidateError:
+        found = best_match(drive, index, (round(float(guess[1])), round(float(guess[0]))), score, variance)
+        poses.append(guess if found is None else found)
+    return {"pose": torch.stack(poses), "covariance": None}
+
+
+def run_oracle_gating(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
+    """A reference, not a method: dead reckoning that is told which frames' best match is right.
+
+    Each frame is searched in the filter's window (``SHIFTS`` cells, ``YAWS``) centred on its true cell. Where the
+    best candidate is within one cell of the truth on both axes it is taken; elsewhere the pose is the last one moved
+    by the odometry. No tracker knows which matches are right, so this shows how much of a drive the frames and the
+    odometry leave to be lost by a filter that never takes a wrong match. It is not a strict bound: a filter may
+    also estimate the odometry's bias, or use a match that is off by more than one cell.
+    """
+    score, kind = method_score(method, misfit)
+    variance = variance_of(drive, kind, uniform_scale)
+    poses = [drive.truth[0]]
+    for index in range(1, len(drive.truth)):
+        truth = drive.truth[index]
+        found = best_match(drive, index, (int(truth[1]), int(truth[0])), score, variance)
+        if found is not None and bool((found[:2] - truth[:2]).abs().max() <= 1):
+            poses.append(found)
+        else:
+            guess = poses[-1].clone()
+            guess[:2] += drive.odometry[index, :2]
             poses.append(guess)
     return {"pose": torch.stack(poses), "covariance": None}
+
+
+ESTIMATORS = {"filter": run_filter, "per-frame argmax": run_argmax, "oracle gating": run_oracle_gating}
 
 
 def measures(truth: torch.Tensor, result: dict) -> dict:
@@ -216,6 +251,11 @@ def main(argv=None) -> None:
         default=[1.0],
         help="the uniform controls: factors on the true variance's mean",
     )
+    parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="also the oracle gating reference: dead reckoning told which frames' best match is right",
+    )
     args = parser.parse_args(argv)
     if args.frames < 2:
         parser.error(f"--frames must be an int >= 2, got {args.frames}")
@@ -241,6 +281,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     rows: dict[str, dict[str, list[float]]] = {}
     raised: dict[str, int] = {}
+    estimators = ["filter", "per-frame argmax", *(["oracle gating"] if args.oracle else [])]
     runs = [
         (method, scale)
         for method in args.methods
@@ -254,7 +295,8 @@ def main(argv=None) -> None:
                 label = METHODS[method][0] + (
                     f" x {scale:g}" if method == "ecr_uniform" and len(args.uniform_scales) > 1 else ""
                 )
-                for estimator, run in (("filter", run_filter), ("per-frame argmax", run_argmax)):
+                for estimator in estimators:
+                    run = ESTIMATORS[estimator]
                     key = f"{label} | {estimator}"
                     try:
                         result = run(drive, method, scale, args.misfit)
