@@ -592,6 +592,10 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
         assert float(within) >= 0.9 and float(lost) == 0.0 and covers == "-" and raised == "0"
     record = json.loads(output.strip().splitlines()[-1])
     assert record["misfit"] == misfit and record["drives"]["ECR, true variance | filter"]["lost"] == [0.0]
+    assert ("filter by match" in record) == oracle
+    if oracle:  # every frame but the start is in one of the two parts
+        parts = record["filter by match"]["ECR, true variance"]
+        assert parts["right"]["frames"][0] + parts["wrong"]["frames"][0] == 11
 
 
 def test_the_photograph_drive_pairs_each_row_with_the_first_on_the_same_drives():
@@ -625,6 +629,26 @@ def test_the_photograph_drive_oracle_takes_only_right_matches_and_dead_reckons_t
         torch.testing.assert_close(poses[index, :2], poses[index - 1, :2] + drive.odometry[index, :2])
     argmax = tool.run_argmax(drive, "ecr_true")["pose"]  # per-frame argmax takes the wrong match
     assert float((argmax[4, :2] - drive.truth[4, :2] - torch.tensor([6.0, 2.0], dtype=torch.float64)).abs().max()) <= 1
+
+
+def test_the_photograph_drive_splits_the_filter_by_whether_the_frames_match_is_right():
+    tool = load_data_tool("drive/photo_drive.py", "photo_drive")
+    truth = torch.zeros(5, 3, dtype=torch.float64)
+    pose = torch.tensor([[0.0, 0, 0], [0.5, 0, 0], [3, 0, 0], [0, 5, 0], [0, 1, 0]], dtype=torch.float64)
+    right = torch.tensor([True, True, True, False, False])
+    split = tool.split_by_match(truth, {"pose": pose, "covariance": None}, right)
+    assert split["right"] == {"frames": 2, "within 1 cell": 0.5, "lost": 0.0}  # frame 0, the start, is left out
+    assert split["wrong"] == {"frames": 2, "within 1 cell": 0.5, "lost": 0.5}
+    none = tool.split_by_match(truth, {"pose": pose, "covariance": None}, torch.ones(5, dtype=torch.bool))["wrong"]
+    assert none["frames"] == 0 and math.isnan(none["within 1 cell"]) and math.isnan(none["lost"])
+    drives = {part: {measure: [value, value] for measure, value in split[part].items()} for part in split}
+    drives["wrong"]["lost"][1] = 0.0  # a second drive: mean ± SE over the two
+    assert (
+        tool.split_rows({"ECR": drives})[-1]
+        == "| ECR | 4 | 0.500 ± 0.000 | 0.000 ± 0.000 | 4 | 0.500 ± 0.000 | 0.250 ± 0.250 |"
+    )
+    wrong = {measure: [value] for measure, value in none.items()}
+    assert tool.split_rows({"ECR": {"right": drives["right"], "wrong": wrong}})[-1].endswith("| 0 | - | - |")
 
 
 @pytest.mark.parametrize(

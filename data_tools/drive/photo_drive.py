@@ -167,21 +167,23 @@ def run_oracle_gating(drive: PhotoDrive, method: str, uniform_scale: float = 1.0
     best candidate is within one cell of the truth on both axes it is taken; elsewhere the pose is the last one moved
     by the odometry. No tracker knows which matches are right, so this shows how much of a drive the frames and the
     odometry leave to be lost by a filter that never takes a wrong match. It is not a strict bound: a filter may
-    also estimate the odometry's bias, or use a match that is off by more than one cell.
+    also estimate the odometry's bias, or use a match that is off by more than one cell. ``"right"``: ``(frames,)``
+    bool, the frames whose best match is right (the first, the start, counts as right).
     """
     score, kind = method_score(method, misfit)
     variance = variance_of(drive, kind, uniform_scale)
-    poses = [drive.truth[0]]
+    poses, right = [drive.truth[0]], [True]
     for index in range(1, len(drive.truth)):
         truth = drive.truth[index]
         found = best_match(drive, index, (int(truth[1]), int(truth[0])), score, variance)
-        if found is not None and bool((found[:2] - truth[:2]).abs().max() <= 1):
+        right.append(found is not None and bool((found[:2] - truth[:2]).abs().max() <= 1))
+        if right[-1]:
             poses.append(found)
         else:
             guess = poses[-1].clone()
             guess[:2] += drive.odometry[index, :2]
             poses.append(guess)
-    return {"pose": torch.stack(poses), "covariance": None}
+    return {"pose": torch.stack(poses), "covariance": None, "right": torch.tensor(right)}
 
 
 ESTIMATORS = {"filter": run_filter, "per-frame argmax": run_argmax, "oracle gating": run_oracle_gating}
@@ -198,6 +200,19 @@ def measures(truth: torch.Tensor, result: dict) -> dict:
         distance = (column.transpose(1, 2) @ torch.linalg.solve(result["covariance"][1:, :2, :2], column)).flatten()
         row["covers"] = float((distance <= CHI2_95_2D).double().mean())
     return row
+
+
+def split_by_match(truth: torch.Tensor, result: dict, right: torch.Tensor) -> dict:
+    """``measures`` of ``result`` over the frames whose best match is right and over the others (NaN where none)."""
+    split = {}
+    for part, frames in (("right", right[1:]), ("wrong", ~right[1:])):
+        chosen = frames.nonzero()[:, 0] + 1
+        row = {"frames": len(chosen), "within 1 cell": math.nan, "lost": math.nan}
+        if len(chosen):
+            picked = {"pose": torch.cat([result["pose"][:1], result["pose"][chosen]]), "covariance": None}
+            row.update(measures(torch.cat([truth[:1], truth[chosen]]), picked))
+        split[part] = row
+    return split
 
 
 def paired_rows(rows: dict[str, dict[str, list[float]]], drives: int) -> list[str]:
@@ -217,6 +232,29 @@ def paired_rows(rows: dict[str, dict[str, list[float]]], drives: int) -> list[st
             for measure in ("within 1 cell", "lost")
         ]
         lines.append(f"| {key} | {' | '.join(cells)} |")
+    return lines
+
+
+def split_rows(splits: dict[str, dict[str, dict[str, list[float]]]]) -> list[str]:
+    """The filter over the frames whose best match is right and over the others: frames in all, mean ± SE."""
+    if not splits:
+        return []
+    lines = [
+        "\nThe filter over the frames whose best match about the truth is right (oracle gating's) and over the "
+        "others:\n",
+        "| method | frames right | there: within 1 cell | lost | frames wrong | there: within 1 cell | lost |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for label, parts in splits.items():
+        cells = []
+        for part in ("right", "wrong"):
+            values = parts[part]
+            cells.append(str(int(sum(values["frames"]))))
+            cells += [
+                mean_and_error([v for v in values[measure] if math.isfinite(v)])
+                for measure in ("within 1 cell", "lost")
+            ]
+        lines.append(f"| {label} | {' | '.join(cells)} |")
     return lines
 
 
@@ -281,6 +319,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     rows: dict[str, dict[str, list[float]]] = {}
     raised: dict[str, int] = {}
+    splits: dict[str, dict[str, dict[str, list[float]]]] = {}
     estimators = ["filter", "per-frame argmax", *(["oracle gating"] if args.oracle else [])]
     runs = [
         (method, scale)
@@ -295,17 +334,23 @@ def main(argv=None) -> None:
                 label = METHODS[method][0] + (
                     f" x {scale:g}" if method == "ecr_uniform" and len(args.uniform_scales) > 1 else ""
                 )
+                results = {}
                 for estimator in estimators:
                     run = ESTIMATORS[estimator]
                     key = f"{label} | {estimator}"
                     try:
-                        result = run(drive, method, scale, args.misfit)
+                        results[estimator] = result = run(drive, method, scale, args.misfit)
                     except Exception as error:  # a drive that raises is a result, reported as such
                         print(f"{name} seed {seed} {key}: raised {type(error).__name__}: {error}", flush=True)
                         raised[key] = raised.get(key, 0) + 1
                         continue
                     for measure, value in measures(drive.truth, result).items():
                         rows.setdefault(key, {}).setdefault(measure, []).append(value)
+                if "filter" in results and "oracle gating" in results:
+                    split = split_by_match(drive.truth, results["filter"], results["oracle gating"]["right"])
+                    for part, values in split.items():
+                        for measure, value in values.items():
+                            splits.setdefault(label, {}).setdefault(part, {}).setdefault(measure, []).append(value)
                 print(f"{name} seed {seed} {label}: {time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
     drives = len(pairs) * len(args.seeds)
     print(
@@ -320,11 +365,14 @@ def main(argv=None) -> None:
         cells = [mean_and_error(values.get(measure, [])) for measure in ("within 1 cell", "lost", "covers")]
         print(f"| {key} | {' | '.join(cells)} | {raised.get(key, 0)} |")
     print("\n".join(paired_rows(rows, drives)))
+    print("\n".join(split_rows(splits)))
     per_drive = {
         key: {measure: [round(value, 6) for value in values] for measure, values in row.items()}
         for key, row in rows.items()
     }
     summary = {"pairs": [name for name, _, _ in pairs], "seeds": args.seeds, "misfit": args.misfit, "drives": per_drive}
+    if splits:
+        summary["filter by match"] = splits
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start)}))
 
 
