@@ -36,7 +36,7 @@ from enmi_torch.tracking import (
     track_step,
     update,
 )
-from enmi_torch.tracking.belief import grid_poses, normalized
+from enmi_torch.tracking.belief import grid_poses, mixed_with_mismatch, normalized
 
 FRAME = (24, 32)  # non-square frames: a swapped axis fails
 
@@ -137,6 +137,64 @@ def test_belief_pose_refines_below_a_cell_and_reports_a_laplace_covariance():
     assert pose[0, :2].tolist() == pytest.approx([20.3, 9.8], abs=1e-6)
     assert covariance[0, 0, 0] == pytest.approx(1 / curvature)
     assert covariance[0, 1, 1] == pytest.approx(1 / curvature)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("probability", [0.01, 0.3])
+def test_mixed_with_mismatch_is_the_two_component_mixture_per_sample(dtype, probability):
+    # Two samples whose peaks differ by 40 nats on a non-square grid: each is mixed relative to its own best cell.
+    generator = torch.Generator().manual_seed(1)
+    log_likelihood = (torch.randn(2, 3, 4, 5, generator=generator, dtype=torch.float64) * 6).to(dtype)
+    log_likelihood[1] += 40.0
+    log_likelihood[0, 2, 3, 4] = -math.inf  # a left-out candidate: the sample's smallest finite value
+    mixed = mixed_with_mismatch(log_likelihood, probability)
+    values = log_likelihood.double().numpy()
+    for sample in range(2):
+        finite = values[sample][np.isfinite(values[sample])]
+        for index in np.ndindex(3, 4, 5):
+            value = values[sample][index] if np.isfinite(values[sample][index]) else finite.min()
+            expected = math.log((1 - probability) * math.exp(value - finite.max()) + probability)
+            assert float(mixed[sample][index]) == pytest.approx(expected, abs=1e-9)
+    spread = mixed.flatten(1).amax(1) - mixed.flatten(1).amin(1)
+    assert bool((spread <= math.log(1 / probability) + 1e-9).all())  # one frame: at most log(1/p) nats
+    assert mixed.dtype == torch.float64
+    plain = mixed_with_mismatch(log_likelihood, 0)  # no mismatch: the likelihood relative to its best cell
+    floored = torch.where(
+        torch.isfinite(log_likelihood), log_likelihood, log_likelihood[0][torch.isfinite(log_likelihood[0])].min()
+    )
+    torch.testing.assert_close(plain, (floored - floored.flatten(1).amax(1)[:, None, None, None]).double())
+
+
+@pytest.mark.parametrize("probability", [-0.1, 1.0, 1, math.nan, True, "0.05", None])
+def test_mismatch_probability_outside_zero_to_one_is_refused_by_name(generator, probability):
+    with pytest.raises(ValueError, match=r"mismatch_probability must be a number in \[0, 1\), got"):
+        mixed_with_mismatch(torch.zeros(1, 1, 3, 3), probability)
+    reference = _texture(generator, (60, 90)).float()
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=3, yaw_bins=1)
+    with pytest.raises(ValueError, match="mismatch_probability"):
+        track_step(belief, _cut(reference, 45, 30), reference, torch.zeros(1, 3), 1.0, mismatch_probability=probability)
+
+
+def test_a_mismatch_probability_bounds_how_far_one_wrong_frame_moves_the_belief(generator):
+    # The belief is sure of (45, 30); the frame is the map 3 cells right and 2 down, a sharp, clear wrong match.
+    reference = _texture(generator, (60, 90)).float()
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=(4, 5), yaw_bins=1, std=(0.7, 0.7, 1.0))
+    frame, odometry, noise = _cut(reference, 48, 32), torch.zeros(1, 3), (0.5, 0.5, 0.3)
+    prior = predict(belief, odometry, noise).log_prob
+    moves = {}
+    for probability in (0.0, 0.05):
+        settings = {"score": ECR(bins=16), "motion_noise": noise, "mismatch_probability": probability}
+        posterior, output, _ = track_step(belief, frame, reference, odometry, 1.0, **settings)
+        assert bool(output.healthy[0])  # the frame is used in full
+        moved = (posterior.log_prob - prior).flatten()
+        moves[probability] = float(moved.max() - moved.min())
+    assert moves[0.0] > 2 * math.log(1 / 0.05)  # taken as it is, the frame moves the odds by more than the bound
+    assert 1 < moves[0.05] <= math.log(1 / 0.05) + 1e-9  # mixed: still used, by at most log(1/p) nats
+    unmixed, _, _ = track_step(belief, frame, reference, odometry, 1.0, score=ECR(bins=16), motion_noise=noise)
+    zero, _, _ = track_step(
+        belief, frame, reference, odometry, 1.0, score=ECR(bins=16), motion_noise=noise, mismatch_probability=0
+    )
+    assert torch.equal(unmixed.log_prob, zero.log_prob)  # 0, the default: the likelihood as it is
 
 
 @pytest.mark.parametrize(("temperature", "tolerance"), [(1.0, 1e-6), ("auto", 0.01)])
@@ -577,7 +635,7 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     assert tool.method_score("ecr_true", misfit)[0].misfit == misfit
     table = {}
     output = capsys.readouterr().out
-    assert f"ECR's misfit {misfit};" in output
+    assert f"ECR's misfit {misfit}, mismatch probability 0;" in output
     for line in output.splitlines():
         cells = [cell.strip() for cell in line.strip("|").split("|")]
         if len(cells) == 6 and cells[2][:1].isdigit():

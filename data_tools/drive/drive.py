@@ -310,6 +310,7 @@ def run_filter(
     coasting: str = "random_walk",
     uniform_scale: float = 1.0,
     misfit: str = MISFIT,
+    mismatch_probability: float = 0.0,
 ) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
     score, kind = method_score(method, misfit)
@@ -324,6 +325,7 @@ def run_filter(
         motion_noise=drive.motion_noise,
         coasting=coasting,
         refine=refine and method != "nmi",
+        mismatch_probability=mismatch_probability,
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []
@@ -628,6 +630,12 @@ def main(argv=None) -> None:
         default=MISFIT,
         help="ECR's misfit: how its model variance is estimated (default: the tracker's, default_score)",
     )
+    parser.add_argument(
+        "--mismatch-probability",
+        type=float,
+        default=0.0,
+        help="the filter's chance that a frame matched some other place (Tracker's mismatch_probability)",
+    )
     parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
     parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
@@ -637,10 +645,12 @@ def main(argv=None) -> None:
         parser.error(f"--noise-scale must be > 0, got {args.noise_scale}")
     if not (math.isfinite(args.uniform_scale) and args.uniform_scale > 0):
         parser.error(f"--uniform-scale must be a finite number > 0, got {args.uniform_scale}")
+    if not 0 <= args.mismatch_probability < 1:
+        parser.error(f"--mismatch-probability must be in [0, 1), got {args.mismatch_probability}")
     torch.set_num_threads(1)
     if args.uniform_scale != 1:
         print(f"ECR, uniform variance: {args.uniform_scale:g} x the learned map's mean", flush=True)
-    print(f"ECR with misfit={args.misfit!r}", flush=True)
+    print(f"ECR with misfit={args.misfit!r}; mismatch probability {args.mismatch_probability:g}", flush=True)
     start = time.perf_counter()
     rows = {(method, estimator): [] for method in args.methods for estimator in ("filter", "per-frame argmax")}
     for number, seed in enumerate(args.seeds):
@@ -654,7 +664,14 @@ def main(argv=None) -> None:
                     calibrations[method] = calibration
                 try:
                     filtered = run_filter(
-                        drive, method, calibration, args.refine, args.coasting, args.uniform_scale, args.misfit
+                        drive,
+                        method,
+                        calibration,
+                        args.refine,
+                        args.coasting,
+                        args.uniform_scale,
+                        args.misfit,
+                        args.mismatch_probability,
                     )
                 except Exception as error:  # a drive that raises is a result, reported as such
                     print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)

@@ -124,11 +124,13 @@ def method_score(method: str, misfit: str = MISFIT):
     return (family(misfit=misfit) if family is ECR else family()), kind
 
 
-def run_filter(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
+def run_filter(
+    drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT, mismatch_probability: float = 0.0
+) -> dict:
     score, kind = method_score(method, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     variance = None if variance is None else variance.float()
-    tracker = Tracker(drive.map.float(), score=score, **SETTINGS)
+    tracker = Tracker(drive.map.float(), score=score, mismatch_probability=mismatch_probability, **SETTINGS)
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances = [drive.truth[0]], [torch.zeros(3, 3, dtype=torch.float64)]
     for index in range(1, len(drive.truth)):
@@ -290,6 +292,12 @@ def main(argv=None) -> None:
         help="the uniform controls: factors on the true variance's mean",
     )
     parser.add_argument(
+        "--mismatch-probability",
+        type=float,
+        default=0.0,
+        help="the filter's chance that a frame matched some other place (Tracker's mismatch_probability)",
+    )
+    parser.add_argument(
         "--oracle",
         action="store_true",
         help="also the oracle gating reference: dead reckoning told which frames' best match is right",
@@ -304,6 +312,8 @@ def main(argv=None) -> None:
     ):
         if not (math.isfinite(value) and value > 0):
             parser.error(f"{name} must be finite numbers > 0, got {value}")
+    if not 0 <= args.mismatch_probability < 1:
+        parser.error(f"--mismatch-probability must be in [0, 1), got {args.mismatch_probability}")
     if not args.pairs.is_dir():
         parser.error(f"--pairs: {args.pairs} is not a folder")
     try:
@@ -338,8 +348,9 @@ def main(argv=None) -> None:
                 for estimator in estimators:
                     run = ESTIMATORS[estimator]
                     key = f"{label} | {estimator}"
+                    options = {"mismatch_probability": args.mismatch_probability} if estimator == "filter" else {}
                     try:
-                        results[estimator] = result = run(drive, method, scale, args.misfit)
+                        results[estimator] = result = run(drive, method, scale, args.misfit, **options)
                     except Exception as error:  # a drive that raises is a result, reported as such
                         print(f"{name} seed {seed} {key}: raised {type(error).__name__}: {error}", flush=True)
                         raised[key] = raised.get(key, 0) + 1
@@ -356,7 +367,7 @@ def main(argv=None) -> None:
     print(
         f"\n{len(pairs)} pairs x {len(args.seeds)} seeds = {drives} drives of {args.frames} frames, loop radius "
         f"{args.radius:g} cells, noise std {args.sigma:g} (mean over rows, far rows 10x the near ones), ECR's misfit "
-        f"{args.misfit}; mean ± SE over the drives\n"
+        f"{args.misfit}, mismatch probability {args.mismatch_probability:g}; mean ± SE over the drives\n"
     )
     print("| method | estimator | within 1 cell | lost (> 4 cells) | 95 % ellipse covers | raised |")
     print("| --- | --- | --- | --- | --- | --- |")
@@ -370,7 +381,13 @@ def main(argv=None) -> None:
         key: {measure: [round(value, 6) for value in values] for measure, values in row.items()}
         for key, row in rows.items()
     }
-    summary = {"pairs": [name for name, _, _ in pairs], "seeds": args.seeds, "misfit": args.misfit, "drives": per_drive}
+    summary = {
+        "pairs": [name for name, _, _ in pairs],
+        "seeds": args.seeds,
+        "misfit": args.misfit,
+        "mismatch probability": args.mismatch_probability,
+        "drives": per_drive,
+    }
     if splits:
         summary["filter by match"] = splits
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start)}))

@@ -202,6 +202,38 @@ def update(belief: Belief, log_likelihood: Tensor) -> Belief:
     return belief._replace(log_prob=normalized(belief.log_prob + finite_floor(log_likelihood.double())))
 
 
+def mixed_with_mismatch(log_likelihood: Tensor, probability: float) -> Tensor:
+    """``(B, Y, Sy, Sx)`` log-likelihoods of a frame that matched this place with ``1 - p``, or no place with ``p``.
+
+    Each sample's log-likelihood ``l`` becomes ``log((1 - p) exp(l - max l) + p)``: the frame may be a match of some
+    other place (a changed scene, a repeated pattern), whose likelihood does not depend on the pose, and it is taken
+    as ``p`` times the best pose's. One frame then puts at most ``log((1 - p) / p + 1) = log(1 / p)`` nats between two
+    poses, however sharp its peak; a run of frames that agree still adds up. ``p = 0`` gives ``l - max l``, the same
+    belief after :func:`update`. Non-finite values count as the sample's smallest finite one.
+
+    Example:
+        >>> log_likelihood = torch.tensor([0.0, -2.0, -30.0]).reshape(1, 1, 1, 3)
+        >>> mixed_with_mismatch(log_likelihood, 0.05).flatten().round(decimals=3).tolist()  # -30 floors at log 0.05
+        [0.0, -1.723, -2.996]
+    """
+    check_floating("log_likelihood", log_likelihood)
+    if log_likelihood.ndim != 4:
+        raise ValueError(f"log_likelihood must be (B, Y, Sy, Sx), got {tuple(log_likelihood.shape)}")
+    probability = check_mismatch_probability(probability)
+    values = finite_floor(log_likelihood.double())
+    relative = values - values.flatten(1).amax(1)[:, None, None, None]
+    if probability == 0:
+        return relative
+    return torch.logaddexp(relative + math.log1p(-probability), torch.full_like(relative, math.log(probability)))
+
+
+def check_mismatch_probability(probability: object) -> float:
+    """``probability`` as a float in ``[0, 1)``, or a ValueError naming ``mismatch_probability``."""
+    if isinstance(probability, bool) or not isinstance(probability, (int, float)) or not 0 <= probability < 1:
+        raise ValueError(f"mismatch_probability must be a number in [0, 1), got {probability!r}")
+    return float(probability)
+
+
 def belief_pose(belief: Belief) -> tuple[Tensor, Tensor]:
     """Posterior pose ``(B, 3)`` ``(x, y, yaw)`` and covariance ``(B, 3, 3)`` of a belief.
 
