@@ -607,6 +607,7 @@ def _drive_module():
         (["--uniform-scale", "nan"], "--uniform-scale must be a finite number > 0, got nan"),
         (["--coasting", "bias"], "argument --coasting: invalid choice: 'bias'"),
         (["--misfit", "blocks"], "argument --misfit: invalid choice: 'blocks'"),
+        (["--mismatch-probability", "1"], "--mismatch-probability must be in [0, 1), got 1.0"),
     ],
 )
 def test_the_drive_command_refuses_a_bad_argument_in_one_line(capsys, arguments, message):
@@ -650,7 +651,7 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
         assert float(within) >= 0.9 and float(lost) == 0.0 and covers == "-" and raised == "0"
     record = json.loads(output.strip().splitlines()[-1])
     assert record["misfit"] == misfit and record["drives"]["ECR, true variance | filter"]["lost"] == [0.0]
-    assert ("filter by match" in record) == oracle
+    assert ("filter by match" in record) == oracle and record["mismatch probability"] == 0.0
     if oracle:  # every frame but the start is in one of the two parts
         parts = record["filter by match"]["ECR, true variance"]
         assert parts["right"]["frames"][0] + parts["wrong"]["frames"][0] == 11
@@ -716,6 +717,7 @@ def test_the_photograph_drive_splits_the_filter_by_whether_the_frames_match_is_r
         (["--sigma", "0"], "--sigma must be finite numbers > 0, got 0.0"),
         (["--uniform-scales", "1", "nan"], "--uniform-scales must be finite numbers > 0, got nan"),
         (["--frames", "1"], "--frames must be an int >= 2, got 1"),
+        (["--mismatch-probability", "-0.1"], "--mismatch-probability must be in [0, 1), got -0.1"),
         (["--mismatched"], "--pairs: "),
     ],
 )
