@@ -7,7 +7,15 @@ used) → :mod:`~enmi_torch.tracking.calibration` (the likelihood's temperature,
 search with :func:`~enmi_torch.localize`).
 """
 
-from enmi_torch.tracking.belief import CHI2_95_2D, Belief, belief_pose, initial_belief, predict, update
+from enmi_torch.tracking.belief import (
+    CHI2_95_2D,
+    Belief,
+    belief_pose,
+    initial_belief,
+    mixed_with_mismatch,
+    predict,
+    update,
+)
 from enmi_torch.tracking.calibration import Calibration, calibrate_temperature, grid_temperature
 from enmi_torch.tracking.health import Health
 from enmi_torch.tracking.tracker import Tracker, TrackOutput, coasting_noise, default_score, track_step
@@ -25,6 +33,7 @@ __all__ = [
     "default_score",
     "grid_temperature",
     "initial_belief",
+    "mixed_with_mismatch",
     "predict",
     "track_step",
     "update",

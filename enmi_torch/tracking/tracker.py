@@ -170,7 +170,7 @@ def track_step(
         refine: also register each used frame from the posterior pose (``TrackOutput.refined``): ECR or NCC only.
         mismatch_probability: the chance that a frame matched some other place (a changed scene, a repeated
             pattern): the belief takes the frame's likelihood mixed with a flat one
-            (:func:`~enmi_torch.tracking.belief.mixed_with_mismatch`), so one frame moves it by at most
+            (:func:`~enmi_torch.tracking.mixed_with_mismatch`), so one frame moves it by at most
             ``log(1 / p)`` nats. ``0`` (default): the likelihood as it is. Over real photographs of two dates 0.05
             loses fewer frames and widens the ellipses; on simulated drives it is within one cell less often
             (``data_tools/README.md``, "Tracking a drive"). A relocalization restarts from the frame's own
