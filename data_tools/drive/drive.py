@@ -59,7 +59,7 @@ from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
 from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature, default_score
-from enmi_torch.tracking.belief import finite_floor
+from enmi_torch.tracking.belief import check_mismatch_probability, finite_floor
 from enmi_torch.tracking.health import peak_z_score
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
@@ -645,7 +645,9 @@ def main(argv=None) -> None:
         parser.error(f"--noise-scale must be > 0, got {args.noise_scale}")
     if not (math.isfinite(args.uniform_scale) and args.uniform_scale > 0):
         parser.error(f"--uniform-scale must be a finite number > 0, got {args.uniform_scale}")
-    if not 0 <= args.mismatch_probability < 1:
+    try:
+        check_mismatch_probability(args.mismatch_probability)  # the tracker's own bound
+    except ValueError:
         parser.error(f"--mismatch-probability must be in [0, 1), got {args.mismatch_probability}")
     torch.set_num_threads(1)
     if args.uniform_scale != 1:

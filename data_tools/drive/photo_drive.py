@@ -42,6 +42,7 @@ import torch
 from enmi_torch import ECR, NCC, NMI, NoCandidateError, localize
 from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import CHI2_95_2D, Tracker, default_score
+from enmi_torch.tracking.belief import check_mismatch_probability
 
 FRAME = 64
 SHIFTS = 8
@@ -312,7 +313,9 @@ def main(argv=None) -> None:
     ):
         if not (math.isfinite(value) and value > 0):
             parser.error(f"{name} must be finite numbers > 0, got {value}")
-    if not 0 <= args.mismatch_probability < 1:
+    try:
+        check_mismatch_probability(args.mismatch_probability)  # the tracker's own bound
+    except ValueError:
         parser.error(f"--mismatch-probability must be in [0, 1), got {args.mismatch_probability}")
     if not args.pairs.is_dir():
         parser.error(f"--pairs: {args.pairs} is not a folder")
