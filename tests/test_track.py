@@ -636,7 +636,7 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     assert tool.method_score("ecr_true", misfit)[0].misfit == misfit
     table = {}
     output = capsys.readouterr().out
-    assert f"ECR's misfit {misfit}, mismatch probability 0;" in output
+    assert f"ECR's misfit {misfit}, mismatch probability 0, filter temperature auto;" in output
     for line in output.splitlines():
         cells = [cell.strip() for cell in line.strip("|").split("|")]
         if len(cells) == 6 and cells[2][:1].isdigit():
@@ -652,9 +652,35 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     record = json.loads(output.strip().splitlines()[-1])
     assert record["misfit"] == misfit and record["drives"]["ECR, true variance | filter"]["lost"] == [0.0]
     assert ("filter by match" in record) == oracle and record["mismatch probability"] == 0.0
+    assert record["temperatures"] == ["auto"]
     if oracle:  # every frame but the start is in one of the two parts
         parts = record["filter by match"]["ECR, true variance"]
         assert parts["right"]["frames"][0] + parts["wrong"]["frames"][0] == 11
+
+
+def test_the_photograph_drive_runs_the_filter_at_each_temperature_it_is_given(tmp_path, capsys, generator, monkeypatch):
+    _photo_pair(tmp_path / "pair-a", generator)
+    tool = load_data_tool("drive/photo_drive.py", "photo_drive")
+    given = []
+
+    class Recording(tool.Tracker):
+        def __init__(self, *args, **kwargs):
+            given.append(kwargs["temperature"])
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(tool, "Tracker", Recording)
+    arguments = ["--pairs", str(tmp_path), "--frames", "8", "--radius", "6", "--sigma", "8", "--methods", "ecr_true"]
+    tool.main([*arguments, "--seeds", "0", "1", "--temperatures", "auto", "10", "auto", "1e9"])
+    assert given == ["auto", 10.0, 1e9] * 2  # a repeated temperature runs once
+    output = capsys.readouterr().out
+    assert "filter temperature auto, 10, 1e+09;" in output
+    rows = [line.split("|")[2].strip() for line in output.splitlines() if line.startswith("| ECR, true variance |")]
+    assert rows[:4] == ["filter", "filter, temperature 10", "filter, temperature 1e+09", "per-frame argmax"]
+    record = json.loads(output.strip().splitlines()[-1])
+    assert record["temperatures"] == ["auto", 10.0, 1e9]
+    assert len(record["drives"]["ECR, true variance | filter, temperature 10"]["lost"]) == 2
+    assert record["drives"]["ECR, true variance | filter"]["lost"] == [0.0, 0.0]
+    assert tool.parse_temperature("auto") == "auto" and tool.parse_temperature("2.5") == 2.5
 
 
 def test_the_photograph_drive_pairs_each_row_with_the_first_on_the_same_drives():
@@ -718,6 +744,9 @@ def test_the_photograph_drive_splits_the_filter_by_whether_the_frames_match_is_r
         (["--uniform-scales", "1", "nan"], "--uniform-scales must be finite numbers > 0, got nan"),
         (["--frames", "1"], "--frames must be an int >= 2, got 1"),
         (["--mismatch-probability", "-0.1"], "--mismatch-probability must be in [0, 1), got -0.1"),
+        (["--temperatures", "auto", "hot"], "--temperatures must be 'auto' or finite numbers > 0, got 'hot'"),
+        (["--temperatures", "0"], "--temperatures must be 'auto' or finite numbers > 0, got '0'"),
+        (["--temperatures", "inf"], "--temperatures must be 'auto' or finite numbers > 0, got 'inf'"),
         (["--mismatched"], "--pairs: "),
     ],
 )

@@ -11,7 +11,10 @@ motion_noise=(0.5, 0.5, 0.3))``, no calibration); per-frame argmax searches the 
 estimate moved by the odometry and takes the best candidate. ``--oracle`` adds a reference that no tracker can run,
 oracle gating: each frame is searched in the window centred on the truth, its best candidate taken where it is
 within one cell of the truth, the odometry dead-reckoned through the other frames. It measures how much of a drive
-the frames and the odometry leave to be lost even by a filter that never takes a wrong match.
+the frames and the odometry leave to be lost even by a filter that never takes a wrong match. ``--temperatures auto
+5 10 30`` adds the filter with hand-set temperatures (``Tracker(..., temperature=T)``) beside README's automatic one:
+a grid of controls, a row "filter, temperature T" each; the best of them, chosen on these same drives, is what tuning
+the temperature could reach.
 
 Methods: ECR (the default score) with the true per-row variance and with a uniform variance (``--uniform-scales``
 times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
@@ -24,6 +27,7 @@ same drives; the last line is JSON with every drive's values, pair by pair and s
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --misfit independent
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --methods ecr_true ncc nmi --oracle
+    python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --methods ecr_true --temperatures auto 10
 """
 
 from __future__ import annotations
@@ -126,12 +130,23 @@ def method_score(method: str, misfit: str = MISFIT):
 
 
 def run_filter(
-    drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT, mismatch_probability: float = 0.0
+    drive: PhotoDrive,
+    method: str,
+    uniform_scale: float = 1.0,
+    misfit: str = MISFIT,
+    mismatch_probability: float = 0.0,
+    temperature: float | str = "auto",
 ) -> dict:
     score, kind = method_score(method, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     variance = None if variance is None else variance.float()
-    tracker = Tracker(drive.map.float(), score=score, mismatch_probability=mismatch_probability, **SETTINGS)
+    tracker = Tracker(
+        drive.map.float(),
+        score=score,
+        mismatch_probability=mismatch_probability,
+        temperature=temperature,
+        **SETTINGS,
+    )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances = [drive.truth[0]], [torch.zeros(3, 3, dtype=torch.float64)]
     for index in range(1, len(drive.truth)):
@@ -190,6 +205,24 @@ def run_oracle_gating(drive: PhotoDrive, method: str, uniform_scale: float = 1.0
 
 
 ESTIMATORS = {"filter": run_filter, "per-frame argmax": run_argmax, "oracle gating": run_oracle_gating}
+
+
+def parse_temperature(text: str) -> float | str:
+    """A filter temperature from the command line: ``"auto"`` or a finite number > 0; else a ValueError."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"--temperatures must be 'auto' or finite numbers > 0, got {text!r}")
+    return value
+
+
+def filter_name(temperature: float | str) -> str:
+    """The estimator's name of the filter at ``temperature``: ``"filter"`` for README's ``"auto"``."""
+    return "filter" if temperature == "auto" else f"filter, temperature {temperature:g}"
 
 
 def measures(truth: torch.Tensor, result: dict) -> dict:
@@ -299,6 +332,12 @@ def main(argv=None) -> None:
         help="the filter's chance that a frame matched some other place (Tracker's mismatch_probability)",
     )
     parser.add_argument(
+        "--temperatures",
+        nargs="+",
+        default=["auto"],
+        help="the filter's temperatures: 'auto' (README's) and hand-set numbers > 0, a filter row each",
+    )
+    parser.add_argument(
         "--oracle",
         action="store_true",
         help="also the oracle gating reference: dead reckoning told which frames' best match is right",
@@ -317,6 +356,10 @@ def main(argv=None) -> None:
         check_mismatch_probability(args.mismatch_probability)  # the tracker's own bound
     except ValueError:
         parser.error(f"--mismatch-probability must be in [0, 1), got {args.mismatch_probability}")
+    try:
+        temperatures = list(dict.fromkeys(parse_temperature(text) for text in args.temperatures))
+    except ValueError as error:
+        parser.error(str(error))
     if not args.pairs.is_dir():
         parser.error(f"--pairs: {args.pairs} is not a folder")
     try:
@@ -333,7 +376,8 @@ def main(argv=None) -> None:
     rows: dict[str, dict[str, list[float]]] = {}
     raised: dict[str, int] = {}
     splits: dict[str, dict[str, dict[str, list[float]]]] = {}
-    estimators = ["filter", "per-frame argmax", *(["oracle gating"] if args.oracle else [])]
+    filters = {filter_name(temperature): temperature for temperature in temperatures}
+    estimators = [*filters, "per-frame argmax", *(["oracle gating"] if args.oracle else [])]
     runs = [
         (method, scale)
         for method in args.methods
@@ -349,9 +393,13 @@ def main(argv=None) -> None:
                 )
                 results = {}
                 for estimator in estimators:
-                    run = ESTIMATORS[estimator]
+                    run = run_filter if estimator in filters else ESTIMATORS[estimator]
                     key = f"{label} | {estimator}"
-                    options = {"mismatch_probability": args.mismatch_probability} if estimator == "filter" else {}
+                    options = (
+                        {"mismatch_probability": args.mismatch_probability, "temperature": filters[estimator]}
+                        if estimator in filters
+                        else {}
+                    )
                     try:
                         results[estimator] = result = run(drive, method, scale, args.misfit, **options)
                     except Exception as error:  # a drive that raises is a result, reported as such
@@ -370,7 +418,8 @@ def main(argv=None) -> None:
     print(
         f"\n{len(pairs)} pairs x {len(args.seeds)} seeds = {drives} drives of {args.frames} frames, loop radius "
         f"{args.radius:g} cells, noise std {args.sigma:g} (mean over rows, far rows 10x the near ones), ECR's misfit "
-        f"{args.misfit}, mismatch probability {args.mismatch_probability:g}; mean ± SE over the drives\n"
+        f"{args.misfit}, mismatch probability {args.mismatch_probability:g}, filter temperature "
+        f"{', '.join(str(t) if t == 'auto' else f'{t:g}' for t in temperatures)}; mean ± SE over the drives\n"
     )
     print("| method | estimator | within 1 cell | lost (> 4 cells) | 95 % ellipse covers | raised |")
     print("| --- | --- | --- | --- | --- | --- |")
@@ -389,6 +438,7 @@ def main(argv=None) -> None:
         "seeds": args.seeds,
         "misfit": args.misfit,
         "mismatch probability": args.mismatch_probability,
+        "temperatures": temperatures,
         "drives": per_drive,
     }
     if splits:
