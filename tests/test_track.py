@@ -656,6 +656,7 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     if oracle:  # every frame but the start is in one of the two parts
         parts = record["filter by match"]["ECR, true variance"]
         assert parts["right"]["frames"][0] + parts["wrong"]["frames"][0] == 11
+        assert record["filter split by match"] == "filter"
 
 
 def test_the_photograph_drive_runs_the_filter_at_each_temperature_it_is_given(tmp_path, capsys, generator, monkeypatch):
@@ -670,14 +671,18 @@ def test_the_photograph_drive_runs_the_filter_at_each_temperature_it_is_given(tm
 
     monkeypatch.setattr(tool, "Tracker", Recording)
     arguments = ["--pairs", str(tmp_path), "--frames", "8", "--radius", "6", "--sigma", "8", "--methods", "ecr_true"]
-    tool.main([*arguments, "--seeds", "0", "1", "--temperatures", "auto", "10", "auto", "1e9"])
-    assert given == ["auto", 10.0, 1e9] * 2  # a repeated temperature runs once
+    tool.main([*arguments, "--seeds", "0", "1", "--temperatures", "10", "auto", "10", "1e9", "--oracle"])
+    assert given == [10.0, "auto", 1e9] * 2  # a repeated temperature runs once
     output = capsys.readouterr().out
-    assert "filter temperature auto, 10, 1e+09;" in output
+    assert "filter temperature 10, auto, 1e+09;" in output
     rows = [line.split("|")[2].strip() for line in output.splitlines() if line.startswith("| ECR, true variance |")]
-    assert rows[:4] == ["filter", "filter, temperature 10", "filter, temperature 1e+09", "per-frame argmax"]
+    assert rows[:4] == ["filter, temperature 10", "filter", "filter, temperature 1e+09", "per-frame argmax"]
+    assert "The filter, temperature 10 over the frames whose best match" in output  # the first filter is split
     record = json.loads(output.strip().splitlines()[-1])
-    assert record["temperatures"] == ["auto", 10.0, 1e9]
+    assert record["temperatures"] == [10.0, "auto", 1e9]
+    assert record["filter split by match"] == "filter, temperature 10"
+    parts = record["filter by match"]["ECR, true variance"]
+    assert [a + b for a, b in zip(parts["right"]["frames"], parts["wrong"]["frames"], strict=True)] == [7, 7]
     assert len(record["drives"]["ECR, true variance | filter, temperature 10"]["lost"]) == 2
     assert record["drives"]["ECR, true variance | filter"]["lost"] == [0.0, 0.0]
     assert tool.parse_temperature("auto") == "auto" and tool.parse_temperature("2.5") == 2.5

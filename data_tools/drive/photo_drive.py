@@ -271,12 +271,12 @@ def paired_rows(rows: dict[str, dict[str, list[float]]], drives: int) -> list[st
     return lines
 
 
-def split_rows(splits: dict[str, dict[str, dict[str, list[float]]]]) -> list[str]:
-    """The filter over the frames whose best match is right and over the others: frames in all, mean ± SE."""
+def split_rows(splits: dict[str, dict[str, dict[str, list[float]]]], estimator: str = "filter") -> list[str]:
+    """The filter (``estimator``) over the frames whose best match is right and over the others: frames, mean ± SE."""
     if not splits:
         return []
     lines = [
-        "\nThe filter over the frames whose best match about the truth is right (oracle gating's) and over the "
+        f"\nThe {estimator} over the frames whose best match about the truth is right (oracle gating's) and over the "
         "others:\n",
         "| method | frames right | there: within 1 cell | lost | frames wrong | there: within 1 cell | lost |",
         "| --- | --- | --- | --- | --- | --- | --- |",
@@ -340,7 +340,8 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--oracle",
         action="store_true",
-        help="also the oracle gating reference: dead reckoning told which frames' best match is right",
+        help="also the oracle gating reference: dead reckoning told which frames' best match is right; the first "
+        "--temperatures filter is split by those frames",
     )
     args = parser.parse_args(argv)
     if args.frames < 2:
@@ -377,6 +378,7 @@ def main(argv=None) -> None:
     raised: dict[str, int] = {}
     splits: dict[str, dict[str, dict[str, list[float]]]] = {}
     filters = {filter_name(temperature): temperature for temperature in temperatures}
+    split_filter = next(iter(filters))  # the filter that oracle gating's right and wrong frames split
     estimators = [*filters, "per-frame argmax", *(["oracle gating"] if args.oracle else [])]
     runs = [
         (method, scale)
@@ -408,8 +410,8 @@ def main(argv=None) -> None:
                         continue
                     for measure, value in measures(drive.truth, result).items():
                         rows.setdefault(key, {}).setdefault(measure, []).append(value)
-                if "filter" in results and "oracle gating" in results:
-                    split = split_by_match(drive.truth, results["filter"], results["oracle gating"]["right"])
+                if split_filter in results and "oracle gating" in results:
+                    split = split_by_match(drive.truth, results[split_filter], results["oracle gating"]["right"])
                     for part, values in split.items():
                         for measure, value in values.items():
                             splits.setdefault(label, {}).setdefault(part, {}).setdefault(measure, []).append(value)
@@ -428,7 +430,7 @@ def main(argv=None) -> None:
         cells = [mean_and_error(values.get(measure, [])) for measure in ("within 1 cell", "lost", "covers")]
         print(f"| {key} | {' | '.join(cells)} | {raised.get(key, 0)} |")
     print("\n".join(paired_rows(rows, drives)))
-    print("\n".join(split_rows(splits)))
+    print("\n".join(split_rows(splits, split_filter)))
     per_drive = {
         key: {measure: [round(value, 6) for value in values] for measure, values in row.items()}
         for key, row in rows.items()
@@ -443,6 +445,7 @@ def main(argv=None) -> None:
     }
     if splits:
         summary["filter by match"] = splits
+        summary["filter split by match"] = split_filter
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start)}))
 
 
