@@ -204,7 +204,7 @@ def run_oracle_gating(drive: PhotoDrive, method: str, uniform_scale: float = 1.0
     return {"pose": torch.stack(poses), "covariance": None, "right": torch.tensor(right)}
 
 
-ESTIMATORS = {"filter": run_filter, "per-frame argmax": run_argmax, "oracle gating": run_oracle_gating}
+ESTIMATORS = {"per-frame argmax": run_argmax, "oracle gating": run_oracle_gating}  # beside the filter rows
 
 
 def parse_temperature(text: str) -> float | str:
@@ -220,9 +220,14 @@ def parse_temperature(text: str) -> float | str:
     return value
 
 
+def temperature_text(temperature: float | str) -> str:
+    """``"auto"`` or the number, as the tables print a temperature."""
+    return temperature if temperature == "auto" else f"{temperature:g}"
+
+
 def filter_name(temperature: float | str) -> str:
     """The estimator's name of the filter at ``temperature``: ``"filter"`` for README's ``"auto"``."""
-    return "filter" if temperature == "auto" else f"filter, temperature {temperature:g}"
+    return "filter" if temperature == "auto" else f"filter, temperature {temperature_text(temperature)}"
 
 
 def measures(truth: torch.Tensor, result: dict) -> dict:
@@ -421,7 +426,7 @@ def main(argv=None) -> None:
         f"\n{len(pairs)} pairs x {len(args.seeds)} seeds = {drives} drives of {args.frames} frames, loop radius "
         f"{args.radius:g} cells, noise std {args.sigma:g} (mean over rows, far rows 10x the near ones), ECR's misfit "
         f"{args.misfit}, mismatch probability {args.mismatch_probability:g}, filter temperature "
-        f"{', '.join(str(t) if t == 'auto' else f'{t:g}' for t in temperatures)}; mean ± SE over the drives\n"
+        f"{', '.join(map(temperature_text, temperatures))}; mean ± SE over the drives\n"
     )
     print("| method | estimator | within 1 cell | lost (> 4 cells) | 95 % ellipse covers | raised |")
     print("| --- | --- | --- | --- | --- | --- |")
