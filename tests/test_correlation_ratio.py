@@ -43,7 +43,8 @@ def _case(dtype, shape=(2, 1, 7, 5), seed=0):
 def test_ecr_equals_numpy_group_means(dtype, tolerance, model_variance):
     captured, reference, variance, valid = _case(dtype)
     bins, value_range = 6, (0.0, 256.0)
-    result = ecr(captured, reference, variance, bins=bins, model_variance=model_variance, valid_mask=valid)
+    options = {"bins": bins, "model_variance": model_variance, "valid_mask": valid, "response": "binned"}
+    result = ecr(captured, reference, variance, **options)
     tau2 = default_model_variance(bins, value_range) if model_variance is None else model_variance
     expected = [
         _numpy_ecr(captured[b, 0], reference[b, 0], variance[b, 0], bins, value_range, tau2, valid[b, 0])
@@ -74,7 +75,7 @@ def test_ecr_with_one_variance_is_the_classic_correlation_ratio():
     groups = [values[index == label] for label in range(bins) if (index == label).any()]
     eta2 = sum(len(g) * (g.mean() - values.mean()) ** 2 for g in groups) / np.sum((values - values.mean()) ** 2)
     expected = eta2 * values.var() / (2 * (sigma2 + tau2)) - (len(groups) - 1) / (2 * values.size)
-    result = ecr(captured, reference, sigma2, bins=bins, model_variance=tau2)
+    result = ecr(captured, reference, sigma2, bins=bins, model_variance=tau2, response="binned")
     assert math.isclose(result.item(), expected, rel_tol=1e-10)
 
 
@@ -85,11 +86,11 @@ def test_ecr_is_centred_under_independence_with_any_variances():
     variance = torch.rand(samples, pixels, generator=generator, dtype=torch.float64) ** 4 * 1e4 + 0.5
     captured = 100 + torch.randn(samples, pixels, generator=generator, dtype=torch.float64) * variance.sqrt()
     reference = torch.rand(samples, pixels, generator=generator, dtype=torch.float64) * 256
-    centred_llr = ecr(captured, reference, variance, bins=bins, model_variance=0.0) * pixels
+    centred_llr = ecr(captured, reference, variance, bins=bins, model_variance=0.0, response="binned") * pixels
     standard_error = math.sqrt((bins - 1) / 2) / math.sqrt(samples)
     assert abs(centred_llr.mean().item()) < 4 * standard_error
     # Under-stated variances break it: the statistic is no longer centred.
-    wrong = ecr(captured, reference, variance / 4, bins=bins, model_variance=0.0) * pixels
+    wrong = ecr(captured, reference, variance / 4, bins=bins, model_variance=0.0, response="binned") * pixels
     assert abs(wrong.mean().item()) > 10 * standard_error
 
 

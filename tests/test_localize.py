@@ -339,7 +339,7 @@ def _invalid_localize_cases(gravel_map):
         (
             {"search": "two_stage", "score": lambda: ECR(response="linear")},
             ValueError,
-            "search='two_stage' needs an ECR score with response='binned'",
+            "search='two_stage' needs an ECR score with response='shrunk' or 'binned'",
         ),
         ({"search": "two_stage", "coarse_factor": 2}, ValueError, "search='two_stage' needs an ECR score"),
         ({"search": "two_stage", "cheap_bins": 64}, ValueError, r"cheap_bins must be at most bins \(32\)"),
@@ -618,7 +618,7 @@ def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_mas
     reference_mask = options["reference_mask"][60:100, 50:90] if reference_masked else None
     masks = {"captured_mask": options["captured_mask"], "reference_mask": reference_mask}
     cheap = ECR(bins=6, value_range=(40.0, 200.0))._rough_surface(local, window, variance, *masks.values())
-    expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), **masks)
+    expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), response="binned", **masks)
     torch.testing.assert_close(cheap.score, expected.score, rtol=0, atol=1e-9)
     torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)
 

@@ -1,9 +1,11 @@
-"""Cost of ECR's estimated model variance (the default) against the fixed ``tau^2`` of before, in one process.
+"""Cost of ECR's default (the shrunk response, estimated model variance) against the binned response, in one process.
 
 The cases of ``bench_scores.py`` (float32, camera-like variance, 32 bins): a 128 x 128 local image of scikit-image's
-gravel over 101 x 101 shifts, and the yardstick's 64 x 64 over 25 x 25; for each, the surface (``ECR().surface``
-against ``ECR(model_variance=None).surface``: the estimate's cheap first pass and its REML fit are the extra work)
-and ``localize`` over 5 yaws, exhaustive and two-stage. Each round times every entry once, in turn; the ratio to the
+gravel over 101 x 101 shifts, and the yardstick's 64 x 64 over 25 x 25; for each, the surface and ``localize`` over
+5 yaws, exhaustive and two-stage, with three scores: ``ECR()`` (the default: the shrunk response's profile over
+``delta^2`` is its extra work), ``ECR(response="binned")`` (the default before it) and ``ECR(response="binned",
+model_variance=None)`` (the fixed ``tau^2`` before that: the estimate's cheap first pass and its REML fit are the
+binned default's extra work). Each round times every entry once, in turn; the ratio to the
 fixed ``tau^2`` is the median of the per-round ratios (robust to the load bursts of a shared machine). One torch
 thread unless told.
 
@@ -26,6 +28,11 @@ from enmi_torch import ECR, localize
 
 CASES = {"128x128 local, 101x101 shifts": (128, 50), "64x64 local, 25x25 shifts": (64, 12)}
 YAWS = [-4.0, -2.0, 0.0, 2.0, 4.0]
+SCORES = {
+    "default": {},
+    "binned": {"response": "binned"},
+    "binned, fixed tau^2": {"response": "binned", "model_variance": None},
+}
 
 
 def _case(size: int, radius: int):
@@ -40,8 +47,8 @@ def _case(size: int, radius: int):
 
 
 def _entries(local, window, variance, radius) -> dict:
-    """``{what: {"estimated": call, "fixed": call}}``."""
-    scores = {"estimated": ECR(), "fixed": ECR(model_variance=None)}
+    """``{what: {score name: call}}``."""
+    scores = {name: ECR(**options) for name, options in SCORES.items()}
     centre = (window.shape[2] // 2, window.shape[3] // 2)
 
     def surface(score):
@@ -72,8 +79,11 @@ def main(argv=None) -> None:
         parser.error(f"--rounds and --threads must be >= 1, got {args.rounds} and {args.threads}")
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} thread(s), {args.rounds} interleaved rounds, float32, 32 bins\n")
-    print("| case | what | fixed tau^2 (median) | estimated tau^2 (median) | ratio (median of per-round ratios) |")
-    print("|---|---|---|---|---|")
+    print(
+        "| case | what | binned, fixed tau^2 | binned (the former default) | default (shrunk) | default / binned | "
+        "default / fixed |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for label, (size, radius) in CASES.items():
         entries = _entries(*_case(size, radius))
         calls = [(what, name, call) for what, pair in entries.items() for name, call in pair.items()]
@@ -88,12 +98,14 @@ def main(argv=None) -> None:
             print(f"  {label}: round {round_index + 1}/{args.rounds}", end="\r", file=sys.stderr, flush=True)
         print(" " * 60, end="\r", file=sys.stderr)
         for what in entries:
-            fixed, estimated = times[what, "fixed"], times[what, "estimated"]
-            ratios = [mine / reference for mine, reference in zip(estimated, fixed, strict=True)]
-            print(
-                f"| {label} | {what} | {statistics.median(fixed) * 1e3:.1f} ms | "
-                f"{statistics.median(estimated) * 1e3:.1f} ms | {statistics.median(ratios):.2f}x |"
-            )
+            fixed, binned, default = (times[what, name] for name in ("binned, fixed tau^2", "binned", "default"))
+            ratios = [
+                statistics.median(mine / reference for mine, reference in zip(default, baseline, strict=True))
+                for baseline in (binned, fixed)
+            ]
+            columns = (fixed, binned, default)
+            milliseconds = " | ".join(f"{statistics.median(column) * 1e3:.1f} ms" for column in columns)
+            print(f"| {label} | {what} | {milliseconds} | {ratios[0]:.2f}x | {ratios[1]:.2f}x |")
 
 
 if __name__ == "__main__":

@@ -108,17 +108,16 @@ def localize(
             pixel keeps its own value and noise variance, at most half a cell off) or ``"bilinear"`` (sub-cell
             geometry, but the average of neighbours is less noisy than a pixel of the yaw-0 image, which biases
             noisy searches towards rotated yaws; the variance is propagated as ``sum_k w_k^2 sigma_k^2``).
-        search: ``"exhaustive"`` (every shift and yaw scored) or ``"two_stage"`` (an :class:`~enmi_torch.ECR` score
-            with the binned response, ``coarse_factor=1``): ECR with ``cheap_bins`` bins (spanning the 2nd to 98th
-            percentile of the map window's valid cells, so that few bins still split the map's values; the default
-            model variance of those bins) over every shift and yaw, then the exact score at the 3 x 3 x 3 (shift,
-            shift, yaw) neighbourhoods of its best 4 peaks; while the exact best lies by a peak of the lower half of
-            that cheap ranking, the number of peaks doubles (up to 64), then the exact best's own neighbourhood is
-            completed for the sub-cell fit. Rescored candidates score as in the exhaustive surface (up to
-            round-off; with ECR's estimated model variance, read at each yaw's cheap peak, when ``cheap_bins=4`` and
-            ``min_overlap <= 0.5``, else it may be read elsewhere), the others are ``-inf`` in ``surface``. It
-            misses the exhaustive argmax when the cheap score ranks that peak below the ones it rescored and the
-            doubling has stopped
+        search: ``"exhaustive"`` (every shift and yaw scored) or ``"two_stage"`` (an :class:`~enmi_torch.ECR` score with
+            the shrunk or binned response, ``coarse_factor=1``): binned ECR with ``cheap_bins`` bins (spanning the 2nd
+            to 98th percentile of the map window's valid cells, so that few bins still split the map's values; the
+            default model variance of those bins) over every shift and yaw, then the exact score at the 3 x 3 x 3
+            (shift, shift, yaw) neighbourhoods of its best 4 peaks; while the exact best lies by a peak of the lower
+            half of that cheap ranking, the number of peaks doubles (up to 64), then the exact best's own neighbourhood
+            is completed for the sub-cell fit. Rescored candidates score as in the exhaustive surface (up to round-off;
+            with ECR's estimated model variance, read at each yaw's cheap peak, when ``cheap_bins=4`` and ``min_overlap
+            <= 0.5``, else it may be read elsewhere), the others are ``-inf`` in ``surface``. It misses the exhaustive
+            argmax when the cheap score ranks that peak below the ones it rescored and the doubling has stopped
             (``data_tools/benchmarks/bench_search.py`` measures how often: rarely, at extreme noise).
         cheap_bins: bins of the first stage of ``search="two_stage"``, ``2 <= cheap_bins <= bins``.
         refine: move on from the best candidate to the continuous pose that maximises the score, by Gauss-Newton
@@ -219,9 +218,9 @@ def _check_search_settings(
 
 def _check_two_stage(score: Score, coarse_factor: int, cheap_bins: int) -> None:
     """The two-stage search ranks by a cheap binned ECR and rescores with the exact one: it needs a binned ECR."""
-    if not isinstance(score, ECR) or score.response != "binned" or coarse_factor != 1:
+    if not isinstance(score, ECR) or score.response == "linear" or coarse_factor != 1:
         raise ValueError(
-            "search='two_stage' needs an ECR score with response='binned' and coarse_factor=1, got "
+            "search='two_stage' needs an ECR score with response='shrunk' or 'binned' and coarse_factor=1, got "
             f"score={score!r}, coarse_factor={coarse_factor!r}"
         )
     if check_bins(cheap_bins) > score.bins:

@@ -21,8 +21,8 @@ class ReferencePlanes:
     """The reference's side of the information surfaces, computed once per reference.
 
     ``spectra`` holds the indicator planes of the bins present in the reference, then the reference mask where it leaves
-    cells out (``complete`` is ``False``). :meth:`counts` gives, on demand, the exact number of cells of each present
-    bin and of valid cells under a captured image at each placement.
+    cells out (``complete`` is ``False``); ``present_bins`` the bin of each indicator plane. :meth:`counts` gives, on
+    demand, the exact number of cells of each present bin and of valid cells under a captured image at each placement.
     """
 
     def __init__(
@@ -35,6 +35,7 @@ class ReferencePlanes:
             planes = torch.cat([planes, reference_valid[None]])
         self.spectra = correlator.spectra(planes.to(dtype), captured=False)
         self.bin_count = present.shape[0]
+        self.present_bins = present  # the bin index of each indicator plane
         self._labels = torch.cat([present, present.new_tensor([bins])])
         self._window_bins = window_bins
         self._counts: Tensor | None = None

@@ -9,6 +9,10 @@ values, the likelihood behind ECR (:class:`~enmi_torch.ECR`):
 * ECR, ``response="binned"``: a piecewise-linear response with one knot per bin centre over ``value_range`` (the
   binned response made continuous in the map's values, so the score is smooth in the pose), each pixel weighed by
   ``1 / (sigma_n^2 + tau^2)``, ``tau^2`` the ECR estimate at the starting pose (or the fixed ``model_variance``);
+* ECR, ``response="shrunk"`` (the default): the same piecewise-linear response, its knots pulled toward a line by a
+  penalty ``|| (I - P) theta ||^2 / delta^2`` (``P`` the projection of the knot values onto lines in the knots'
+  positions), ``delta^2`` the shrunk response's choice at the starting pose
+  (:mod:`~enmi_torch.scores.shrunk_response`): the posterior mean of the bin means under its model;
 * ECR, ``response="linear"``: ``a + b m``, the same weights;
 * NCC (:class:`~enmi_torch.NCC`): ``a + b m``, every pixel alike.
 
@@ -43,7 +47,9 @@ from enmi_torch._checks import (
     check_positive_number,
     check_variance_given,
 )
+from enmi_torch.binning import hard_bin_index
 from enmi_torch.scores import ECR, NCC, Score, as_score
+from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
 from enmi_torch.variance.base import VarianceModel
 
 
@@ -136,14 +142,20 @@ class _Fit:
     are assembled with index sums, ``O(N)`` per image whatever the number of knots.
     """
 
-    def __init__(self, score: Score, weights: Tensor) -> None:
+    def __init__(self, score: Score, weights: Tensor, penalty: Tensor | None = None) -> None:
         self.weights = weights  # (B, N), zero on pixels that do not count
-        self.spline = isinstance(score, ECR) and score.response == "binned"
+        self.spline = isinstance(score, ECR) and score.response != "linear"
+        self.penalty = None  # (B, size, size): the shrunk response's pull of the knots toward a line
         if self.spline:
             low, high = score.value_range
             self.step = (high - low) / score.bins
             self.first = low + 0.5 * self.step  # the first knot: the first bin's centre
             self.size = score.bins
+            if penalty is not None:
+                lines = torch.stack([torch.ones(self.size), bin_positions(self.size, torch.float64)], 1)
+                projection = lines @ torch.linalg.pinv(lines)
+                away = (torch.eye(self.size, dtype=torch.float64) - projection).to(weights)
+                self.penalty = penalty.to(weights)[:, None, None] * away
         else:
             self.size = 2
 
@@ -172,6 +184,8 @@ class _Fit:
                 cell = (offset * size + first * size + second).flatten()
                 normal = normal.index_add(0, cell, (self.weights * first_part * second_part).flatten())
         normal = normal.view(batch, size, size)
+        if self.penalty is not None:
+            normal = normal + self.penalty
         ridge = 1e-9 * normal.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
         normal = normal + ridge[:, None, None] * torch.eye(size, dtype=normal.dtype, device=normal.device)
         coefficients = torch.linalg.solve(normal, right.view(batch, size))
@@ -183,7 +197,10 @@ class _Fit:
         mean = (self.weights * captured).sum(1) / total
         null = (self.weights * (captured - mean[:, None]).square()).sum(1)
         count = (self.weights > 0).sum(1).clamp_min(1).to(captured.dtype)
-        score = 0.5 * (null - residual.square().sum(1)) / count
+        misfit = residual.square().sum(1)
+        if self.penalty is not None:
+            misfit = misfit + (coefficients[:, None, :] @ self.penalty @ coefficients[:, :, None]).flatten()
+        score = 0.5 * (null - misfit) / count
         return residual, slope, score
 
 
@@ -213,6 +230,29 @@ def _weights(score: Score, captured, warped, variance, valid) -> Tensor:
             tau2 = tau2.fill_((score.value_range[1] - score.value_range[0]) ** 2 / score.bins**2 / 12)
     total = noise.reshape(batch, -1) + tau2.to(captured.dtype)[:, None]
     return torch.where(mask > 0, mask / total.clamp_min(torch.finfo(captured.dtype).tiny), 0.0)
+
+
+def _penalty(score: Score, values: Tensor, warped: Tensor, weights: Tensor) -> Tensor | None:
+    """``1 / delta^2`` ``(B,)`` of the shrunk response at the given pose (bin sums of the pixels that count).
+
+    ``None`` for any other score. A ``delta^2`` of 0 (the line) is taken as ``10^-6`` bin widths squared: a pull
+    that leaves a spline on the line within round-off.
+    """
+    if not (isinstance(score, ECR) and score.response == "shrunk"):
+        return None
+    batch, bins = values.shape[0], score.bins
+    with torch.no_grad():
+        flat_weights, flat_values = weights.reshape(batch, -1), values.reshape(batch, -1)
+        cells = hard_bin_index(warped.reshape(batch, -1), bins, score.value_range)
+        mean = (flat_weights * flat_values).sum(1, keepdim=True) / flat_weights.sum(1, keepdim=True).clamp_min(1e-300)
+        sums = [
+            flat_values.new_zeros(batch, bins).scatter_add_(1, cells, part)
+            for part in (flat_weights, flat_weights * (flat_values - mean))
+        ]
+        positions = bin_positions(bins, flat_values.dtype, flat_values.device)
+        _, response_variance = shrunk_llr(sums[0].T, sums[1].T, positions, score.value_range)
+        floor = 1e-6 * ((score.value_range[1] - score.value_range[0]) / bins) ** 2
+        return response_variance.clamp_min(floor).reciprocal()
 
 
 def _prepare(captured, reference, variance, captured_mask, reference_mask, score: Score):
@@ -269,7 +309,7 @@ def registration_score(
         valid = valid & captured_mask.expand_as(valid)
     values = captured.to(pose.dtype)
     weights = _weights(score, values, warped, variance, valid)
-    fit = _Fit(score, weights)
+    fit = _Fit(score, weights, _penalty(score, values, warped.detach(), weights))
     batch = captured.shape[0]
     return fit.solve(values.reshape(batch, -1), warped.reshape(batch, -1))[2]
 
@@ -401,7 +441,7 @@ class _Stage:
         if self.sigma > 0:  # pixels off the map must not bleed into the blurred image
             self.values, _ = _gaussian(self.captured, self.sigma, self.valid.to(self.captured.dtype))
         weights = _weights(self.score_, self.values, warped, self.noise, self.valid)
-        return _Fit(self.score_, weights)
+        return _Fit(self.score_, weights, _penalty(self.score_, self.values, warped, weights))
 
     def score(self, pose: Tensor) -> Tensor:
         """The score at ``pose``, with the pixels and weights of ``pose``."""

@@ -201,7 +201,7 @@ def as_score(score: Score | str) -> Score:
 
     Example:
         >>> as_score("ecr")
-        ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='binned', misfit='independent')
+        ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='independent')
         >>> as_score("mi")
         Traceback (most recent call last):
         ...

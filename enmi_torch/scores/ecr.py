@@ -88,6 +88,7 @@ from enmi_torch.placement.fft import Correlator
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import moment_blocks, per_sample_reference_planes
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
 
 
 class BinSums(NamedTuple):
@@ -104,7 +105,7 @@ class BinSums(NamedTuple):
     weighted_value: Tensor
 
 
-RESPONSES = ("binned", "linear")
+RESPONSES = ("shrunk", "binned", "linear")
 MISFITS = ("independent", "correlated")
 MODEL_VARIANCE_ESTIMATE = "estimate"
 # misfit="correlated" sums the residuals' autocovariance over lags up to this fraction of the image's smaller side.
@@ -402,33 +403,57 @@ def _surface_model_variance(
     return estimate.to(inputs.captured.dtype)[:, None, None]
 
 
-def ecr_from_bin_sums(sums: BinSums) -> Tensor:
+def ecr_from_bin_sums(
+    sums: BinSums, *, response: str = "shrunk", value_range: tuple[float, float] = (0.0, 256.0)
+) -> Tensor:
     """ECR from per-bin sums ``(..., bins)`` (summed over batches or processes if need be), ``(...)``.
 
-    Bins with no valid pixel are left out (``0 / 0``); a placement without any valid pixel scores 0.
+    Bins with no valid pixel are left out (``0 / 0``); a placement without any valid pixel scores 0. ``response``:
+    ``"shrunk"`` (the default, as :func:`ecr`'s) or ``"binned"``; ``value_range``: the bins' range (the scale of the
+    shrunk response's ``delta^2`` grid; the binned response does not use it).
 
     Example:
         >>> sums = BinSums(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0]]), torch.tensor([[-4.0, 4.0]]))
-        >>> ecr_from_bin_sums(sums)  # (16 / 2 + 16 / 2 - 0) / 2 = 8 nats, minus 1 / 2 for 2 bins, over 4 pixels
+        >>> ecr_from_bin_sums(sums, response="binned")  # (16 / 2 + 16 / 2 - 0) / 2 = 8 nats, less 1 / 2, over 4 pixels
+        tensor([1.8750])
+        >>> ecr_from_bin_sums(sums, value_range=(0.0, 2.0))  # two bins: the line through them fits, no deviation
         tensor([1.8750])
     """
-    return _ecr_from_sums(sums.count, sums.weight, sums.weighted_value, -1)
+    check_option("response", response, RESPONSES[:2])
+    shrunk = None if response == "binned" else (bin_positions(sums.weight.shape[-1], sums.weight.dtype), value_range)
+    return _ecr_from_sums(sums.count, sums.weight, sums.weighted_value, -1, shrunk=shrunk)
 
 
 def _ecr_from_sums(
-    count: Tensor, weight: Tensor, weighted_value: Tensor, dim: int, total_count: Tensor | None = None
+    count: Tensor,
+    weight: Tensor,
+    weighted_value: Tensor,
+    dim: int,
+    total_count: Tensor | None = None,
+    shrunk: tuple[Tensor, tuple[float, float]] | None = None,
 ) -> Tensor:
     """:func:`ecr_from_bin_sums` with the bins along ``dim`` (the score surfaces keep them first).
 
     ``total_count``: the valid pixels, when ``count`` only marks the occupied bins (``count.sum(dim)`` otherwise).
+    ``shrunk``: the bins' positions ``u_j`` (along ``dim``) and the value range, for the shrunk response; ``None``
+    for the binned one.
     """
     occupied = count > 0.5
+    if total_count is None:
+        total_count = count.sum(dim)
+    if shrunk is not None:
+        positions, value_range = shrunk
+        shape = [1] * weight.dim()
+        shape[dim] = -1
+        weight = torch.where(occupied, weight, 0.0).movedim(dim, 0)
+        weighted_value = torch.where(occupied, weighted_value, 0.0).movedim(dim, 0)
+        positions = positions.to(weight.dtype).view(shape).movedim(dim, 0)
+        llr, _ = shrunk_llr(weight, weighted_value, positions, value_range)
+        return torch.where(total_count > 0.5, (llr - 0.5) / total_count.clamp_min(1), 0.0)
     safe_weight = torch.where(occupied, weight, 1.0)
     between = torch.where(occupied, weighted_value.square() / safe_weight, 0.0).sum(dim)
     total_weight = weight.sum(dim)
     between = between - weighted_value.sum(dim).square() / total_weight.clamp_min(torch.finfo(between.dtype).tiny)
-    if total_count is None:
-        total_count = count.sum(dim)
     penalty = (occupied.sum(dim) - 1).clamp_min(0).to(between.dtype)
     return torch.where(total_count > 0.5, 0.5 * (between - penalty) / total_count.clamp_min(1), 0.0)
 
@@ -484,7 +509,7 @@ def ecr(
     value_range: tuple[float, float] = (0.0, 256.0),
     model_variance: float | str | None = "estimate",
     valid_mask: Tensor | None = None,
-    response: str = "binned",
+    response: str = "shrunk",
     misfit: str = "independent",
 ) -> Tensor:
     """Enhanced correlation ratio: the noise-aware Gaussian log-likelihood ratio per valid pixel, in nats, ``(B,)``.
@@ -500,10 +525,12 @@ def ecr(
             (the default): estimated from each pair at this alignment (:func:`ecr_model_variance`); ``None`` for
             ``bin_width^2 / 12`` (the default before the estimate).
         valid_mask: bool, broadcast like ``variance``; ``False`` pixels are left out (they may hold NaN).
-        response: the sensor's response to the map: ``"binned"`` (one mean per reference bin: any function,
-            monotonic or not; the default) or ``"linear"`` (``a + b r`` with ``b > 0``, the reference values
-            themselves: the noise-aware form of normalised cross-correlation, with a penalty of one degree of
-            freedom; ``bins`` only check that the reference is resolved).
+        response: the sensor's response to the map: ``"shrunk"`` (the default: one mean per reference bin, shrunk
+            toward an increasing line by as much as the data allow, :mod:`~enmi_torch.scores.shrunk_response`; a
+            near-linear pair scores as the line, a non-monotonic one as the bins), ``"binned"`` (one free mean per
+            reference bin: any function, monotonic or not) or ``"linear"`` (``a + b r`` with ``b > 0``, the reference
+            values themselves: the noise-aware form of normalised cross-correlation, with a penalty of one degree
+            of freedom; ``bins`` only check that the reference is resolved).
         misfit: how an estimated ``tau^2`` treats the misfit's spatial correlation: ``"independent"`` (the
             default: pixel by pixel) or ``"correlated"`` (its excess over ``bin_width^2 / 12`` times the pixels per
             independent misfit, :func:`misfit_extent` of the residuals: see the module docstring; captured must be
@@ -523,8 +550,8 @@ def ecr(
         >>> reference = torch.rand(1, 1, 16, 16, generator=generator) * 256
         >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator)
         >>> ecr(captured, torch.stack([reference, reference.roll(1, -1)]), 64.0, bins=8)
-        tensor([[ 1.7013e+01],
-                [-2.1812e-03]])
+        tensor([[1.7019e+01],
+                [5.4228e-05]])
     """
     inputs, tau2, image_shape = _aligned_inputs(
         captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
@@ -541,7 +568,8 @@ def ecr(
     if response == "linear":
         score = _linear_ecr(captured, reference, total_variance, valid)
     else:
-        score = ecr_from_bin_sums(bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range))
+        sums = bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range)
+        score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range)
     remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
     return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
 
@@ -555,7 +583,7 @@ def ecr_model_variance(
     value_range: tuple[float, float] = (0.0, 256.0),
     model_variance: float | str | None = "estimate",
     valid_mask: Tensor | None = None,
-    response: str = "binned",
+    response: str = "shrunk",
     misfit: str = "independent",
 ) -> Tensor:
     """The model variance ``tau^2`` :func:`ecr` adds with these arguments, ``(B,)`` (``(C, B)`` for candidates).
@@ -644,7 +672,7 @@ def ecr_surface(
     model_variance: float | str | None = "estimate",
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
-    response: str = "binned",
+    response: str = "shrunk",
     misfit: str = "independent",
 ) -> Surface:
     """ECR (:func:`ecr`) of ``captured`` at every placement inside ``reference``, by FFT.
@@ -666,7 +694,7 @@ def ecr_surface(
             ``bin_width^2 / 12``.
         captured_mask: bool, broadcast like ``variance``; ``False`` pixels are left out.
         reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
-        response: ``"binned"`` or ``"linear"`` (see :func:`ecr`; the linear response
+        response: ``"shrunk"``, ``"binned"`` or ``"linear"`` (see :func:`ecr`; the linear response
             takes nine correlations of captured and reference planes, whatever ``bins``).
         misfit: ``"independent"`` or ``"correlated"`` (see :func:`ecr`): for the estimate at the first pass's peak.
 
@@ -701,7 +729,7 @@ def ecr_surface(
         model_variance = _surface_model_variance(inputs, model_variance, bins, value_range, response, misfit)
         if response == "linear":
             return _linear_ecr_surface(inputs, model_variance)
-        return _ecr_surface(inputs, model_variance, bins, value_range)
+        return _ecr_surface(inputs, model_variance, bins, value_range, shrunk=response == "shrunk")
 
 
 def ecr_surface_model_variance(
@@ -714,7 +742,7 @@ def ecr_surface_model_variance(
     model_variance: float | str | None = "estimate",
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
-    response: str = "binned",
+    response: str = "shrunk",
     misfit: str = "independent",
 ) -> Tensor:
     """The model variance ``tau^2`` :func:`ecr_surface` adds with these arguments, ``(B,)`` float64.
@@ -757,10 +785,12 @@ def _ecr_surface(
     value_range: tuple[float, float],
     *,
     exact_counts: bool = True,
+    shrunk: bool = False,
 ) -> Surface:
     """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes.
 
-    ``model_variance``: a number, or one per captured image ``(B, 1, 1)``.
+    ``model_variance``: a number, or one per captured image ``(B, 1, 1)``; ``shrunk``: the shrunk response (else the
+    binned one).
 
     With ``exact_counts=False`` (the two-stage search's cheap stage) and a reference without masked cells the per-bin
     counts are not correlated (two thirds of the correlations): a bin counts as occupied where its weight sum exceeds
@@ -791,7 +821,8 @@ def _ecr_surface(
             smallest = weight[sample][inputs.captured_valid[sample]].amin()
             count = (sums[0, :present] > 0.5 * smallest).to(dtype)
             overlap = valid[sample].sum().expand(count.shape[1:])  # every placement lies on valid cells
-        scores.append(_ecr_from_sums(count, sums[0, :present], sums[1, :present], 0, overlap))
+        positions = (bin_positions(bins, dtype, count.device)[reference.present_bins], value_range) if shrunk else None
+        scores.append(_ecr_from_sums(count, sums[0, :present], sums[1, :present], 0, overlap, positions))
         overlaps.append(overlap)
     return Surface(torch.stack(scores), torch.stack(overlaps))
 
@@ -822,7 +853,7 @@ def ecr_loss(
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> ecr_loss(image, image, 1.0, bins=4), ecr_loss(image, image.mT, 1.0, bins=4)
-        (tensor(-5.9062), tensor(0.0703))
+        (tensor(-5.9688), tensor(0.0078))
     """
     check_option("reduction", reduction, REDUCTIONS)
     return reduce_loss(-ecr(captured, reference, variance, **options), reduction)
@@ -837,7 +868,8 @@ class ECR(Score):
         model_variance: ``tau^2 >= 0`` added to every pixel's variance; ``"estimate"`` (the default): estimated from
             the data (per aligned pair; per captured image for a surface: see :mod:`~enmi_torch.scores.ecr`);
             ``None`` for ``bin_width^2 / 12`` (the default before the estimate).
-        response: ``"binned"`` (one mean per reference bin, any response) or ``"linear"`` (increasing affine).
+        response: ``"shrunk"`` (the default: bin means shrunk toward an increasing line as far as the data allow),
+            ``"binned"`` (one free mean per reference bin, any response) or ``"linear"`` (increasing affine).
         misfit: ``"independent"`` (the default) or ``"correlated"``: an estimated ``tau^2``'s excess over the
             quantisation floor times the pixels per independent misfit (:func:`misfit_extent`; see :func:`ecr`).
 
@@ -847,7 +879,7 @@ class ECR(Score):
         >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator)
         >>> score = ECR(bins=8)
         >>> score(captured, reference, 64.0), score.loss(captured, reference, 64.0)
-        (tensor([17.0125]), tensor(-17.0125))
+        (tensor([17.0186]), tensor(-17.0186))
     """
 
     name = "ecr"
@@ -859,7 +891,7 @@ class ECR(Score):
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
         model_variance: float | str | None = "estimate",
-        response: str = "binned",
+        response: str = "shrunk",
         misfit: str = "independent",
     ) -> None:
         bins = check_bins(bins)
@@ -918,12 +950,13 @@ class ECR(Score):
     def _rough_surface(self, captured, reference, variance, captured_mask, reference_mask) -> Surface:
         """:meth:`surface` with the occupied bins read from the weight sums: the two-stage search's first stage.
 
-        Without masked reference cells the per-bin counts are not correlated (two thirds of the correlations): a bin
-        counts as occupied where its weight sum exceeds half the smallest pixel weight (FFT round-off can flip a few),
-        and the overlap is the captured pixel count.
+        It ranks with free bin means (the binned response) whether the score is binned or shrunk: a cheap stage's few
+        bins leave little to shrink. Without masked reference cells the per-bin counts are not correlated (two thirds
+        of the correlations): a bin counts as occupied where its weight sum exceeds half the smallest pixel weight (FFT
+        round-off can flip a few), and the overlap is the captured pixel count.
         """
-        if self.response != "binned":
-            raise ValueError(f"the rough ECR surface needs response='binned', got {self.response!r}")
+        if self.response == "linear":
+            raise ValueError(f"the rough ECR surface needs a binned or shrunk response, got {self.response!r}")
         inputs = check_inputs(captured, reference, captured_mask, reference_mask, self.value_range, variance)
         with torch.no_grad():
             tau2 = _surface_model_variance(
@@ -979,7 +1012,7 @@ class ECR(Score):
             one_hot.scatter_(1, cells, 1.0)
             sums[members] = planes[yaw_index[members]] @ one_hot
             one_hot.scatter_(1, cells, 0.0)  # cheaper than clearing the whole matrix
-        score = ecr_from_bin_sums(BinSums(*sums[..., :bins].unbind(1)))
+        score = ecr_from_bin_sums(BinSums(*sums[..., :bins].unbind(1)), response=self.response, value_range=value_range)
         needed = min_overlap * valid.sum(1)[yaw_index]
         count = sums[:, 0, :bins].sum(1)
         return torch.where((count >= needed - 0.5) & (needed > 0), score, -math.inf)

@@ -416,7 +416,7 @@ def default_score() -> ECR:
 
     Example:
         >>> default_score()
-        ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='binned', misfit='correlated')
+        ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='correlated')
     """
     return ECR(misfit="correlated")
 

@@ -209,7 +209,7 @@ def test_replace_changes_options_checks_them_again_and_leaves_the_original():
 def test_repr_names_every_option_and_round_trips():
     assert (
         repr(ECR())
-        == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='binned', misfit='independent')"
+        == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='independent')"
     )
     assert repr(NCC()) == "NCC()"
     assert repr(Mixture(em_steps=2)) == "Mixture(bins=32, value_range=(0.0, 256.0), em_steps=2)"
@@ -257,7 +257,7 @@ def test_scores_pickle_with_their_options():
             ValueError,
             "model_variance must be 'estimate', a number >= 0 or None, got -1",
         ),
-        (lambda: ECR(response="quadratic"), ValueError, r"response must be one of \['binned', 'linear'\]"),
+        (lambda: ECR(response="quadratic"), ValueError, r"response must be one of \['shrunk', 'binned', 'linear'\]"),
         (lambda: ECR(kernel="mass"), TypeError, "unexpected keyword argument 'kernel'"),
         (lambda: ECR(32), TypeError, "positional"),
         (lambda: ENMI(kernel="hard"), ValueError, r"kernel must be one of \['mass', 'density', 'truncated'\]"),
