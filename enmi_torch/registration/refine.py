@@ -233,7 +233,7 @@ def _weights(score: Score, captured, warped, variance, valid) -> Tensor:
 
 
 def _penalty(score: Score, values: Tensor, warped: Tensor, weights: Tensor) -> Tensor | None:
-    """``1 / delta^2`` ``(B,)`` of the shrunk response at the given pose (bin sums of the pixels that count).
+    """``1 / delta^2`` ``(B,)`` of the shrunk response: the fixed one, or its estimate at the given pose.
 
     ``None`` for any other score. A ``delta^2`` of 0 (the line) is taken as ``10^-6`` bin widths squared: a pull
     that leaves a spline on the line within round-off.
@@ -241,6 +241,9 @@ def _penalty(score: Score, values: Tensor, warped: Tensor, weights: Tensor) -> T
     if not (isinstance(score, ECR) and score.response == "shrunk"):
         return None
     batch, bins = values.shape[0], score.bins
+    floor = 1e-6 * ((score.value_range[1] - score.value_range[0]) / bins) ** 2
+    if score.response_variance != "estimate":
+        return torch.full((batch,), 1 / max(score.response_variance, floor), dtype=values.dtype, device=values.device)
     with torch.no_grad():
         flat_weights, flat_values = weights.reshape(batch, -1), values.reshape(batch, -1)
         cells = hard_bin_index(warped.reshape(batch, -1), bins, score.value_range)
@@ -251,7 +254,6 @@ def _penalty(score: Score, values: Tensor, warped: Tensor, weights: Tensor) -> T
         ]
         positions = bin_positions(bins, flat_values.dtype, flat_values.device)
         _, response_variance = shrunk_llr(sums[0].T, sums[1].T, positions, score.value_range)
-        floor = 1e-6 * ((score.value_range[1] - score.value_range[0]) / bins) ** 2
         return response_variance.clamp_min(floor).reciprocal()
 
 

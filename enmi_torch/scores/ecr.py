@@ -88,7 +88,7 @@ from enmi_torch.placement.fft import Correlator
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import moment_blocks, per_sample_reference_planes
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
-from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
+from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr, shrunk_llr_terms
 
 
 class BinSums(NamedTuple):
@@ -108,6 +108,7 @@ class BinSums(NamedTuple):
 RESPONSES = ("shrunk", "binned", "linear")
 MISFITS = ("independent", "correlated")
 MODEL_VARIANCE_ESTIMATE = "estimate"
+RESPONSE_VARIANCE_ESTIMATE = "estimate"
 # misfit="correlated" sums the residuals' autocovariance over lags up to this fraction of the image's smaller side.
 MISFIT_REACH = 1 / 8
 # Bins of the cheap first pass whose best placement a surface's estimated tau^2 is read at (the two-stage search's).
@@ -366,12 +367,20 @@ def _first_pass(inputs: SurfaceInputs) -> Tensor:
     return torch.cat(scores)
 
 
-def _model_variance_at_peaks(
-    inputs: SurfaceInputs, scores: Tensor, bins: int, value_range: tuple[float, float], response: str, misfit: str
-) -> Tensor:
-    """``tau^2`` ``(B,)`` float64 estimated at each captured image's best placement in ``scores`` ``(B, Sy, Sx)``.
+def _variances_at_peaks(
+    inputs: SurfaceInputs,
+    scores: Tensor,
+    bins: int,
+    value_range: tuple[float, float],
+    response: str,
+    misfit: str,
+    model_variance: float | str = MODEL_VARIANCE_ESTIMATE,
+) -> tuple[Tensor, Tensor]:
+    """``tau^2`` and ``delta^2`` ``(B,)`` float64 at each captured image's best placement in ``scores`` ``(B, Sy, Sx)``.
 
-    A captured image without a finite score gets the floor, ``bin_width^2 / 12``, with either misfit.
+    ``tau^2``: the estimate there (``model_variance="estimate"``) or the fixed number; a captured image without a
+    finite score gets the floor, ``bin_width^2 / 12``, with either misfit. ``delta^2``: the shrunk response's
+    (:func:`_estimated_response_variance`) with that ``tau^2``; 0 without a finite score.
     """
     batch, height, width = inputs.captured.shape
     device = inputs.captured.device
@@ -382,9 +391,66 @@ def _model_variance_at_peaks(
     under = (window[:, None, None], rows, cols)
     found = torch.isfinite(scores.flatten(1).amax(1))[:, None, None]
     valid = inputs.captured_valid & inputs.reference_valid[under] & found
-    flat = (part.reshape(batch, -1) for part in (inputs.captured, inputs.reference[under], inputs.variance, valid))
+    flat = [part.reshape(batch, -1) for part in (inputs.captured, inputs.reference[under], inputs.variance, valid)]
     image_shape = (height, width) if misfit == "correlated" else None
-    return _estimated_model_variance(*flat, bins, value_range, response, image_shape)
+    if model_variance == MODEL_VARIANCE_ESTIMATE:
+        tau2 = _estimated_model_variance(*flat, bins, value_range, response, image_shape)
+    else:
+        tau2 = torch.full((batch,), float(model_variance), dtype=torch.float64, device=device)
+    delta2 = _estimated_response_variance(*flat, tau2, bins, value_range, (height, width), misfit)
+    return tau2, delta2
+
+
+def _estimated_response_variance(
+    captured: Tensor,
+    reference: Tensor,
+    noise: Tensor,
+    valid: Tensor,
+    tau2: Tensor,
+    bins: int,
+    value_range: tuple[float, float],
+    image_shape: tuple[int, int] | None,
+    misfit: str,
+) -> Tensor:
+    """The shrunk response's ``delta^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: its profile's maximum.
+
+    ``noise`` is ``sigma^2``, ``valid`` bool, ``tau2`` ``(S,)`` the score's model variance. The bin means are weighed
+    with the misfit's spatial correlation (where ``image_shape`` gives the pixels' ``(H, W)`` and the score's misfit is
+    independent: ``tau^2``'s excess over the quantisation floor times :func:`misfit_extent` of the residuals about the
+    bin means), because a changed patch of the scene moves a bin's mean as one value, not as independent pixels: read
+    pixel by pixel, it looks like a response that leaves the line. A pair without a valid pixel gets 0.
+    """
+    with torch.no_grad():
+        values = torch.where(valid, captured.detach().to(torch.float64), 0.0)  # an invalid pixel may hold NaN
+        noise = torch.where(valid, noise.detach().to(torch.float64), 1.0)
+        cells = hard_bin_index(torch.where(valid, reference.detach(), value_range[0]), bins, value_range)
+        tau2 = tau2.to(torch.float64)
+        if image_shape is not None and misfit == "independent":
+            residual, _, _ = _binned_fit(cells, bins)(values, valid / (noise + tau2[:, None]))
+            shape = (-1, *image_shape)
+            floor = default_model_variance(bins, value_range)
+            extent = misfit_extent(residual.view(shape), valid.view(shape), tau2)
+            tau2 = floor + (tau2 - floor).clamp_min(0) * extent
+        weight = valid / (noise + tau2[:, None])
+        centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(1e-300)
+        weight_sums = _per_bin(weight, cells, bins)
+        value_sums = _per_bin(weight * (values - centre), cells, bins)
+        positions = bin_positions(bins, torch.float64, values.device)[:, None]
+        return shrunk_llr(weight_sums.T, value_sums.T, positions, value_range)[1]
+
+
+def _aligned_response_variance(inputs, tau2, image_shape: tuple[int, int] | None, misfit: str) -> Tensor:
+    """The shrunk response's estimated ``delta^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, ``tau2`` ``(C, B)``."""
+    shape = inputs.reference.shape
+    valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
+    if inputs.valid is not None:
+        valid = valid & inputs.valid
+    flat = (part.expand(shape).reshape(-1, shape[-1]) for part in (inputs.captured, inputs.reference, inputs.variance))
+    tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape[:-1]).reshape(-1)
+    delta2 = _estimated_response_variance(
+        *flat, valid.reshape(-1, shape[-1]), tau2, inputs.bins, inputs.value_range, image_shape, misfit
+    )
+    return delta2.view(shape[:-1])
 
 
 def _surface_model_variance(
@@ -396,21 +462,64 @@ def _surface_model_variance(
     misfit: str = "independent",
 ) -> float | Tensor:
     """A surface's ``tau^2``: the fixed number, or the estimate per captured image ``(B, 1, 1)`` (compute dtype)."""
+    return _surface_variances(inputs, model_variance, None, bins, value_range, response, misfit)[0]
+
+
+def _surface_variances(
+    inputs: SurfaceInputs,
+    model_variance,
+    response_variance,
+    bins: int,
+    value_range: tuple[float, float],
+    response: str,
+    misfit: str = "independent",
+) -> tuple[float | Tensor, float | Tensor | None]:
+    """A surface's ``tau^2`` and ``delta^2``: each the fixed number or the estimate per captured image ``(B, 1, 1)``.
+
+    Both estimates are read at the best placement of one cheap first pass; ``delta^2`` is ``None`` unless the
+    response is shrunk and ``response_variance`` given (it is then checked).
+    """
     tau2 = check_model_variance(model_variance, bins, value_range)
-    if tau2 != MODEL_VARIANCE_ESTIMATE:
-        return tau2
-    estimate = _model_variance_at_peaks(inputs, _first_pass(inputs), bins, value_range, response, misfit)
-    return estimate.to(inputs.captured.dtype)[:, None, None]
+    shrunk = response == "shrunk" and response_variance is not None
+    delta2 = check_response_variance(response_variance) if shrunk else None
+    if tau2 != MODEL_VARIANCE_ESTIMATE and delta2 != RESPONSE_VARIANCE_ESTIMATE:
+        return tau2, delta2
+    tau2_at, delta2_at = _variances_at_peaks(inputs, _first_pass(inputs), bins, value_range, response, misfit, tau2)
+    dtype = inputs.captured.dtype
+    if tau2 == MODEL_VARIANCE_ESTIMATE:
+        tau2 = tau2_at.to(dtype)[:, None, None]
+    if delta2 == RESPONSE_VARIANCE_ESTIMATE:
+        delta2 = delta2_at.to(dtype)[:, None, None]
+    return tau2, delta2
+
+
+def check_response_variance(response_variance) -> float | str:
+    """``response_variance`` checked: ``"estimate"``, or a finite number >= 0 as a float."""
+    if response_variance == RESPONSE_VARIANCE_ESTIMATE:
+        return RESPONSE_VARIANCE_ESTIMATE
+    if (
+        isinstance(response_variance, bool)
+        or not isinstance(response_variance, (int, float))
+        or not 0 <= response_variance < math.inf
+    ):
+        raise ValueError(f"response_variance must be 'estimate' or a finite number >= 0, got {response_variance!r}")
+    return float(response_variance)
 
 
 def ecr_from_bin_sums(
-    sums: BinSums, *, response: str = "shrunk", value_range: tuple[float, float] = (0.0, 256.0)
+    sums: BinSums,
+    *,
+    response: str = "shrunk",
+    value_range: tuple[float, float] = (0.0, 256.0),
+    response_variance: float | str | Tensor = "estimate",
 ) -> Tensor:
     """ECR from per-bin sums ``(..., bins)`` (summed over batches or processes if need be), ``(...)``.
 
     Bins with no valid pixel are left out (``0 / 0``); a placement without any valid pixel scores 0. ``response``:
     ``"shrunk"`` (the default, as :func:`ecr`'s) or ``"binned"``; ``value_range``: the bins' range (the scale of the
-    shrunk response's ``delta^2`` grid; the binned response does not use it).
+    shrunk response's ``delta^2`` grid; the binned response does not use it); ``response_variance``: the shrunk
+    response's ``delta^2``, ``"estimate"`` (each set of sums its own, the maximum of its profile) or a number (or a
+    tensor broadcastable to ``(...)``).
 
     Example:
         >>> sums = BinSums(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0]]), torch.tensor([[-4.0, 4.0]]))
@@ -420,7 +529,10 @@ def ecr_from_bin_sums(
         tensor([1.8750])
     """
     check_option("response", response, RESPONSES[:2])
-    shrunk = None if response == "binned" else (bin_positions(sums.weight.shape[-1], sums.weight.dtype), value_range)
+    if not isinstance(response_variance, Tensor):
+        response_variance = check_response_variance(response_variance)
+    positions = bin_positions(sums.weight.shape[-1], sums.weight.dtype, sums.weight.device)
+    shrunk = None if response == "binned" else (positions, value_range, response_variance)
     return _ecr_from_sums(sums.count, sums.weight, sums.weighted_value, -1, shrunk=shrunk)
 
 
@@ -430,25 +542,31 @@ def _ecr_from_sums(
     weighted_value: Tensor,
     dim: int,
     total_count: Tensor | None = None,
-    shrunk: tuple[Tensor, tuple[float, float]] | None = None,
+    shrunk: tuple[Tensor, tuple[float, float], float | str | Tensor] | None = None,
 ) -> Tensor:
     """:func:`ecr_from_bin_sums` with the bins along ``dim`` (the score surfaces keep them first).
 
     ``total_count``: the valid pixels, when ``count`` only marks the occupied bins (``count.sum(dim)`` otherwise).
-    ``shrunk``: the bins' positions ``u_j`` (along ``dim``) and the value range, for the shrunk response; ``None``
-    for the binned one.
+    ``shrunk``: the bins' positions ``u_j`` (along ``dim``), the value range and ``delta^2`` (``"estimate"`` for each
+    placement's profile maximum, or a number or tensor broadcastable to the result), for the shrunk response;
+    ``None`` for the binned one.
     """
     occupied = count > 0.5
     if total_count is None:
         total_count = count.sum(dim)
     if shrunk is not None:
-        positions, value_range = shrunk
+        positions, value_range, response_variance = shrunk
         shape = [1] * weight.dim()
         shape[dim] = -1
         weight = torch.where(occupied, weight, 0.0).movedim(dim, 0)
         weighted_value = torch.where(occupied, weighted_value, 0.0).movedim(dim, 0)
         positions = positions.to(weight.dtype).view(shape).movedim(dim, 0)
-        llr, _ = shrunk_llr(weight, weighted_value, positions, value_range)
+        if response_variance == RESPONSE_VARIANCE_ESTIMATE:
+            llr, _ = shrunk_llr(weight, weighted_value, positions, value_range)
+        else:
+            if isinstance(response_variance, Tensor):
+                response_variance = response_variance.to(weight.dtype).expand(weight.shape[1:])
+            llr = shrunk_llr_terms(weight, weighted_value, positions, response_variance)
         return torch.where(total_count > 0.5, (llr - 0.5) / total_count.clamp_min(1), 0.0)
     safe_weight = torch.where(occupied, weight, 1.0)
     between = torch.where(occupied, weighted_value.square() / safe_weight, 0.0).sum(dim)
@@ -511,6 +629,7 @@ def ecr(
     valid_mask: Tensor | None = None,
     response: str = "shrunk",
     misfit: str = "independent",
+    response_variance: float | str = "estimate",
 ) -> Tensor:
     """Enhanced correlation ratio: the noise-aware Gaussian log-likelihood ratio per valid pixel, in nats, ``(B,)``.
 
@@ -535,6 +654,11 @@ def ecr(
             default: pixel by pixel) or ``"correlated"`` (its excess over ``bin_width^2 / 12`` times the pixels per
             independent misfit, :func:`misfit_extent` of the residuals: see the module docstring; captured must be
             images). A fixed ``model_variance`` is used as it is.
+        response_variance: the shrunk response's ``delta^2``, how far the bin means may leave the line:
+            ``"estimate"`` (the default: each pair its own, the maximum of its profile likelihood with the bin
+            means weighed by the misfit's spatial correlation where captured are images; see
+            :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the bin centres). The
+            other responses do not use it.
 
     Returns:
         ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: larger the better the reference bins
@@ -556,6 +680,7 @@ def ecr(
     inputs, tau2, image_shape = _aligned_inputs(
         captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
     )
+    captured_shape = captured.shape
     if tau2 == MODEL_VARIANCE_ESTIMATE:
         tau2 = _aligned_model_variance(inputs, response, image_shape)[..., None]
     # The sums run in float64 whatever the input: weights 1 / sigma^2 of float32 variances reach 1e45 and squared
@@ -569,7 +694,12 @@ def ecr(
         score = _linear_ecr(captured, reference, total_variance, valid)
     else:
         sums = bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range)
-        score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range)
+        delta2 = check_response_variance(response_variance)
+        if response == "shrunk" and delta2 == RESPONSE_VARIANCE_ESTIMATE:
+            images = tuple(captured_shape[-2:]) if len(captured_shape) >= 3 else None
+            model = tau2[..., 0] if isinstance(tau2, Tensor) else tau2
+            delta2 = _aligned_response_variance(inputs, model, images, misfit)
+        score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range, response_variance=delta2)
     remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
     return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
 
@@ -674,6 +804,7 @@ def ecr_surface(
     reference_mask: Tensor | None = None,
     response: str = "shrunk",
     misfit: str = "independent",
+    response_variance: float | str = "estimate",
 ) -> Surface:
     """ECR (:func:`ecr`) of ``captured`` at every placement inside ``reference``, by FFT.
 
@@ -697,6 +828,9 @@ def ecr_surface(
         response: ``"shrunk"``, ``"binned"`` or ``"linear"`` (see :func:`ecr`; the linear response
             takes nine correlations of captured and reference planes, whatever ``bins``).
         misfit: ``"independent"`` or ``"correlated"`` (see :func:`ecr`): for the estimate at the first pass's peak.
+        response_variance: the shrunk response's ``delta^2`` (see :func:`ecr`); ``"estimate"`` (the default): one per
+            captured image, the maximum of its profile at the first pass's best placement, with that image's
+            ``tau^2``, held at every placement.
 
     Returns:
         :class:`Surface`; ``score[b, u, v]`` equals
@@ -726,10 +860,12 @@ def ecr_surface(
         misfit,
     )
     with torch.no_grad():
-        model_variance = _surface_model_variance(inputs, model_variance, bins, value_range, response, misfit)
+        model_variance, delta2 = _surface_variances(
+            inputs, model_variance, response_variance, bins, value_range, response, misfit
+        )
         if response == "linear":
             return _linear_ecr_surface(inputs, model_variance)
-        return _ecr_surface(inputs, model_variance, bins, value_range, shrunk=response == "shrunk")
+        return _ecr_surface(inputs, model_variance, bins, value_range, response_variance=delta2)
 
 
 def ecr_surface_model_variance(
@@ -785,12 +921,12 @@ def _ecr_surface(
     value_range: tuple[float, float],
     *,
     exact_counts: bool = True,
-    shrunk: bool = False,
+    response_variance: float | Tensor | None = None,
 ) -> Surface:
     """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes.
 
-    ``model_variance``: a number, or one per captured image ``(B, 1, 1)``; ``shrunk``: the shrunk response (else the
-    binned one).
+    ``model_variance``: a number, or one per captured image ``(B, 1, 1)``; ``response_variance``: the shrunk response's
+    ``delta^2``, a number or one per captured image ``(B, 1, 1)`` (``None``: the binned response).
 
     With ``exact_counts=False`` (the two-stage search's cheap stage) and a reference without masked cells the per-bin
     counts are not correlated (two thirds of the correlations): a bin counts as occupied where its weight sum exceeds
@@ -821,7 +957,10 @@ def _ecr_surface(
             smallest = weight[sample][inputs.captured_valid[sample]].amin()
             count = (sums[0, :present] > 0.5 * smallest).to(dtype)
             overlap = valid[sample].sum().expand(count.shape[1:])  # every placement lies on valid cells
-        positions = (bin_positions(bins, dtype, count.device)[reference.present_bins], value_range) if shrunk else None
+        positions = None
+        if response_variance is not None:
+            delta2 = response_variance[sample] if isinstance(response_variance, Tensor) else response_variance
+            positions = (bin_positions(bins, dtype, count.device)[reference.present_bins], value_range, delta2)
         scores.append(_ecr_from_sums(count, sums[0, :present], sums[1, :present], 0, overlap, positions))
         overlaps.append(overlap)
     return Surface(torch.stack(scores), torch.stack(overlaps))
@@ -872,6 +1011,8 @@ class ECR(Score):
             ``"binned"`` (one free mean per reference bin, any response) or ``"linear"`` (increasing affine).
         misfit: ``"independent"`` (the default) or ``"correlated"``: an estimated ``tau^2``'s excess over the
             quantisation floor times the pixels per independent misfit (:func:`misfit_extent`; see :func:`ecr`).
+        response_variance: the shrunk response's ``delta^2``: ``"estimate"`` (the default: per aligned pair; per
+            captured image for a surface, at the first pass's best placement) or a number >= 0 (see :func:`ecr`).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -893,6 +1034,7 @@ class ECR(Score):
         model_variance: float | str | None = "estimate",
         response: str = "shrunk",
         misfit: str = "independent",
+        response_variance: float | str = "estimate",
     ) -> None:
         bins = check_bins(bins)
         value_range = check_value_range(value_range)
@@ -900,8 +1042,14 @@ class ECR(Score):
             model_variance = check_model_variance(model_variance, bins, value_range)
         check_option("response", response, RESPONSES)
         check_option("misfit", misfit, MISFITS)
+        response_variance = check_response_variance(response_variance)
         super().__init__(
-            bins=bins, value_range=value_range, model_variance=model_variance, response=response, misfit=misfit
+            bins=bins,
+            value_range=value_range,
+            model_variance=model_variance,
+            response=response,
+            misfit=misfit,
+            response_variance=response_variance,
         )
 
     def _value(self, captured, reference, variance, valid_mask) -> Tensor:
@@ -918,7 +1066,7 @@ class ECR(Score):
         self, captured: Tensor, reference: Tensor, variance: Tensor | float, *, valid_mask: Tensor | None = None
     ) -> Tensor:
         """The ``tau^2`` added on aligned pairs, ``(B,)`` or ``(C, B)`` float64: :func:`ecr_model_variance`."""
-        return ecr_model_variance(captured, reference, variance, valid_mask=valid_mask, **self._options)
+        return ecr_model_variance(captured, reference, variance, valid_mask=valid_mask, **self._model_variance_options)
 
     def surface_model_variance(
         self,
@@ -931,16 +1079,98 @@ class ECR(Score):
     ) -> Tensor:
         """The ``tau^2`` this score's surface adds, ``(B,)`` float64: :func:`ecr_surface_model_variance`."""
         masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
-        return ecr_surface_model_variance(captured, reference, variance, **masks, **self._options)
+        return ecr_surface_model_variance(captured, reference, variance, **masks, **self._model_variance_options)
+
+    def response_variance_of(
+        self, captured: Tensor, reference: Tensor, variance: Tensor | float, *, valid_mask: Tensor | None = None
+    ) -> Tensor:
+        """The shrunk response's ``delta^2`` on aligned pairs, ``(B,)`` or ``(C, B)`` float64 (0 for other responses).
+
+        ``"estimate"``: each pair's, at its alignment, with its ``tau^2`` (see :func:`ecr`); a number: that number.
+        """
+        options = self._model_variance_options
+        inputs, tau2, image_shape = _aligned_inputs(
+            captured,
+            reference,
+            variance,
+            *(options[name] for name in ("bins", "value_range", "model_variance")),
+            valid_mask,
+            self.response,
+            self.misfit,
+        )
+        shape = inputs.reference.shape[:-1]
+        device = inputs.captured.device
+        if self.response != "shrunk" or self.response_variance != RESPONSE_VARIANCE_ESTIMATE:
+            value = self.response_variance if self.response == "shrunk" else 0.0
+            delta2 = torch.full(shape, value, dtype=torch.float64, device=device)
+        else:
+            if tau2 == MODEL_VARIANCE_ESTIMATE:
+                tau2 = _aligned_model_variance(inputs, self.response, image_shape)
+            images = tuple(captured.shape[-2:]) if captured.ndim >= 3 else None
+            delta2 = _aligned_response_variance(inputs, tau2, images, self.misfit)
+        return delta2 if inputs.with_candidates else delta2[0]
+
+    def surface_response_variance(
+        self,
+        captured: Tensor,
+        reference: Tensor,
+        variance: Tensor | float,
+        *,
+        captured_mask: Tensor | None = None,
+        reference_mask: Tensor | None = None,
+    ) -> Tensor:
+        """The shrunk response's ``delta^2`` this score's surface holds, ``(B,)`` float64 (0 for other responses).
+
+        ``"estimate"``: per captured image, the maximum of its profile at the cheap first pass's best placement, with
+        that image's ``tau^2`` (see :mod:`~enmi_torch.scores.shrunk_response`); a number: that number.
+        """
+        options = self._model_variance_options
+        inputs, bins, value_range = _surface_inputs(
+            captured,
+            reference,
+            variance,
+            *(options[name] for name in ("bins", "value_range", "model_variance")),
+            captured_mask,
+            reference_mask,
+            self.response,
+            self.misfit,
+        )
+        with torch.no_grad():
+            _, delta2 = _surface_variances(
+                inputs, self.model_variance, self.response_variance, bins, value_range, self.response, self.misfit
+            )
+        batch = inputs.captured.shape[0]
+        device = inputs.captured.device
+        return (
+            torch.as_tensor(0.0 if delta2 is None else delta2, dtype=torch.float64, device=device)
+            .flatten()
+            .expand(batch)
+            .clone()
+        )
+
+    @property
+    def _model_variance_options(self) -> dict:
+        """The options ``tau^2`` depends on (all but the shrunk response's ``delta^2``)."""
+        return {name: value for name, value in self._options.items() if name != "response_variance"}
 
     def _pair_scorer(self, inputs: SurfaceInputs):
-        """:func:`~enmi_torch.scores.direct_surface`'s pair score: ECR with the surface's ``tau^2`` of each sample."""
-        tau2 = _surface_model_variance(
-            inputs, self.model_variance, self.bins, self.value_range, self.response, self.misfit
+        """:func:`~enmi_torch.scores.direct_surface`'s pair score: ECR with the surface's ``tau^2`` and ``delta^2``."""
+        tau2, delta2 = _surface_variances(
+            inputs, self.model_variance, self.response_variance, self.bins, self.value_range, self.response, self.misfit
         )
-        if not isinstance(tau2, Tensor):
+        if not isinstance(tau2, Tensor) and not isinstance(delta2, Tensor):
             return super()._pair_scorer(inputs)
-        samples = [self.replace(model_variance=float(value), misfit="independent") for value in tau2.flatten().tolist()]
+        batch = inputs.captured.shape[0]
+
+        def per_sample(value) -> list:
+            return torch.as_tensor(value, dtype=torch.float64).flatten().expand(batch).tolist()
+
+        fixed = {"misfit": "independent"}
+        shrinks = [None] * batch if delta2 is None else per_sample(delta2)
+        samples = [
+            self.replace(model_variance=model, **fixed, **({} if shrink is None else {"response_variance": shrink}))
+            for model, shrink in zip(per_sample(tau2), shrinks, strict=True)
+        ]
 
         def pair_score(sample: int, captured: Tensor, section: Tensor, variance: Tensor | None, valid: Tensor):
             return samples[sample](captured, section, variance, valid_mask=valid)[0]
@@ -983,8 +1213,9 @@ class ECR(Score):
         height, width = captured.shape[2:]
         bins, value_range = self.bins, self.value_range
         tau2 = check_model_variance(self.model_variance, bins, value_range)
+        delta2 = self.response_variance if self.response == "shrunk" else None
         yaws, yaw_index = torch.unique(placements[:, 0], return_inverse=True)  # only the rotations rescored
-        if tau2 == MODEL_VARIANCE_ESTIMATE:
+        if MODEL_VARIANCE_ESTIMATE in (tau2, delta2):
             rotated = SurfaceInputs(
                 captured[yaws, 0].to(dtype),
                 reference[:, 0].to(dtype),
@@ -992,8 +1223,13 @@ class ECR(Score):
                 reference_valid[:, 0],
                 variance[yaws, 0].to(dtype),
             )
-            tau2 = _model_variance_at_peaks(rotated, cheap[yaws], bins, value_range, self.response, self.misfit)
-            tau2 = tau2.to(dtype)[:, None]
+            tau2_at, delta2_at = _variances_at_peaks(
+                rotated, cheap[yaws], bins, value_range, self.response, self.misfit, tau2
+            )
+            if tau2 == MODEL_VARIANCE_ESTIMATE:
+                tau2 = tau2_at.to(dtype)[:, None]
+            if delta2 == RESPONSE_VARIANCE_ESTIMATE:
+                delta2 = delta2_at.to(dtype)[yaw_index]
         valid = valid[yaws, 0].flatten(1).to(dtype)
         weight = valid / (variance[yaws, 0].to(dtype).flatten(1) + tau2)
         values = captured[yaws, 0].to(dtype).flatten(1)
@@ -1012,7 +1248,8 @@ class ECR(Score):
             one_hot.scatter_(1, cells, 1.0)
             sums[members] = planes[yaw_index[members]] @ one_hot
             one_hot.scatter_(1, cells, 0.0)  # cheaper than clearing the whole matrix
-        score = ecr_from_bin_sums(BinSums(*sums[..., :bins].unbind(1)), response=self.response, value_range=value_range)
+        shrunk = {"value_range": value_range, "response_variance": "estimate" if delta2 is None else delta2}
+        score = ecr_from_bin_sums(BinSums(*sums[..., :bins].unbind(1)), response=self.response, **shrunk)
         needed = min_overlap * valid.sum(1)[yaw_index]
         count = sums[:, 0, :bins].sum(1)
         return torch.where((count >= needed - 0.5) & (needed > 0), score, -math.inf)

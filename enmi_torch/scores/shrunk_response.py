@@ -19,9 +19,16 @@ both) is, with ``s_j = 1 / (1 + delta^2 W_j)``,
 ``C`` and ``V`` the covariance and spread of the bin indices about their mean under the weights ``s_j W_j`` (``C^2 / V``
 only where ``C > 0``: an increasing line), ``S`` and ``W`` the sums over all bins. ``delta^2 = 0`` is the linear
 response on the bin centres; a large ``delta^2`` is the binned response less a log term per bin, the price of a free
-mean (an Occam factor where the binned response pays a flat ``1 / 2``). Each placement takes the ``delta^2`` of
-:func:`response_variance_grid` that maximises its LLR (a profile likelihood: no first pass needed, and a wrong first
-peak cannot choose the model for the right one); ECR is then ``(LLR - 1 / 2) / n`` as the linear response's.
+mean (an Occam factor where the binned response pays a flat ``1 / 2``). ECR is ``(LLR - 1 / 2) / n``, as the linear
+response's.
+
+``delta^2`` is a property of the sensor and the scene, not of a placement, so it is estimated once where the images
+are aligned and held at every placement (as ECR's model variance ``tau^2``): an aligned pair takes the maximum of
+its own profile (:func:`shrunk_llr`), a surface the ``delta^2`` of the best placement of a cheap first pass. Taken
+per placement instead, the profile lets a wrong placement buy back the free bin means: there the bin means of a
+photograph scatter by its own structure (spatially correlated pixels, far more than the noise of independent
+pixels), the profile leaves the line to fit it, and on real pairs of two dates the surface located no more than the
+binned response's (``data_tools/yardstick/scene_change.py``).
 """
 
 from __future__ import annotations
@@ -31,9 +38,10 @@ import math
 import torch
 from torch import Tensor
 
-# The grid of delta^2 each placement's LLR is first evaluated on, as fractions of the squared value range: 0, then
-# 1e-8 to 10 a decade apart (beyond 10, the binned response's limit). Around the best grid point the search halves its step twice (two evaluations each) and a
-# parabola in log delta^2 through the last triple gives the maximum: the LLR is smooth in log delta^2.
+# The grid of delta^2 a profile is first evaluated on, as fractions of the squared value range: 0, then 1e-8 to 10 a
+# decade apart (beyond 10, the binned response's limit). Around the best grid point the search halves its step twice
+# (two evaluations each) and a parabola in log delta^2 through the last triple gives the maximum: the LLR is smooth in
+# log delta^2.
 _GRID_EXPONENTS = range(-8, 2)
 _HALVINGS = 2
 
@@ -97,12 +105,17 @@ def _flat(weight: Tensor, weighted_value: Tensor, positions: Tensor) -> tuple[Te
     return weight.reshape(bins, -1), weighted_value.reshape(bins, -1), positions
 
 
-def shrunk_llr_terms(weight: Tensor, weighted_value: Tensor, positions: Tensor, response_variance: float) -> Tensor:
+def shrunk_llr_terms(
+    weight: Tensor, weighted_value: Tensor, positions: Tensor, response_variance: float | Tensor
+) -> Tensor:
     """``LLR(delta^2)`` of the shrunk response for per-bin sums with the bins first, ``(K, ...)`` -> ``(...)``.
 
     ``weight`` is ``W_j`` (0 for an empty bin), ``weighted_value`` ``S_j`` (values centred on any constant),
-    ``positions`` ``u_j`` ``(K,)`` or ``(K, 1, ...)``. Differentiable in the sums.
+    ``positions`` ``u_j`` ``(K,)`` or ``(K, 1, ...)``, ``response_variance`` ``delta^2`` (a number, or one per set of
+    sums, broadcastable to ``(...)``). Differentiable in the sums.
     """
+    if isinstance(response_variance, Tensor):
+        response_variance = response_variance.to(weight.dtype).expand(weight.shape[1:]).reshape(-1)
     return _ShrunkTerms(*_flat(weight, weighted_value, positions))(response_variance).view(weight.shape[1:])
 
 

@@ -164,8 +164,9 @@ def test_fast_surface_equals_the_direct_loop_with_masks_float64(generator):
     score = ECR(bins=10, value_range=(0.0, 300.0), model_variance="estimate")
     fast = score.surface(captured, references, variance, **masks)
     tau2 = score.surface_model_variance(captured, references, variance, **masks)
+    delta2 = score.surface_response_variance(captured, references, variance, **masks)
     for sample in range(3):
-        # The direct loop: ECR of every aligned pair with the surface's tau^2 of that image.
+        # The direct loop: ECR of every aligned pair with the surface's tau^2 and delta^2 of that image.
         expected = torch.zeros(14, 17, dtype=torch.float64)
         for row in range(14):
             for col in range(17):
@@ -182,6 +183,7 @@ def test_fast_surface_equals_the_direct_loop_with_masks_float64(generator):
                         bins=10,
                         value_range=(0.0, 300.0),
                         model_variance=float(tau2[sample]),
+                        response_variance=float(delta2[sample]),
                         valid_mask=valid,
                     )[0]
         torch.testing.assert_close(fast.score[sample], expected, rtol=1e-6, atol=1e-6)

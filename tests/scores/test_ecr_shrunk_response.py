@@ -172,9 +172,25 @@ def test_the_shrunk_score_is_differentiable():
     reference = torch.rand(2, 1, 6, 7, generator=generator, dtype=torch.float64) * 256
     captured = (20 + 0.5 * reference + 20 * torch.randn(2, 1, 6, 7, generator=generator).double()).requires_grad_()
     variance = (50 + 100 * torch.rand(1, 1, 6, 7, generator=generator, dtype=torch.float64)).requires_grad_()
-    assert torch.autograd.gradcheck(
-        lambda c, v: ecr(c, reference, v, bins=6, model_variance=30.0), (captured, variance), eps=1e-6, atol=1e-6
-    )
+    for response_variance in (0.0, 30.0):
+        assert torch.autograd.gradcheck(
+            lambda c, v, d=response_variance: ecr(c, reference, v, bins=6, model_variance=30.0, response_variance=d),
+            (captured, variance),
+            eps=1e-6,
+            atol=1e-6,
+        )
+    # An estimated delta^2 is held fixed, as an estimated tau^2: value and gradient are those of the fixed one.
+    score = ECR(bins=6, model_variance=30.0)
+    delta2 = score.response_variance_of(captured, reference, variance)
+    assert delta2.shape == (2,) and bool((delta2 > 0).any())  # the fixture leaves the line somewhere
+    for sample in range(2):
+        pair = (captured[sample : sample + 1], reference[sample : sample + 1], variance)
+        estimated = score(*pair)
+        fixed = score.replace(response_variance=float(delta2[sample]))(*pair)
+        torch.testing.assert_close(estimated, fixed, rtol=1e-12, atol=1e-12)
+        gradients = [torch.autograd.grad(value.sum(), pair[:1] + pair[2:]) for value in (estimated, fixed)]
+        for first, second in zip(*gradients, strict=True):
+            torch.testing.assert_close(first, second, rtol=1e-12, atol=1e-12)
 
 
 def test_the_default_beats_the_binned_response_on_a_noisy_linear_search(generator):

@@ -162,6 +162,9 @@ def test_direct_surface_of_every_family_equals_its_fft_surface_on_a_non_square_i
     if score.options.get("model_variance") == "estimate":  # a surface's tau^2 is one per captured image
         tau2 = score.surface_model_variance(local, reference, given, **masks)
         score = score.replace(model_variance=float(tau2[sample]))
+    if score.options.get("response_variance") == "estimate":  # and so is the shrunk response's delta^2
+        delta2 = score.surface_response_variance(local, reference, given, **masks)
+        score = score.replace(response_variance=float(delta2[sample]))
     if not score.options.get("reliability", False):  # reliability is estimated over the whole image on a surface
         pair = score(
             local[sample : sample + 1], section, None if given is None else given[sample : sample + 1], valid_mask=valid
@@ -209,7 +212,8 @@ def test_replace_changes_options_checks_them_again_and_leaves_the_original():
 def test_repr_names_every_option_and_round_trips():
     assert (
         repr(ECR())
-        == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='independent')"
+        == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='independent', "
+        "response_variance='estimate')"
     )
     assert repr(NCC()) == "NCC()"
     assert repr(Mixture(em_steps=2)) == "Mixture(bins=32, value_range=(0.0, 256.0), em_steps=2)"
