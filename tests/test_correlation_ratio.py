@@ -94,14 +94,15 @@ def test_ecr_is_centred_under_independence_with_any_variances():
     assert abs(wrong.mean().item()) > 10 * standard_error
 
 
-def test_a_pixel_with_a_flat_likelihood_adds_no_evidence():
+@pytest.mark.parametrize("response", [{"response": "binned"}, {"response_variance": 20.0}], ids=["binned", "shrunk"])
+def test_a_pixel_with_a_flat_likelihood_adds_no_evidence(response):
     captured, reference, variance, _ = _case(torch.float64, shape=(1, 1, 6, 6))
-    base = ecr(captured, reference, variance, bins=4, model_variance=0.0) * 36
+    base = ecr(captured, reference, variance, bins=4, model_variance=0.0, **response) * 36
     # One more pixel, in a bin already occupied, with an enormous noise variance and a wild value.
     grown_captured = torch.cat([captured.flatten(1), torch.tensor([[1e4]], dtype=torch.float64)], 1)
     grown_reference = torch.cat([reference.flatten(1), reference.flatten(1)[:, :1]], 1)
     grown_variance = torch.cat([variance.flatten(1), torch.tensor([[1e16]], dtype=torch.float64)], 1)
-    grown = ecr(grown_captured, grown_reference, grown_variance, bins=4, model_variance=0.0) * 37
+    grown = ecr(grown_captured, grown_reference, grown_variance, bins=4, model_variance=0.0, **response) * 37
     assert abs((grown - base).item()) < 1e-6
     # The paper's ENMI gives such a pixel a full unit of histogram weight instead.
 
@@ -122,8 +123,8 @@ def test_ecr_gradcheck_in_captured_and_variance():
     variance.requires_grad_()
 
     def score(captured, variance):
-        # A fixed model variance: an estimated one is held fixed in the gradient (tests/scores/test_ecr_model_variance).
-        return ecr(captured, reference, variance, bins=4, valid_mask=valid, model_variance=7.5)
+        # Fixed variances: estimated ones are held fixed in the gradient (tests/scores/test_ecr_model_variance).
+        return ecr(captured, reference, variance, bins=4, valid_mask=valid, model_variance=7.5, response_variance=20.0)
 
     assert torch.autograd.gradcheck(score, (captured, variance))
 
@@ -142,6 +143,7 @@ def test_ecr_from_bin_sums_streams():
     ]
     summed = BinSums(*(first + second for first, second in zip(*halves, strict=True)))
     torch.testing.assert_close(ecr_from_bin_sums(summed), ecr_from_bin_sums(whole), rtol=1e-12, atol=1e-12)
+    # The sums' own estimate of delta^2 takes the pixels as independent, as ecr does for (B, N) values.
     torch.testing.assert_close(ecr_from_bin_sums(whole), ecr(*flat[:2], flat[2] - tau2, bins=4, model_variance=tau2))
 
 

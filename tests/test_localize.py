@@ -183,7 +183,9 @@ def test_brick_is_more_ambiguous_than_gravel():
 @pytest.mark.parametrize("model_variance", [None, "estimate"])
 def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map, model_variance):
     local = _noisy(_cut(gravel_map, 91, 66, yaw=3.0), 3.0)
-    score = ECR(bins=16, model_variance=model_variance)
+    # With a fixed tau^2, a fixed delta^2 too: both estimates are read in each fine window.
+    response_variance = 30.0 if model_variance is None else "estimate"
+    score = ECR(bins=16, model_variance=model_variance, response_variance=response_variance)
     options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": score}
     exhaustive = localize(local, gravel_map, 9.0, **options)
     coarse = localize(local, gravel_map, 9.0, coarse_factor=4, **options)
@@ -191,8 +193,7 @@ def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map, model_variance):
     evaluated = torch.isfinite(coarse.surface)
     assert 0 < evaluated.sum() < evaluated.numel() / 3
     if model_variance is None:
-        # With a fixed tau^2 the fine surfaces are the exhaustive one where evaluated (an estimated tau^2 is read in
-        # each fine window).
+        # With fixed variances the fine surfaces are the exhaustive one where evaluated.
         torch.testing.assert_close(coarse.pose, exhaustive.pose)
         torch.testing.assert_close(coarse.surface[evaluated], exhaustive.surface[evaluated])
 
@@ -540,9 +541,9 @@ def _two_stage_case(gravel_map, seed):
 @pytest.mark.parametrize("seed", range(3))
 def test_two_stage_search_equals_the_exhaustive_search_where_it_rescored_and_finds_its_argmax(gravel_map, seed):
     local, variance, options = _two_stage_case(gravel_map, seed)
-    # A fixed tau^2: min_overlap=0.97 leaves out placements where the exhaustive surface may read an estimated one
-    # (tests/scores/test_ecr_model_variance.py checks the estimate at the default min_overlap).
-    options["score"] = options["score"].replace(model_variance=None)
+    # A fixed tau^2 and delta^2: min_overlap=0.97 leaves out placements where the exhaustive surface may read estimated
+    # ones (tests/scores/test_ecr_model_variance.py checks the estimates at the default min_overlap).
+    options["score"] = options["score"].replace(model_variance=None, response_variance=40.0)
     exhaustive = localize(local, gravel_map, variance, **options)
     two_stage = localize(local, gravel_map, variance, search="two_stage", cheap_bins=4, **options)
     rescored = torch.isfinite(two_stage.surface)

@@ -518,8 +518,8 @@ def ecr_from_bin_sums(
     Bins with no valid pixel are left out (``0 / 0``); a placement without any valid pixel scores 0. ``response``:
     ``"shrunk"`` (the default, as :func:`ecr`'s) or ``"binned"``; ``value_range``: the bins' range (the scale of the
     shrunk response's ``delta^2`` grid; the binned response does not use it); ``response_variance``: the shrunk
-    response's ``delta^2``, ``"estimate"`` (each set of sums its own, the maximum of its profile) or a number (or a
-    tensor broadcastable to ``(...)``).
+    response's ``delta^2``, ``"estimate"`` (each set of sums its own, where its profile is largest, held fixed in the
+    gradient; the pixels taken as independent) or a number (or a tensor broadcastable to ``(...)``).
 
     Example:
         >>> sums = BinSums(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0]]), torch.tensor([[-4.0, 4.0]]))
@@ -561,12 +561,12 @@ def _ecr_from_sums(
         weight = torch.where(occupied, weight, 0.0).movedim(dim, 0)
         weighted_value = torch.where(occupied, weighted_value, 0.0).movedim(dim, 0)
         positions = positions.to(weight.dtype).view(shape).movedim(dim, 0)
-        if response_variance == RESPONSE_VARIANCE_ESTIMATE:
-            llr, _ = shrunk_llr(weight, weighted_value, positions, value_range)
-        else:
-            if isinstance(response_variance, Tensor):
-                response_variance = response_variance.to(weight.dtype).expand(weight.shape[1:])
-            llr = shrunk_llr_terms(weight, weighted_value, positions, response_variance)
+        if response_variance == RESPONSE_VARIANCE_ESTIMATE:  # held fixed in the gradient, as everywhere
+            with torch.no_grad():
+                _, response_variance = shrunk_llr(weight, weighted_value, positions, value_range)
+        if isinstance(response_variance, Tensor):
+            response_variance = response_variance.to(weight.dtype).expand(weight.shape[1:])
+        llr = shrunk_llr_terms(weight, weighted_value, positions, response_variance)
         return torch.where(total_count > 0.5, (llr - 0.5) / total_count.clamp_min(1), 0.0)
     safe_weight = torch.where(occupied, weight, 1.0)
     between = torch.where(occupied, weighted_value.square() / safe_weight, 0.0).sum(dim)

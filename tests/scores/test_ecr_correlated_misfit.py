@@ -129,7 +129,9 @@ def test_ecr_with_a_correlated_misfit_is_ecr_with_its_model_variance(dtype, gene
     captured, section = captured.to(dtype), section.to(dtype)
     tau2 = ecr_model_variance(captured, section, 100.0, misfit="correlated", valid_mask=mask)
     value = ecr(captured, section, 100.0, misfit="correlated", valid_mask=mask)
-    fixed = ecr(captured, section, 100.0, model_variance=float(tau2[0]), valid_mask=mask)
+    delta2 = ECR(misfit="correlated").response_variance_of(captured, section, 100.0, valid_mask=mask)
+    options = {"model_variance": float(tau2[0]), "response_variance": float(delta2[0]), "valid_mask": mask}
+    fixed = ecr(captured, section, 100.0, **options)
     torch.testing.assert_close(value, fixed)
     assert float(tau2[0]) > 4 * float(ecr_model_variance(captured, section, 100.0, valid_mask=mask)[0])
 
@@ -141,7 +143,8 @@ def test_a_surface_reads_the_correlated_estimate_at_its_peak_and_the_search_agre
     torch.testing.assert_close(tau2, score.model_variance_of(captured, section, 100.0), rtol=1e-6, atol=0)
     assert float(tau2[0]) > 1000  # about 12 x the misfit's 400
     surface = score.surface(captured, reference, 100.0)
-    fixed = ECR(model_variance=float(tau2[0])).surface(captured, reference, 100.0)
+    delta2 = score.surface_response_variance(captured, reference, 100.0)
+    fixed = ECR(model_variance=float(tau2[0]), response_variance=float(delta2[0])).surface(captured, reference, 100.0)
     torch.testing.assert_close(surface.score, fixed.score, rtol=1e-9, atol=1e-9)
     assert divmod(int(surface.score[0].argmax()), surface.score.shape[-1]) == (5, 9)
     options = {"score": score, "shifts": (6, 8), "center": (30, 40), "yaws": [0.0]}
