@@ -200,8 +200,8 @@ def as_score(score: Score | str) -> Score:
     """A :class:`Score` as it is, or a family's name as that family with its default options.
 
     Example:
-        >>> as_score("ecr")
-        ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='independent')
+        >>> as_score("ncc"), as_score("ecr").options["response"]
+        (NCC(), 'shrunk')
         >>> as_score("mi")
         Traceback (most recent call last):
         ...

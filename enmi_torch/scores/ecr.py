@@ -397,8 +397,7 @@ def _variances_at_peaks(
         tau2 = _estimated_model_variance(*flat, bins, value_range, response, image_shape)
     else:
         tau2 = torch.full((batch,), float(model_variance), dtype=torch.float64, device=device)
-    delta2 = _estimated_response_variance(*flat, tau2, bins, value_range, (height, width), misfit)
-    return tau2, delta2
+    return tau2, _estimated_response_variance(*flat, tau2, bins, value_range)
 
 
 def _estimated_response_variance(
@@ -409,29 +408,17 @@ def _estimated_response_variance(
     tau2: Tensor,
     bins: int,
     value_range: tuple[float, float],
-    image_shape: tuple[int, int] | None,
-    misfit: str,
 ) -> Tensor:
     """The shrunk response's ``delta^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: its profile's maximum.
 
-    ``noise`` is ``sigma^2``, ``valid`` bool, ``tau2`` ``(S,)`` the score's model variance. The bin means are weighed
-    with the misfit's spatial correlation (where ``image_shape`` gives the pixels' ``(H, W)`` and the score's misfit is
-    independent: ``tau^2``'s excess over the quantisation floor times :func:`misfit_extent` of the residuals about the
-    bin means), because a changed patch of the scene moves a bin's mean as one value, not as independent pixels: read
-    pixel by pixel, it looks like a response that leaves the line. A pair without a valid pixel gets 0.
+    ``noise`` is ``sigma^2``, ``valid`` bool, ``tau2`` ``(S,)`` the score's model variance. A pair without a valid
+    pixel gets 0.
     """
     with torch.no_grad():
         values = torch.where(valid, captured.detach().to(torch.float64), 0.0)  # an invalid pixel may hold NaN
         noise = torch.where(valid, noise.detach().to(torch.float64), 1.0)
         cells = hard_bin_index(torch.where(valid, reference.detach(), value_range[0]), bins, value_range)
-        tau2 = tau2.to(torch.float64)
-        if image_shape is not None and misfit == "independent":
-            residual, _, _ = _binned_fit(cells, bins)(values, valid / (noise + tau2[:, None]))
-            shape = (-1, *image_shape)
-            floor = default_model_variance(bins, value_range)
-            extent = misfit_extent(residual.view(shape), valid.view(shape), tau2)
-            tau2 = floor + (tau2 - floor).clamp_min(0) * extent
-        weight = valid / (noise + tau2[:, None])
+        weight = valid / (noise + tau2.to(torch.float64)[:, None])
         centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(1e-300)
         weight_sums = _per_bin(weight, cells, bins)
         value_sums = _per_bin(weight * (values - centre), cells, bins)
@@ -439,7 +426,7 @@ def _estimated_response_variance(
         return shrunk_llr(weight_sums.T, value_sums.T, positions, value_range)[1]
 
 
-def _aligned_response_variance(inputs, tau2, image_shape: tuple[int, int] | None, misfit: str) -> Tensor:
+def _aligned_response_variance(inputs, tau2) -> Tensor:
     """The shrunk response's estimated ``delta^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, ``tau2`` ``(C, B)``."""
     shape = inputs.reference.shape
     valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
@@ -447,9 +434,7 @@ def _aligned_response_variance(inputs, tau2, image_shape: tuple[int, int] | None
         valid = valid & inputs.valid
     flat = (part.expand(shape).reshape(-1, shape[-1]) for part in (inputs.captured, inputs.reference, inputs.variance))
     tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape[:-1]).reshape(-1)
-    delta2 = _estimated_response_variance(
-        *flat, valid.reshape(-1, shape[-1]), tau2, inputs.bins, inputs.value_range, image_shape, misfit
-    )
+    delta2 = _estimated_response_variance(*flat, valid.reshape(-1, shape[-1]), tau2, inputs.bins, inputs.value_range)
     return delta2.view(shape[:-1])
 
 
@@ -655,10 +640,9 @@ def ecr(
             independent misfit, :func:`misfit_extent` of the residuals: see the module docstring; captured must be
             images). A fixed ``model_variance`` is used as it is.
         response_variance: the shrunk response's ``delta^2``, how far the bin means may leave the line:
-            ``"estimate"`` (the default: each pair its own, the maximum of its profile likelihood with the bin
-            means weighed by the misfit's spatial correlation where captured are images; see
-            :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the bin centres). The
-            other responses do not use it.
+            ``"estimate"`` (the default: each pair its own, where its profile likelihood is largest, held fixed in
+            the gradient; see :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the
+            bin centres). The other responses do not use it.
 
     Returns:
         ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: larger the better the reference bins
@@ -680,7 +664,6 @@ def ecr(
     inputs, tau2, image_shape = _aligned_inputs(
         captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
     )
-    captured_shape = captured.shape
     if tau2 == MODEL_VARIANCE_ESTIMATE:
         tau2 = _aligned_model_variance(inputs, response, image_shape)[..., None]
     # The sums run in float64 whatever the input: weights 1 / sigma^2 of float32 variances reach 1e45 and squared
@@ -696,9 +679,7 @@ def ecr(
         sums = bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range)
         delta2 = check_response_variance(response_variance)
         if response == "shrunk" and delta2 == RESPONSE_VARIANCE_ESTIMATE:
-            images = tuple(captured_shape[-2:]) if len(captured_shape) >= 3 else None
-            model = tau2[..., 0] if isinstance(tau2, Tensor) else tau2
-            delta2 = _aligned_response_variance(inputs, model, images, misfit)
+            delta2 = _aligned_response_variance(inputs, tau2[..., 0] if isinstance(tau2, Tensor) else tau2)
         score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range, response_variance=delta2)
     remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
     return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
@@ -1106,8 +1087,7 @@ class ECR(Score):
         else:
             if tau2 == MODEL_VARIANCE_ESTIMATE:
                 tau2 = _aligned_model_variance(inputs, self.response, image_shape)
-            images = tuple(captured.shape[-2:]) if captured.ndim >= 3 else None
-            delta2 = _aligned_response_variance(inputs, tau2, images, self.misfit)
+            delta2 = _aligned_response_variance(inputs, tau2)
         return delta2 if inputs.with_candidates else delta2[0]
 
     def surface_response_variance(
