@@ -80,16 +80,16 @@ def test_largest_rectangle_against_brute_force(prep):
     assert (rows.stop - rows.start) * (cols.stop - cols.start) == best
 
 
-def _write_change_folders(root, photo):
-    for folder in ("A", "B", "label"):
+def _write_change_folders(root, photo, first="A", second="B"):
+    for folder in (first, second, "label"):
         (root / folder).mkdir(parents=True)
     changed = np.zeros(photo.shape, dtype=bool)
     changed[100:160, 200:300] = True
     later = photo.copy()
     later[changed] = 255 - later[changed]  # a "new building"
     for name, captured in (("aligned", later), ("moved", _moved(later, 3.0, 0.0))):
-        Image.fromarray(photo.astype(np.uint8)).save(root / "A" / f"{name}.png")
-        Image.fromarray(np.clip(captured, 0, 255).astype(np.uint8)).save(root / "B" / f"{name}.png")
+        Image.fromarray(photo.astype(np.uint8)).save(root / first / f"{name}.png")
+        Image.fromarray(np.clip(captured, 0, 255).astype(np.uint8)).save(root / second / f"{name}.png")
         Image.fromarray((changed * 255).astype(np.uint8)).save(root / "label" / f"{name}.png")
 
 
@@ -115,6 +115,18 @@ def test_change_folders_end_to_end(prep, photo, tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert sorted(pair["id"] for pair in manifest["pairs"]) == ["aligned", "moved"]
     assert manifest["rejected"] == []
+
+
+def test_whu_cd_prev_and_curr_folders_are_read_as_the_two_dates(prep, photo, tmp_path):
+    _write_change_folders(tmp_path / "whu", photo, first="prev", second="curr")
+    pairs = {pair.name: pair for pair in prep.read_change_folders(tmp_path / "whu", "whu-cd")}
+    assert sorted(pairs) == ["aligned", "moved"]
+    np.testing.assert_array_equal(pairs["aligned"].reference, photo)  # the earlier date is the reference
+    assert pairs["aligned"].changed.sum() == 60 * 100
+    out = tmp_path / "out"
+    prep.main(["--dataset", "whu-cd", "--source", str(tmp_path / "whu"), "--out", str(out)])
+    meta = json.loads((out / "another-date" / "whu-cd-aligned" / "meta.json").read_text())
+    assert meta["dataset"] == "whu-cd" and meta["paths"] == ["prev/aligned.png", "curr/aligned.png"]
 
 
 def test_srif_similarity_is_undone(prep, photo, tmp_path):

@@ -28,6 +28,10 @@ Datasets (``--dataset``), what ``--source`` must hold, where each is published a
   https://justchenhao.github.io/LEVIR/ (Google Earth images, 0.5 m; no licence in the copies read here).
   DSIFN-CD: github.com/GeoZcx/A-deeply-supervised-image-fusion-network-for-change-detection-in-remote-sensing-images
   (Google Earth images of six Chinese cities; no licence stated). A is the reference, B the captured image.
+* ``whu-cd`` (another date): the same layout, or ``prev/``, ``curr/`` and ``label/`` (the UCD-SCM repository's
+  ``data/samples_WHU-CD``, github.com/StephenApX/UCD-SCM). WHU-CD (WHU building change detection,
+  https://study.rsgis.whu.edu.cn/pages/download/building_dataset.html): aerial photographs of Christchurch, 2012 and
+  2016, 0.3 m (Ji, Wei and Lu, TGRS 2019; no licence in the copy read). The earlier date is the reference.
 * ``oscd`` (another date): the ``Onera Satellite Change Detection dataset - Images`` folder (one folder per city
   with ``imgs_1/``, ``imgs_2/`` holding the Sentinel-2 bands ``*_B02/B03/B04.tif``; change maps ``cm/cm.png`` there
   or in the sibling ``... - Train Labels`` folder, optional), https://rcdaudt.github.io/oscd/ : "modified Copernicus
@@ -359,10 +363,17 @@ def matlab_to_zero_based(matrix: np.ndarray) -> np.ndarray:
     return np.linalg.inv(one) @ matrix @ one
 
 
+CHANGE_FOLDERS = (("A", "B"), ("prev", "curr"))  # (earlier date, later date) folder names, as published
+
+
 def read_change_folders(source: Path, dataset: str) -> Iterator[Pair]:
-    """LEVIR-CD / DSIFN-CD layout: A/, B/, label/ with same-named images."""
-    for path in sorted((source / "A").iterdir()):
-        other = source / "B" / path.name
+    """LEVIR-CD / DSIFN-CD / WHU-CD layout: A/, B/ (or prev/, curr/) and label/ with same-named images."""
+    earlier, later = next(
+        (names for names in CHANGE_FOLDERS if (source / names[0]).is_dir()),
+        CHANGE_FOLDERS[0],
+    )
+    for path in sorted((source / earlier).iterdir()):
+        other = source / later / path.name
         if not other.exists():
             continue
         reference, captured = read_grey(path), read_grey(other)
@@ -530,6 +541,7 @@ DATASETS = {  # name: (reader, case, licence as the source states it)
         "LEVIR-CD: Google Earth imagery; no licence in the copies read (cite Chen & Shi 2020)",
     ),
     "dsifn-cd": (read_change_folders, "date", "DSIFN-CD: Google Earth imagery; no licence stated by the source"),
+    "whu-cd": (read_change_folders, "date", "WHU-CD: aerial photographs (Ji et al. 2019); no licence in the copy read"),
     "oscd": (read_oscd, "date", "modified Copernicus Sentinel data 2015-2018 (free and open); change maps CC BY-NC-SA"),
     "pix2pix-maps": (read_pix2pix_maps, "modality", "pix2pix maps (Google Maps); no licence stated, Google's terms"),
     "srif-optical-map": (read_srif, "modality", "SRIF dataset (Li et al. 2023): no licence stated; cite the paper"),
