@@ -129,6 +129,19 @@ def test_whu_cd_prev_and_curr_folders_are_read_as_the_two_dates(prep, photo, tmp
     assert meta["dataset"] == "whu-cd" and meta["paths"] == ["prev/aligned.png", "curr/aligned.png"]
 
 
+def test_tiles_are_cut_named_and_checked_one_by_one(prep, photo, tmp_path):
+    _write_change_folders(tmp_path / "whu", photo, first="prev", second="curr")
+    out = tmp_path / "out"
+    prep.main(["--dataset", "whu-cd", "--source", str(tmp_path / "whu"), "--out", str(out), "--tile", "200"])
+    manifest = json.loads((out / "manifest.json").read_text())
+    kept = sorted(pair["id"] for pair in manifest["pairs"])
+    assert kept == ["aligned_0000_0000", "aligned_0000_0200"]  # 280 x 400: two whole tiles each
+    assert sorted(pair["id"] for pair in manifest["rejected"]) == ["moved_0000_0000", "moved_0000_0200"]
+    folder = out / "another-date" / "whu-cd-aligned_0000_0200"
+    np.testing.assert_array_equal(np.load(folder / "reference.npy"), photo[:200, 200:400].astype(np.float32))
+    assert json.loads((folder / "meta.json").read_text())["tile_top_left"] == [0, 200]
+
+
 def test_srif_similarity_is_undone(prep, photo, tmp_path):
     """The second image is the first scaled by 0.8 and turned by 20 degrees; gt_1.txt maps 1-based pixels."""
     folder = tmp_path / "Optical-SAR"
@@ -159,6 +172,10 @@ def test_command_line_mistakes_exit_2(prep, tmp_path, capsys):
         prep.main(["--dataset", "levir-cd", "--source", str(tmp_path / "absent"), "--out", str(tmp_path)])
     assert stop.value.code == 2
     assert "--source: expected a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        prep.main(["--dataset", "whu-cd", "--source", str(tmp_path), "--out", str(tmp_path), "--tile", "64"])
+    assert stop.value.code == 2
+    assert "--tile: expected at least 150" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit) as stop:
         prep.main(["--dataset", "oscd", "--source", str(tmp_path / "empty"), "--out", str(tmp_path / "out")])
