@@ -80,16 +80,16 @@ def test_largest_rectangle_against_brute_force(prep):
     assert (rows.stop - rows.start) * (cols.stop - cols.start) == best
 
 
-def _write_change_folders(root, photo):
-    for folder in ("A", "B", "label"):
+def _write_change_folders(root, photo, first="A", second="B"):
+    for folder in (first, second, "label"):
         (root / folder).mkdir(parents=True)
     changed = np.zeros(photo.shape, dtype=bool)
     changed[100:160, 200:300] = True
     later = photo.copy()
     later[changed] = 255 - later[changed]  # a "new building"
     for name, captured in (("aligned", later), ("moved", _moved(later, 3.0, 0.0))):
-        Image.fromarray(photo.astype(np.uint8)).save(root / "A" / f"{name}.png")
-        Image.fromarray(np.clip(captured, 0, 255).astype(np.uint8)).save(root / "B" / f"{name}.png")
+        Image.fromarray(photo.astype(np.uint8)).save(root / first / f"{name}.png")
+        Image.fromarray(np.clip(captured, 0, 255).astype(np.uint8)).save(root / second / f"{name}.png")
         Image.fromarray((changed * 255).astype(np.uint8)).save(root / "label" / f"{name}.png")
 
 
@@ -115,6 +115,31 @@ def test_change_folders_end_to_end(prep, photo, tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert sorted(pair["id"] for pair in manifest["pairs"]) == ["aligned", "moved"]
     assert manifest["rejected"] == []
+
+
+def test_whu_cd_prev_and_curr_folders_are_read_as_the_two_dates(prep, photo, tmp_path):
+    _write_change_folders(tmp_path / "whu", photo, first="prev", second="curr")
+    pairs = {pair.name: pair for pair in prep.read_change_folders(tmp_path / "whu", "whu-cd")}
+    assert sorted(pairs) == ["aligned", "moved"]
+    np.testing.assert_array_equal(pairs["aligned"].reference, photo)  # the earlier date is the reference
+    assert pairs["aligned"].changed.sum() == 60 * 100
+    out = tmp_path / "out"
+    prep.main(["--dataset", "whu-cd", "--source", str(tmp_path / "whu"), "--out", str(out)])
+    meta = json.loads((out / "another-date" / "whu-cd-aligned" / "meta.json").read_text())
+    assert meta["dataset"] == "whu-cd" and meta["paths"] == ["prev/aligned.png", "curr/aligned.png"]
+
+
+def test_tiles_are_cut_named_and_checked_one_by_one(prep, photo, tmp_path):
+    _write_change_folders(tmp_path / "whu", photo, first="prev", second="curr")
+    out = tmp_path / "out"
+    prep.main(["--dataset", "whu-cd", "--source", str(tmp_path / "whu"), "--out", str(out), "--tile", "200"])
+    manifest = json.loads((out / "manifest.json").read_text())
+    kept = sorted(pair["id"] for pair in manifest["pairs"])
+    assert kept == ["aligned_0000_0000", "aligned_0000_0200"]  # 280 x 400: two whole tiles each
+    assert sorted(pair["id"] for pair in manifest["rejected"]) == ["moved_0000_0000", "moved_0000_0200"]
+    folder = out / "another-date" / "whu-cd-aligned_0000_0200"
+    np.testing.assert_array_equal(np.load(folder / "reference.npy"), photo[:200, 200:400].astype(np.float32))
+    assert json.loads((folder / "meta.json").read_text())["tile_top_left"] == [0, 200]
 
 
 def test_srif_similarity_is_undone(prep, photo, tmp_path):
@@ -147,6 +172,10 @@ def test_command_line_mistakes_exit_2(prep, tmp_path, capsys):
         prep.main(["--dataset", "levir-cd", "--source", str(tmp_path / "absent"), "--out", str(tmp_path)])
     assert stop.value.code == 2
     assert "--source: expected a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        prep.main(["--dataset", "whu-cd", "--source", str(tmp_path), "--out", str(tmp_path), "--tile", "64"])
+    assert stop.value.code == 2
+    assert "--tile: expected at least 150" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit) as stop:
         prep.main(["--dataset", "oscd", "--source", str(tmp_path / "empty"), "--out", str(tmp_path / "out")])

@@ -1,4 +1,5 @@
 import csv
+import json
 
 import numpy as np
 import pytest
@@ -133,3 +134,86 @@ def test_command_line_mistakes_exit_with_2(yardstick, tmp_path, capsys):
             yardstick.main([*argv, "--output", str(tmp_path / "out")])
         assert exit_info.value.code == 2
     assert "case" in capsys.readouterr().err
+
+
+def test_noise_is_clipped_as_a_sensor_saturates(yardstick):
+    trials = yardstick.make_trials("same", 4, 2)
+    clipped, variance = yardstick.noisy(trials, "camera-like", 200.0)
+    free, same_variance = yardstick.noisy(trials, "camera-like", 200.0, clip=False)
+    assert torch.equal(variance, same_variance)
+    assert float(clipped.min()) == 0.0 and float(clipped.max()) == 255.999
+    assert bool(((free < 0) | (free > 255.999)).any())
+    inside = (free >= 0) & (free <= 255.999)
+    assert torch.equal(clipped[inside], free[inside])
+
+
+def test_calibration_methods_hold_correlation_and_the_linear_response(yardstick):
+    assert {"NCC", "ECR linear true", "ECR linear uniform", "ECR binned true", "ECR true"} <= set(
+        yardstick.CALIBRATION_METHODS
+    )
+    assert set(yardstick.CALIBRATION_METHODS) <= set(yardstick.DEFAULT_METHODS)
+    assert yardstick.METHODS["ECR linear uniform"] == (yardstick.ECR(bins=32, response="linear"), 1.0)
+    assert yardstick.METHODS["ECR binned true"] == (yardstick.ECR(bins=32, response="binned"), "true")
+
+
+def test_l50_is_set_by_the_best_of_all_methods(yardstick, monkeypatch):
+    """NCC succeeds up to level 256, the information scores only up to 16: L50 follows NCC when NCC is calibrated."""
+
+    def fake_run_methods(trials, sensor, level, methods, learned=None, clip=True):
+        limit = {"NCC": 256.0}
+        count = trials.truth.shape[0]
+        return {m: (torch.full((count,), level <= limit.get(m, 16.0)), []) for m in methods}
+
+    monkeypatch.setattr(yardstick, "run_methods", fake_run_methods)
+    every = yardstick.calibrate("same", "camera-like", 4, 0, None)
+    information = yardstick.calibrate("same", "camera-like", 4, 0, None, yardstick.INFORMATION_METHODS)
+    assert every["leader"] == "NCC" and 256 <= every["L50"] < 512 and every["rates"]["NCC"][6] == 1.0
+    assert information["leader"] == "ECR true" and 16 <= information["L50"] < 32
+    assert every["clip"] and every["methods"] == list(yardstick.CALIBRATION_METHODS)
+
+
+def test_an_earlier_calibration_is_reused_only_for_the_same_methods_and_clipping(yardstick, tmp_path, monkeypatch):
+    calls = []
+
+    def fake_calibrate(case, sensor, trials, seed, data, methods=(), clip=True):
+        calls.append((case, sensor))
+        return {"case": case, "sensor": sensor, "L50": 99.0, "bracketed": "yes", "best_rates": [1.0, 0.2]}
+
+    monkeypatch.setattr(yardstick, "calibrate", fake_calibrate)
+    earlier = tmp_path / "calibration.json"
+    entry = {"case": "same", "sensor": "camera-like", "L50": 50.0, "bracketed": "yes", "best_rates": [1.0]}
+    argv = ["--cases", "same", "--noise-only-sensors", "camera-like", "--calibrate-only", "--data", str(tmp_path)]
+    current = entry | {"methods": list(yardstick.CALIBRATION_METHODS), "clip": True}
+    for stored, extra, expected in (
+        (entry, [], 1),  # written before issue 33: information scores, unclipped
+        (current, [], 0),
+        (current, ["--no-clip"], 1),
+    ):
+        calls.clear()
+        earlier.write_text(json.dumps([stored]))
+        yardstick.main([*argv, *extra, "--calibration", str(earlier), "--output", str(tmp_path / "run")])
+        assert len(calls) == expected
+
+
+def test_same_on_real_pairs_is_the_reference_photograph_against_itself(yardstick, tmp_path):
+    folder = tmp_path / "another-date" / "place-1"
+    folder.mkdir(parents=True)
+    reference = np.random.default_rng(1).uniform(0, 255, (100, 120)).astype(np.float32)
+    np.save(folder / "reference.npy", reference)
+    np.save(folder / "captured.npy", 255 - reference)
+    assert yardstick.is_noise_only("same:another-date") and yardstick.group_of("same:another-date") == "noise only"
+    trials = yardstick.make_trials("same:another-date", 3, 1, tmp_path)
+    for index in range(3):
+        torch.testing.assert_close(trials.clean[index, 0], _crop(trials, index, 64))
+
+
+def test_the_report_pairs_every_method_with_ecr_true(yardstick, tmp_path, capsys):
+    output = tmp_path / "run"
+    argv = ["--trials", "3", "--cases", "same", "--noise-only-sensors", "lidar-like", "--levels", "40"]
+    argv += ["--same-levels", "--methods", "ECR true", "ECR binned true", "ECR linear uniform", "NCC"]
+    yardstick.main([*argv, "--output", str(output), "--data", str(tmp_path / "none")])
+    report = (output / "report.md").read_text()
+    section = report.split("each method minus ECR true")[1]
+    assert "| ECR binned true | ECR linear uniform | NCC |" in section.splitlines()[2]
+    assert "| same | lidar-like | 40 | " in section and "| all, pooled | 1 cells |" in section
+    capsys.readouterr()

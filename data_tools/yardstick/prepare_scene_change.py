@@ -19,7 +19,9 @@ field fitted to the tiles' offsets (where >= 6 tiles agree) moves by at most twi
 centre and its corners, less two standard errors (a rotation or scale error left by a registration grows there); the
 tiles' spread (scaled median absolute deviation) is recorded, not judged. With ``--correct``, a pair whose
 whole-image and tile estimates agree on one larger offset is shifted by that offset rounded to whole pixels (both
-images cropped, no resampling) and measured again.
+images cropped, no resampling) and measured again. With ``--tile N`` each pair is first cut into non-overlapping
+N x N tiles (``<id>_<row>_<col>``, as the datasets' published 256 x 256 crops are), each measured and kept on its
+own: a relief displacement that differs between dates, or a changed quarter, then costs its tiles, not the image.
 
 Datasets (``--dataset``), what ``--source`` must hold, where each is published and its terms as the source states:
 
@@ -28,6 +30,10 @@ Datasets (``--dataset``), what ``--source`` must hold, where each is published a
   https://justchenhao.github.io/LEVIR/ (Google Earth images, 0.5 m; no licence in the copies read here).
   DSIFN-CD: github.com/GeoZcx/A-deeply-supervised-image-fusion-network-for-change-detection-in-remote-sensing-images
   (Google Earth images of six Chinese cities; no licence stated). A is the reference, B the captured image.
+* ``whu-cd`` (another date): the same layout, or ``prev/``, ``curr/`` and ``label/`` (the UCD-SCM repository's
+  ``data/samples_WHU-CD``, github.com/StephenApX/UCD-SCM). WHU-CD (WHU building change detection,
+  https://study.rsgis.whu.edu.cn/pages/download/building_dataset.html): aerial photographs of Christchurch, 2012 and
+  2016, 0.3 m (Ji, Wei and Lu, TGRS 2019; no licence in the copy read). The earlier date is the reference.
 * ``oscd`` (another date): the ``Onera Satellite Change Detection dataset - Images`` folder (one folder per city
   with ``imgs_1/``, ``imgs_2/`` holding the Sentinel-2 bands ``*_B02/B03/B04.tif``; change maps ``cm/cm.png`` there
   or in the sibling ``... - Train Labels`` folder, optional), https://rcdaudt.github.io/oscd/ : "modified Copernicus
@@ -359,10 +365,17 @@ def matlab_to_zero_based(matrix: np.ndarray) -> np.ndarray:
     return np.linalg.inv(one) @ matrix @ one
 
 
+CHANGE_FOLDERS = (("A", "B"), ("prev", "curr"))  # (earlier date, later date) folder names, as published
+
+
 def read_change_folders(source: Path, dataset: str) -> Iterator[Pair]:
-    """LEVIR-CD / DSIFN-CD layout: A/, B/, label/ with same-named images."""
-    for path in sorted((source / "A").iterdir()):
-        other = source / "B" / path.name
+    """LEVIR-CD / DSIFN-CD / WHU-CD layout: A/, B/ (or prev/, curr/) and label/ with same-named images."""
+    earlier, later = next(
+        (names for names in CHANGE_FOLDERS if (source / names[0]).is_dir()),
+        CHANGE_FOLDERS[0],
+    )
+    for path in sorted((source / earlier).iterdir()):
+        other = source / later / path.name
         if not other.exists():
             continue
         reference, captured = read_grey(path), read_grey(other)
@@ -530,6 +543,7 @@ DATASETS = {  # name: (reader, case, licence as the source states it)
         "LEVIR-CD: Google Earth imagery; no licence in the copies read (cite Chen & Shi 2020)",
     ),
     "dsifn-cd": (read_change_folders, "date", "DSIFN-CD: Google Earth imagery; no licence stated by the source"),
+    "whu-cd": (read_change_folders, "date", "WHU-CD: aerial photographs (Ji et al. 2019); no licence in the copy read"),
     "oscd": (read_oscd, "date", "modified Copernicus Sentinel data 2015-2018 (free and open); change maps CC BY-NC-SA"),
     "pix2pix-maps": (read_pix2pix_maps, "modality", "pix2pix maps (Google Maps); no licence stated, Google's terms"),
     "srif-optical-map": (read_srif, "modality", "SRIF dataset (Li et al. 2023): no licence stated; cite the paper"),
@@ -566,14 +580,41 @@ def write_manifest(out: Path, rejected: list[dict]) -> None:
     (out / "manifest.json").write_text(json.dumps({"pairs": pairs, "rejected": rejected}, indent=1) + "\n")
 
 
+def tiles_of(pairs: Iterator[Pair], size: int | None) -> Iterator[Pair]:
+    """Each pair cut into non-overlapping ``size`` x ``size`` tiles named ``<id>_<row>_<col>`` (None: as it is)."""
+    for pair in pairs:
+        if size is None:
+            yield pair
+            continue
+        height, width = pair.reference.shape
+        for top in range(0, height - size + 1, size):
+            for left in range(0, width - size + 1, size):
+                box = (slice(top, top + size), slice(left, left + size))
+                yield Pair(
+                    f"{pair.name}_{top:04d}_{left:04d}",
+                    pair.reference[box],
+                    pair.captured[box],
+                    pair.meta | {"tile_top_left": [top, left]},
+                    None if pair.changed is None else pair.changed[box],
+                    list(pair.notes),
+                )
+
+
 def prepare(
-    dataset: str, source: Path, out: Path, limit: int | None, tolerance: float, correct: bool, origin: str | None = None
+    dataset: str,
+    source: Path,
+    out: Path,
+    limit: int | None,
+    tolerance: float,
+    correct: bool,
+    origin: str | None = None,
+    tile: int | None = None,
 ) -> tuple[int, int]:
     """Read, check, write; returns (kept, rejected)."""
     reader, case, licence = DATASETS[dataset]
     out.mkdir(parents=True, exist_ok=True)
     kept, rejected = 0, []
-    for pair in reader(source, dataset):
+    for pair in tiles_of(reader(source, dataset), tile):
         if limit is not None and kept >= limit:
             break
         if min(pair.reference.shape) < MIN_SIDE:
@@ -632,6 +673,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tolerance", type=float, default=0.5, help="largest residual offset kept, pixels (0.5)")
     parser.add_argument("--correct", action="store_true", help="cancel a consistent measured offset by cropping")
     parser.add_argument("--origin", default=None, help="where the copy came from (repository@commit), kept in meta")
+    parser.add_argument("--tile", type=int, default=None, help="cut each pair into N x N tiles, each checked alone")
     args = parser.parse_args(argv)
     if not args.source.is_dir():
         parser.error(f"--source: expected a folder, got {args.source}")
@@ -639,9 +681,11 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--limit: expected a positive count, got {args.limit}")
     if args.tolerance <= 0:
         parser.error(f"--tolerance: expected a positive number of pixels, got {args.tolerance}")
+    if args.tile is not None and args.tile < MIN_SIDE:
+        parser.error(f"--tile: expected at least {MIN_SIDE} pixels, got {args.tile}")
     try:
         kept, rejected = prepare(
-            args.dataset, args.source, args.out, args.limit, args.tolerance, args.correct, args.origin
+            args.dataset, args.source, args.out, args.limit, args.tolerance, args.correct, args.origin, args.tile
         )
     except (OSError, ValueError, StopIteration, KeyError) as error:
         parser.error(f"--source: {args.source} does not hold the {args.dataset} layout ({error!r})")

@@ -12,26 +12,33 @@ Cases:
 * ``<change>@<strength>``: the map window changed by :mod:`enmi_torch.data.scene_change` (``illumination``,
   ``shadows``, ``occluders``, ``tone``, ``resample_blur``, ``warp``, or ``mixed``: all of them) before the captured
   image is cut from it; maps are the photographs of ``yardstick.py`` (one drawn per trial);
+* ``same:<case>[/<dataset>]`` (noise only): the reference photographs of real pairs (below) against themselves;
 * ``real:<case>/<dataset>``: real pairs from ``--data DIR`` (``DIR/<case>/<dataset>-<id>/reference.npy`` and
   ``captured.npy``, grey levels in [0, 255], co-registered; one pair of the dataset drawn per trial; ``real:<case>``:
   all its datasets), when the folder is there; ``data.json`` lists the pair folders each case drew from
   (``--real-folders even`` / ``odd``: every other folder of each dataset, for masks learned on the other half).
 
-Sensors: ``camera-like`` (far rows ~100x noisier), ``lidar-like`` (~100x at the corners) and, for the noise-only
-cases, ``paper-camera`` (the paper's road camera, unseen cells left out): the profiles of ``yardstick.py``, scaled so
-that the mean noise standard deviation over the valid pixels is the level. Levels per case and sensor: the hardest
-level where some information score (ECR true, ECR uniform, ENMI uniform, NMI) still succeeds half the time (``L50``,
-from a calibration pass on trials of their own, recorded in ``calibration.json``) and ``L50 / 4``; the noise-only
-cases also at ``--same-levels``; or ``--levels`` for every cell.
+Sensors: ``camera-like`` (far rows ~100x noisier), ``lidar-like`` (~100x at the corners) and, for the noise-only cases,
+``paper-camera`` (the paper's road camera, unseen cells left out): the profiles of ``yardstick.py``, scaled so that the
+mean noise standard deviation over the valid pixels is the level; the noisy grey levels are clipped to 0..255.999 as a
+sensor saturates (``--no-clip``: not). Levels per case and sensor: the hardest level where some method of
+:data:`CALIBRATION_METHODS` (every score of the table, NCC and the linear response included; ``--calibration-methods``)
+still succeeds half the time (``L50``, from a calibration pass on trials of their own, recorded with each method's rates
+in ``calibration.json``), times ``--fractions`` (``L50 / 4`` and ``L50``); the noise-only cases also at
+``--same-levels``; or ``--levels`` for every cell. ``--calibration`` reuses an earlier run's levels (same trials, same
+levels: a re-run after a change of the default) where it was calibrated on the same methods and clipping.
 
-Methods (32 bins; :data:`METHODS` says which score with which variance): ``ECR true`` (the default
-``ECR()``: its model variance ``tau^2`` estimated from the data, with the true per-pixel variance); ``ECR today``
-(``tau^2`` fixed at ``bin_width^2 / 12``, the default before the estimate); ``ECR tau 1024`` / ``4096``; ECR and
-ENMI with one uniform variance, the true map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best
-uniform`` the best of the five per cell, an oracle); ``ECR linear true`` (``response="linear"``); ENMI true; NMI;
-NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask`` (a ``(64, 64)`` ``.npy`` variance
-map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the pairs of
+Methods (32 bins; :data:`METHODS` says which score with which variance): ``ECR true`` (the default ``ECR()``: its model
+variance ``tau^2`` estimated from the data, with the true per-pixel variance); ``ECR binned true``
+(``response="binned"``, the default before issue 33, its control); ``ECR today`` (``tau^2`` fixed at ``bin_width^2 /
+12``, the default before the estimate); ``ECR tau 1024`` / ``4096``; ECR and ENMI with one uniform variance, the true
+map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best uniform`` the best of the five per cell, an
+oracle); ``ECR linear true`` and ``ECR linear uniform`` (``response="linear"`` with the true variance and with its
+mean); ENMI true; NMI; NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask`` (a ``(64, 64)``
+``.npy`` variance map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the pairs of
 ``data_tools/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
+
+The report gives each method's success, and each method minus ``ECR true`` paired per trial with its SE.
 
 Writes ``results.csv`` (outcomes per trial as bits, and the estimated ``tau^2`` per trial for ``ECR true`` and ``ECR
 learned``), ``calibration.json``, ``data.json`` and ``report.md`` into ``--output`` (refusing files git tracks), and
@@ -85,7 +92,21 @@ CASES = ("same", *(f"{kind}@{strength}" for kind in CHANGES for strength in (0.5
 LATER_CASES = ("nonmonotonic",)
 GRID = (1 / 16, 1 / 4, 1.0, 4.0, 16.0)
 CALIBRATION_LEVELS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 2048.0)
-CALIBRATION_METHODS = ("ECR true", "ECR uniform x1", "ENMI uniform x1", "NMI")
+# L50 is the hardest level where some method succeeds half the time, correlation and the linear response included.
+CALIBRATION_METHODS = (
+    "ECR true",
+    "ECR binned true",
+    "ECR uniform x1",
+    "ECR linear true",
+    "ECR linear uniform",
+    "ENMI uniform x1",
+    "NMI",
+    "NCC",
+)
+# The calibration before issue 33: the information scores only (their levels stopped where NCC still succeeds).
+INFORMATION_METHODS = ("ECR true", "ECR uniform x1", "ENMI uniform x1", "NMI")
+# A sensor's digitiser saturates: noisy grey levels are clipped into [0, 256) like an 8-bit image with its fraction.
+CLIP_RANGE = (0.0, 255.999)
 CHUNK = 25  # trials per surface call: memory stays small
 # Today's fixed model variance: the spread of an amplitude uniform in one of the 32 bins.
 TODAY = default_model_variance(BINS, VALUE_RANGE)
@@ -114,7 +135,9 @@ METHODS: dict[str, tuple] = {
     "ECR today": (ECR(bins=BINS, model_variance=TODAY), "true"),
     "ECR learned": (ECR(bins=BINS), "learned"),
     **{f"ECR uniform {_factor_name(factor)}": (ECR(bins=BINS), factor) for factor in GRID},
+    "ECR binned true": (ECR(bins=BINS, response="binned"), "true"),
     "ECR linear true": (ECR(bins=BINS, response="linear"), "true"),
+    "ECR linear uniform": (ECR(bins=BINS, response="linear"), 1.0),
     "ENMI true": (ENMI(bins=BINS), "true"),
     **{f"ENMI uniform {_factor_name(factor)}": (ENMI(bins=BINS), factor) for factor in GRID},
     "NMI": (NMI(bins=BINS), None),
@@ -128,7 +151,16 @@ ESTIMATED = ("ECR true", "ECR learned")
 # Columns of the report: the grids collapse into their mean and their best (picked per cell after the fact).
 DERIVED = {"ECR uniform mean": "ECR uniform x1", "ENMI uniform mean": "ENMI uniform x1"}
 BEST = {"ECR best uniform": "ECR uniform ", "ENMI best uniform": "ENMI uniform "}
-CONTROLS = ("ECR uniform mean", "ECR best uniform", "ENMI best uniform", "NMI", "NCC")
+CONTROLS = (
+    "ECR uniform mean",
+    "ECR best uniform",
+    "ECR binned true",
+    "ECR linear true",
+    "ECR linear uniform",
+    "ENMI best uniform",
+    "NMI",
+    "NCC",
+)
 CANDIDATES = ("ECR true", "ECR learned", "ECR today")
 SHOWN = (
     "ECR true",
@@ -136,7 +168,9 @@ SHOWN = (
     "ECR today",
     "ECR uniform mean",
     "ECR best uniform",
+    "ECR binned true",
     "ECR linear true",
+    "ECR linear uniform",
     "ENMI true",
     "ENMI best uniform",
     "NMI",
@@ -155,15 +189,28 @@ class Trials(NamedTuple):
     draws: torch.Tensor  # (T, 1, LOCAL, LOCAL) float64 standard-normal draws
 
 
+REAL_PREFIXES = ("real:", "same:")
+
+
+def real_name(case: str) -> str | None:
+    """The pair folders a case draws from (``another-date/levir-cd`` of ``real:`` or ``same:``), else None."""
+    return next((case[len(prefix) :] for prefix in REAL_PREFIXES if case.startswith(prefix)), None)
+
+
+def is_noise_only(case: str) -> bool:
+    """``same``, ``nonmonotonic`` and ``same:<folder>`` (the real pairs' reference photographs against themselves)."""
+    return case in NOISE_ONLY_CASES or case.startswith("same:")
+
+
 def parse_case(case: str) -> tuple[str, float]:
     """``(kind, strength)`` of a case name: ``same`` -> ``("same", 0)``, ``tone@0.5``, ``real:another-date``."""
-    if case in NOISE_ONLY_CASES or case.startswith("real:"):
+    if case in NOISE_ONLY_CASES or real_name(case):
         return case, 0.0
     kind, _, strength = case.partition("@")
     if kind not in KINDS or not strength:
         raise ValueError(
-            f"case must be one of {list(NOISE_ONLY_CASES)}, 'real:<folder>' or '<change>@<strength>' with change in "
-            f"{list(KINDS)}, got {case!r}"
+            f"case must be one of {list(NOISE_ONLY_CASES)}, 'real:<folder>', 'same:<folder>' or '<change>@<strength>'"
+            f" with change in {list(KINDS)}, got {case!r}"
         )
     value = float(strength)
     if not 0 < value <= 1:
@@ -249,6 +296,8 @@ def make_trials(case: str, trials: int, seed: int, data: Path | None = None, hal
     generator = torch.Generator().manual_seed(seed)
     if kind.startswith("real:"):
         sources = [(torch.from_numpy(r), torch.from_numpy(c)) for r, c in real_pairs(data, kind[5:], half)]
+    elif kind.startswith("same:"):
+        sources = [(torch.from_numpy(r), torch.from_numpy(r)) for r, _ in real_pairs(data, kind[5:], half)]
     else:
         maps = [NOISE_ONLY.map_image(name) for name in NOISE_ONLY.MAPS]
         sources = [(image, image) for image in maps]
@@ -262,7 +311,7 @@ def make_trials(case: str, trials: int, seed: int, data: Path | None = None, hal
         scene = captured[top : top + SPAN, left : left + SPAN]
         if kind == "nonmonotonic":
             scene = NOISE_ONLY.respond(scene, "nonmonotonic")
-        elif kind != "same" and not kind.startswith("real:"):
+        elif kind != "same" and not real_name(kind):
             kinds = tuple(CHANGES) if kind == "mixed" else (kind,)
             scene = scene_change(scene, seed * 100003 + trial, strength, kinds=kinds)
         row, col = (shift + RADIUS).tolist()
@@ -275,10 +324,24 @@ def make_trials(case: str, trials: int, seed: int, data: Path | None = None, hal
     )
 
 
-def _contexts(trials: Trials, sensor: str, level: float, learned: torch.Tensor | None = None):
+def noisy(trials: Trials, sensor: str, level: float, clip: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """The noisy captured images (float64) and the true variance ``(1, 1, LOCAL, LOCAL)`` at ``level``.
+
+    The noise is clipped to :data:`CLIP_RANGE` when ``clip``, as a sensor saturates (the true variance passed to the
+    scores stays the sensor's); pixels the sensor does not see are 0.
+    """
     unit, valid = NOISE_ONLY.variance_profile(sensor)
     variance = (level**2 * unit)[None, None]
-    local = (trials.clean + trials.draws * variance.sqrt()).where(valid, 0.0).float()
+    local = trials.clean + trials.draws * variance.sqrt()
+    if clip:
+        local = local.clamp(*CLIP_RANGE)
+    return local.where(valid, 0.0), variance
+
+
+def _contexts(trials: Trials, sensor: str, level: float, learned: torch.Tensor | None = None, clip: bool = True):
+    _, valid = NOISE_ONLY.variance_profile(sensor)
+    local, variance = noisy(trials, sensor, level, clip)
+    local = local.float()
     mean = float(variance[0, 0][valid].mean())
     mask = None if bool(valid.all()) else valid[None, None]
     for start in range(0, local.shape[0], CHUNK):
@@ -298,12 +361,12 @@ def _variance(context: Context, kind):
     return None if kind is None else context.mean * kind
 
 
-def run_methods(trials: Trials, sensor: str, level: float, methods, learned=None) -> dict[str, tuple]:
+def run_methods(trials: Trials, sensor: str, level: float, methods, learned=None, clip=True) -> dict[str, tuple]:
     """Per method: success per trial (bool ``(T,)``) and the estimated ``tau^2`` per trial (empty when not kept)."""
     torch.set_num_threads(1)
     success = {method: [] for method in methods}
     tau2 = {method: [] for method in methods}
-    for context in _contexts(trials, sensor, level, learned):
+    for context in _contexts(trials, sensor, level, learned, clip):
         for method in methods:
             score, kind = METHODS[method]
             variance = _variance(context, kind)
@@ -317,18 +380,29 @@ def run_methods(trials: Trials, sensor: str, level: float, methods, learned=None
     return {method: (torch.cat(success[method]), tau2[method]) for method in methods}
 
 
-def calibrate(case: str, sensor: str, trials: int, seed: int, data: Path | None) -> dict:
-    """Success of :data:`CALIBRATION_METHODS` per level and ``L50``: the hardest level where the best reaches 1/2.
+def calibrate(
+    case: str,
+    sensor: str,
+    trials: int,
+    seed: int,
+    data: Path | None,
+    methods: tuple[str, ...] = CALIBRATION_METHODS,
+    clip: bool = True,
+) -> dict:
+    """Success of ``methods`` per level and ``L50``: the hardest level where the best of them reaches 1/2.
 
     ``L50`` interpolates the best rate linearly in ``log level`` between the last level at or above 1/2 and the next;
-    when no level reaches 1/2 it is the lowest level, when all do the highest (``bracketed`` says which).
+    when no level reaches 1/2 it is the lowest level, when all do the highest (``bracketed`` says which). ``rates``
+    holds each method's rate per level, ``leader`` the best method at the last level at or above 1/2.
     """
     torch.set_num_threads(1)
     generated = make_trials(case, trials, seed, data)
-    best = []
+    best, rates = [], {method: [] for method in methods}
     for level in CALIBRATION_LEVELS:
-        results = run_methods(generated, sensor, level, CALIBRATION_METHODS)
-        best.append(max(float(outcome.double().mean()) for outcome, _ in results.values()))
+        results = run_methods(generated, sensor, level, methods, clip=clip)
+        for method, (outcome, _) in results.items():
+            rates[method].append(float(outcome.double().mean()))
+        best.append(max(rate[-1] for rate in rates.values()))
         if len(best) >= 2 and best[-1] < 0.25 and best[-2] < 0.5:
             break  # success falls with noise: the levels beyond are not needed
     above = [index for index, rate in enumerate(best) if rate >= 0.5]
@@ -346,15 +420,27 @@ def calibrate(case: str, sensor: str, trials: int, seed: int, data: Path | None)
         )
         bracketed = "yes"
     level = float(f"{level:.2g}")
-    return {"case": case, "sensor": sensor, "L50": level, "bracketed": bracketed, "best_rates": best}
+    index = above[-1] if above else 0
+    leader = max(methods, key=lambda method: rates[method][index])
+    return {
+        "case": case,
+        "sensor": sensor,
+        "L50": level,
+        "bracketed": bracketed,
+        "best_rates": best,
+        "methods": list(methods),
+        "clip": clip,
+        "rates": rates,
+        "leader": leader,
+    }
 
 
-def run_cell(case, sensor, levels, trials, seed, data, methods, half="all", learned=None) -> list:
+def run_cell(case, sensor, levels, trials, seed, data, methods, half="all", learned=None, clip=True) -> list:
     """Rows ``(case, sensor, level, method, successes, trials, outcomes, tau2s)`` of one case and sensor."""
     generated = make_trials(case, trials, seed, data, half)
     rows = []
     for level in levels:
-        for method, (success, tau2) in run_methods(generated, sensor, level, methods, learned).items():
+        for method, (success, tau2) in run_methods(generated, sensor, level, methods, learned, clip).items():
             bits = "".join("1" if value else "0" for value in success.tolist())
             tau_text = " ".join(f"{value:.4g}" for value in tau2)
             rows.append((case, sensor, level, method, int(success.sum()), trials, bits, tau_text))
@@ -392,7 +478,7 @@ def cell_outcomes(rows: list) -> dict:
 
 def group_of(case: str) -> str:
     """The cell's group: noise only, controlled change or real pairs."""
-    if case in NOISE_ONLY_CASES:
+    if is_noise_only(case):
         return "noise only"
     return "real pairs" if case.startswith("real:") else "controlled change"
 
@@ -402,6 +488,37 @@ def _rate(bits: np.ndarray) -> str:
     return f"{rate:.2f} ± {math.sqrt(rate * (1 - rate) / len(bits)):.2f}"
 
 
+def _against_default(cells: dict, keys: list, shown: list) -> list[str]:
+    """Each method minus ``ECR true`` (the default), paired per trial: per cell, per group and over all cells."""
+    others = [method for method in shown if method != "ECR true" and any(method in cells[key] for key in keys)]
+    if not others or not any("ECR true" in cells[key] for key in keys):
+        return []
+    lines = ["", "## Paired differences: each method minus ECR true (success rate, mean ± SE over the trials)", ""]
+    lines += ["| case | sensor | sigma | " + " | ".join(others) + " |", "|---|---|---|" + "---|" * len(others)]
+
+    def text(members, method):
+        judged = [key for key in members if method in cells[key] and "ECR true" in cells[key]]
+        if not judged:
+            return ""
+        mean, error = _paired(
+            np.concatenate([cells[key][method] for key in judged]),
+            np.concatenate([cells[key]["ECR true"] for key in judged]),
+        )
+        mark = " **" if abs(mean) > 2 * error + 1e-12 else ""
+        return f"{mean:+.3f} ± {error:.3f}{mark}"
+
+    for key in keys:
+        lines.append(f"| {key[0]} | {key[1]} | {key[2]:g} | " + " | ".join(text([key], m) for m in others) + " |")
+    for group in ("noise only", "controlled change", "real pairs", "all"):
+        members = [key for key in keys if group == "all" or group_of(key[0]) == group]
+        if members:
+            lines.append(
+                f"| {group}, pooled | {len(members)} cells | | " + " | ".join(text(members, m) for m in others) + " |"
+            )
+    lines += ["", "(** more than 2 SE from zero)"]
+    return lines
+
+
 def report(rows: list, calibration: list) -> str:
     """The markdown report: success tables, groups, paired claims of the candidates against the controls, ``tau^2``."""
     cells = cell_outcomes(rows)
@@ -409,14 +526,19 @@ def report(rows: list, calibration: list) -> str:
     shown = [method for method in SHOWN if any(method in cells[key] for key in keys)]
     lines = []
     if calibration:
-        lines += ["## Calibration: L50 per case and sensor (best of " + ", ".join(CALIBRATION_METHODS) + ")", ""]
+        methods = calibration[0].get("methods", INFORMATION_METHODS)
+        clipped = "clipped" if calibration[0].get("clip", False) else "not clipped"
+        lines += [f"## Calibration: L50 per case and sensor (best of {', '.join(methods)}; {clipped})", ""]
         lines += [
-            "| case | sensor | L50 | bracketed | best rate per level (from 4, x2 each) |",
-            "|---|---|---|---|---|",
+            "| case | sensor | L50 | bracketed | best at L50 | best rate per level (from 4, x2 each) |",
+            "|---|---|---|---|---|---|",
         ]
         for entry in calibration:
             rates = " ".join(f"{rate:.2f}" for rate in entry["best_rates"])
-            lines.append(f"| {entry['case']} | {entry['sensor']} | {entry['L50']:g} | {entry['bracketed']} | {rates} |")
+            lines.append(
+                f"| {entry['case']} | {entry['sensor']} | {entry['L50']:g} | {entry['bracketed']} | "
+                f"{entry.get('leader', '')} | {rates} |"
+            )
         lines.append("")
     trials = len(next(iter(cells[keys[0]].values())))
     lines += [f"## Success rate ± SE ({trials} paired trials per cell)", ""]
@@ -450,6 +572,7 @@ def report(rows: list, calibration: list) -> str:
         for m in shown
     ]
     lines.append(f"| pooled | {len(keys)} | " + " | ".join(totals) + " |")
+    lines += _against_default(cells, keys, shown)
     lines += ["", "## Paired differences: ECR true (estimated tau^2) minus ECR today, all trials of each group", ""]
     for group in ("noise only", "controlled change", "real pairs", "all"):
         members = [key for key in keys if group == "all" or group_of(key[0]) == group]
@@ -461,11 +584,9 @@ def report(rows: list, calibration: list) -> str:
     lines += ["| candidate | cells | " + " | ".join(CONTROLS) + " |", "|---|---|" + "---|" * len(CONTROLS)]
     failures_text = []
     for candidate in CANDIDATES:
-        for scope, inside in (("scene change", lambda case: case not in NOISE_ONLY_CASES), ("noise only", None)):
+        for scope, inside in (("scene change", lambda case: not is_noise_only(case)), ("noise only", None)):
             judged_keys = [
-                key
-                for key in keys
-                if candidate in cells[key] and (inside(key[0]) if inside else key[0] in NOISE_ONLY_CASES)
+                key for key in keys if candidate in cells[key] and (inside(key[0]) if inside else is_noise_only(key[0]))
             ]
             if not judged_keys:
                 continue
@@ -505,7 +626,7 @@ def report(rows: list, calibration: list) -> str:
             )
     lines += ["", "## Noise only, camera-like: candidate minus ECR uniform mean (needs >= 2 SE at high noise)", ""]
     for key in keys:
-        if key[0] in NOISE_ONLY_CASES and key[1] == "camera-like":
+        if is_noise_only(key[0]) and key[1] == "camera-like":
             for candidate in ("ECR true", "ECR today"):
                 if candidate in cells[key] and "ECR uniform mean" in cells[key]:
                     mean, error = _paired(cells[key][candidate], cells[key]["ECR uniform mean"])
@@ -602,6 +723,19 @@ def main(argv=None) -> None:
     parser.add_argument("--calibration", type=Path, default=None, help="a calibration.json of an earlier run")
     parser.add_argument("--calibration-trials", type=int, default=32, help="trials per level of the calibration (32)")
     parser.add_argument(
+        "--calibration-methods",
+        nargs="+",
+        choices=list(METHODS),
+        default=list(CALIBRATION_METHODS),
+        help="methods whose best sets L50 (default: every score of the table's columns, NCC and linear included)",
+    )
+    parser.add_argument(
+        "--fractions", nargs="+", type=float, default=[0.25, 1.0], help="levels as fractions of L50 (0.25 1)"
+    )
+    parser.add_argument(
+        "--no-clip", dest="clip", action="store_false", help="leave noisy grey levels unclipped (before issue 33)"
+    )
+    parser.add_argument(
         "--methods", nargs="+", choices=[*METHODS, "all"], default=list(DEFAULT_METHODS), help="methods, or 'all'"
     )
     parser.add_argument("--learned-mask", type=Path, default=None, help="(64, 64) .npy variance map for ECR learned")
@@ -617,6 +751,8 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.trials < 2 or args.jobs < 1 or args.calibration_trials < 2:
         parser.error(f"--trials, --calibration-trials >= 2 and --jobs >= 1, got {args.trials}, {args.jobs}")
+    if min(args.fractions) <= 0:
+        parser.error(f"--fractions: expected fractions of L50 > 0, got {args.fractions}")
     methods = list(METHODS) if "all" in args.methods else list(dict.fromkeys(args.methods))
     results, calibration_path = args.output / "results.csv", args.output / "calibration.json"
     report_path, data_path = args.output / "report.md", args.output / "data.json"
@@ -639,25 +775,25 @@ def main(argv=None) -> None:
     for case in cases:
         try:
             parse_case(case)
-            if case.startswith("real:"):
+            if real_name(case):
                 if data is None:
                     raise ValueError(f"case {case!r} needs --data, and {args.data} is not a folder")
-                pair_folders(data, case[5:], args.real_folders)
+                pair_folders(data, real_name(case), args.real_folders)
         except ValueError as error:
             parser.error(f"--cases: {error}")
     _check_untracked([results, calibration_path, report_path, data_path])
     args.output.mkdir(parents=True, exist_ok=True)
     used = {
-        case: [str(folder) for folder in pair_folders(data, case[5:], args.real_folders)]
+        case: [str(folder) for folder in pair_folders(data, real_name(case), args.real_folders)]
         for case in cases
-        if case.startswith("real:")
+        if real_name(case)
     }
     data_path.write_text(json.dumps(used, indent=1))
     start = time.perf_counter()
     units = [
         (case, sensor)
         for case in cases
-        for sensor in (args.noise_only_sensors if case in NOISE_ONLY_CASES else args.sensors)
+        for sensor in (args.noise_only_sensors if is_noise_only(case) else args.sensors)
     ]
     case_seed = {case: args.seed * 1000 + index for index, case in enumerate(cases)}
     calibration = []
@@ -665,10 +801,25 @@ def main(argv=None) -> None:
         if args.levels is None:
             known = {}
             if args.calibration is not None:
-                known = {(entry["case"], entry["sensor"]): entry for entry in json.loads(args.calibration.read_text())}
+                # An entry calibrated on other methods or without clipping sets other levels: it is run again.
+                known = {
+                    (entry["case"], entry["sensor"]): entry
+                    for entry in json.loads(args.calibration.read_text())
+                    if entry.get("methods", list(INFORMATION_METHODS)) == list(args.calibration_methods)
+                    and entry.get("clip", False) == args.clip
+                }
             missing = [unit for unit in units if unit not in known]
             futures = [
-                pool.submit(calibrate, case, sensor, args.calibration_trials, case_seed[case] + 500, data)
+                pool.submit(
+                    calibrate,
+                    case,
+                    sensor,
+                    args.calibration_trials,
+                    case_seed[case] + 500,
+                    data,
+                    tuple(args.calibration_methods),
+                    args.clip,
+                )
                 for case, sensor in missing
             ]
             for done, future in enumerate(futures, 1):
@@ -691,8 +842,10 @@ def main(argv=None) -> None:
                 levels = list(args.levels)
             else:
                 l50 = next(entry["L50"] for entry in calibration if (entry["case"], entry["sensor"]) == (case, sensor))
-                levels = [float(f"{l50 / 4:.2g}"), l50]
-                if case in NOISE_ONLY_CASES:
+                levels = sorted(
+                    {l50 if fraction == 1 else float(f"{l50 * fraction:.2g}") for fraction in args.fractions}
+                )
+                if is_noise_only(case):
                     levels = sorted(set(levels) | set(args.same_levels))
             futures.append(
                 pool.submit(
@@ -706,6 +859,7 @@ def main(argv=None) -> None:
                     tuple(methods),
                     args.real_folders,
                     learned,
+                    args.clip,
                 )
             )
         rows = []
