@@ -204,7 +204,7 @@ def test_noiseless_drive_is_tracked_exactly(generator, temperature, tolerance):
     reference = _texture(generator, (96, 200))
     tracker = Tracker(
         reference.float(),
-        score=ECR(bins=16),
+        score=ECR(bins=16, response="binned"),  # the tracker's response (default_score says why)
         shifts=(4, 5),
         yaw_bins=3,
         motion_noise=(0.5, 0.5, 0.3),
@@ -810,14 +810,19 @@ def test_the_default_score_is_ecr_with_a_correlated_misfit_and_weighs_a_changed_
     from enmi_torch import ECR
     from enmi_torch.tracking import default_score
 
-    assert default_score() == ECR(misfit="correlated")
+    assert default_score() == ECR(response="binned", misfit="correlated")
     reference = _texture(generator, (80, 120)).float()
     frame = _cut(reference, 62, 41).clone()
     frame[..., :12, :16] = 255 - frame[..., :12, :16]  # a changed patch of the scene
     frame = frame + 4 * torch.randn(frame.shape, generator=generator)
     odometry = torch.tensor([[2.0, 1.0, 0.0]])
     outputs = {}
-    for name, score in (("default", None), ("correlated", ECR(misfit="correlated")), ("independent", ECR())):
+    binned = ECR(response="binned")
+    for name, score in (
+        ("default", None),
+        ("correlated", binned.replace(misfit="correlated")),
+        ("independent", binned),
+    ):
         tracker = Tracker(reference, score=score, shifts=3, yaw_bins=3)
         tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
         outputs[name] = tracker(frame, odometry, 16.0)

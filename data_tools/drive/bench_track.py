@@ -21,7 +21,6 @@ from pathlib import Path
 
 import torch
 
-from enmi_torch.scores import ECR
 from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import default_score, initial_belief, track_step
 
@@ -63,7 +62,7 @@ def main(argv=None) -> None:
     belief = initial_belief(truth, shifts=8, yaw_bins=5, yaw_step=1.0, std=(0.5, 0.5, 0.5))
     center = torch.stack([truth[:, 1], truth[:, 0]], 1).round().long()
     yaws = (truth[0, 2].round() + torch.arange(-2.0, 3.0)).tolist()
-    score = ECR(bins=args.bins, misfit=args.misfit)
+    score = default_score().replace(bins=args.bins, misfit=args.misfit)
 
     def search():
         drive_tools.search(frame, reference, variance, drive.valid, center, yaws, score)

@@ -25,7 +25,8 @@ frames instead (:func:`enmi_torch.tracking.calibrate_temperature`), written as `
 ``--scene-change S`` renders the frames from the road changed since the map was made (every change of
 :mod:`enmi_torch.data.scene_change` at strength ``S``, the map unchanged); ``--noise-scale`` multiplies the pixel
 noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them. ECR's misfit is
-spatially correlated (``ECR(misfit="correlated")``, the tracker's :func:`~enmi_torch.tracking.default_score`);
+spatially correlated with the binned response (``ECR(response="binned", misfit="correlated")``, the tracker's
+:func:`~enmi_torch.tracking.default_score`);
 ``--misfit independent`` gives it ECR's own default instead.
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
@@ -98,9 +99,11 @@ MISFIT = default_score().misfit  # ECR's misfit in the benchmark: the tracker's
 
 
 def method_score(method: str, misfit: str = MISFIT) -> tuple[Score, str | None]:
-    """A method's score and variance kind; ECR's with ``misfit`` (``--misfit``: how its model variance is estimated)."""
+    """A method's score and variance kind; ECR's with the tracker's response and ``misfit`` (``--misfit``)."""
     score, kind = METHODS[method]
-    return (score.replace(misfit=misfit) if isinstance(score, ECR) else score), kind
+    if isinstance(score, ECR):
+        score = score.replace(misfit=misfit, response=default_score().response)
+    return score, kind
 
 
 def road_map() -> torch.Tensor:

@@ -16,12 +16,12 @@ the frames and the odometry leave to be lost even by a filter that never takes a
 a grid of controls, a row "filter, temperature T" each; the best of them, chosen on these same drives, is what tuning
 the temperature could reach.
 
-Methods: ECR (the default score) with the true per-row variance and with a uniform variance (``--uniform-scales``
-times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
-(``ECR(misfit="correlated")``, the tracker's default score); ``--misfit independent`` gives it ECR's own default
-instead. "Within 1 cell": on both axes; "lost": more than 4 cells from the truth; "covers": the filter's 95 % ellipse
-holds the truth; "raised": drives that ended in an exception. A second table pairs each row with the first on the
-same drives; the last line is JSON with every drive's values, pair by pair and seed by seed.
+Methods: ECR (the tracker's default score) with the true per-row variance and with a uniform variance
+(``--uniform-scales`` times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
+(``ECR(response="binned", misfit="correlated")``, the tracker's default score); ``--misfit independent`` gives it the
+independent misfit instead. "Within 1 cell": on both axes; "lost": more than 4 cells from the truth; "covers": the
+filter's 95 % ellipse holds the truth; "raised": drives that ended in an exception. A second table pairs each row with
+the first on the same drives; the last line is JSON with every drive's values, pair by pair and seed by seed.
 
     python data_tools/yardstick/prepare_scene_change.py --dataset levir-cd --source DIR --out runs/pairs --correct
     python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2
@@ -124,9 +124,9 @@ def variance_of(drive: PhotoDrive, kind: str | None, uniform_scale: float) -> to
 
 
 def method_score(method: str, misfit: str = MISFIT):
-    """A method's score (ECR's with ``misfit``) and variance kind."""
+    """A method's score (ECR's with the tracker's response and ``misfit``) and variance kind."""
     _, family, kind = METHODS[method]
-    return (family(misfit=misfit) if family is ECR else family()), kind
+    return (default_score().replace(misfit=misfit) if family is ECR else family()), kind
 
 
 def run_filter(

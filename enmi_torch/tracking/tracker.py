@@ -149,7 +149,7 @@ def track_step(
             (``max_surprise``) is skipped either way.
         score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
             :func:`~enmi_torch.localize`); ``None`` (default): :func:`default_score`, ECR with a spatially correlated
-            misfit.
+            misfit and the binned response.
         temperature: ``score * n_valid / temperature`` is the log-likelihood: ``"auto"`` (default) each frame's
             :func:`~enmi_torch.tracking.calibration.grid_temperature` (no sharper than one bin), or a number, e.g.
             from :func:`calibrate_temperature` on surveyed frames.
@@ -299,7 +299,9 @@ class Tracker(nn.Module):
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel` of the captured images' noise.
         score: the score of the surfaces, a :class:`~enmi_torch.scores.Score` or its name (see
             :func:`~enmi_torch.localize`); ``None``: the calibration's score by name, else :func:`default_score`
-            (ECR with a spatially correlated misfit).
+            (ECR with a spatially correlated misfit and the binned response; ECR's own shrunk response, also what
+            the name ``"ecr"`` gives, re-reads its ``delta^2`` every frame: :func:`default_score` says what that
+            does to the health rules).
         calibration: optional :class:`~enmi_torch.Calibration` (sets ``temperature``, ``min_peak_z`` and, without
             ``score``, the score by name).
         shifts: belief window radius ``r`` or ``(ry, rx)``.
@@ -404,7 +406,12 @@ _STEP_SETTINGS = (
 
 
 def default_score() -> ECR:
-    """The tracker's score when none is given: ``ECR(misfit="correlated")``.
+    """The tracker's score when none is given: ``ECR(response="binned", misfit="correlated")``.
+
+    The binned response, not ECR's shrunk default: the shrunk response reads its ``delta^2`` from each frame, and the
+    spread of a frame's surface about its peak changes with it by orders of magnitude on clean frames (a noiseless
+    drive's peak z-scores went from 16,000 to 480 from one frame to the next), which the health rules, comparing a
+    frame's peak with the recent ones', take for a lost match.
 
     A filter adds up its frames' evidence, so it needs the evidence's size, not only which placement wins. ECR with
     an independent misfit (its default, and :func:`~enmi_torch.localize`'s) counts every pixel of a changed patch of
@@ -415,10 +422,10 @@ def default_score() -> ECR:
     "Tracking a drive").
 
     Example:
-        >>> default_score() == ECR(misfit="correlated")
+        >>> default_score() == ECR(response="binned", misfit="correlated")
         True
     """
-    return ECR(misfit="correlated")
+    return ECR(response="binned", misfit="correlated")
 
 
 def coasting_noise(motion_noise: Sequence[float] | Tensor, weak_frames: Tensor, coasting: str) -> Tensor:
