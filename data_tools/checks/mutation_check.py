@@ -41,10 +41,12 @@ MODULES = {
         "tests/test_correlation_ratio.py",
         "tests/scores/test_ecr_model_variance.py",
         "tests/scores/test_ecr_correlated_misfit.py",
+        "tests/scores/test_ecr_shrunk_response.py",
         *SURFACE_TESTS,
         "tests/test_losses.py",
         "tests/test_localize.py",
     ],
+    "scores/shrunk_response": ["tests/scores/test_ecr_shrunk_response.py", "tests/test_correlation_ratio.py"],
     "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_budget.py"],
     "scores/nmi": [
         "tests/test_information.py",

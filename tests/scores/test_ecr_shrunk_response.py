@@ -219,3 +219,28 @@ def test_registration_with_the_shrunk_response():
         noisy = image + 2 * torch.randn(image.shape, generator=generator, dtype=torch.float64)
         found = register(noisy, reference, 4.0, pose=start, score=ECR())
         assert float((found.pose - truth)[0, :2].abs().max()) < 0.1
+
+
+def test_bin_positions_are_centred_bin_indices():
+    torch.testing.assert_close(bin_positions(5, torch.float64), torch.tensor([-2.0, -1.0, 0.0, 1.0, 2.0]).double())
+
+
+def test_one_occupied_bin_has_no_slope_in_float32():
+    # One bin far from the middle: the spread of the positions is zero up to round-off, and no slope is fitted.
+    weight = torch.zeros(32)
+    weighted_value = torch.zeros(32)
+    weight[31], weighted_value[31] = 3.7e3, 1.9e4
+    llr = torch.stack([shrunk_llr_terms(weight, weighted_value, bin_positions(32, torch.float32), v) for v in (0, 5.0)])
+    # Within the round-off of the terms that cancel (S^2 / W ~ 1e5 in float32).
+    torch.testing.assert_close(llr, torch.tensor([0.0, -0.5 * math.log1p(5.0 * 3.7e3)]), rtol=0, atol=0.05)
+
+
+def test_a_deviation_beyond_the_grid_takes_its_last_point():
+    # Bin means a hundred times the value range apart: the profile still rises at the grid's end, taken as it is.
+    weight = torch.full((4, 1), 50.0, dtype=torch.float64)
+    weighted_value = 50.0 * torch.tensor([[300.0], [-300.0], [-300.0], [300.0]], dtype=torch.float64)
+    positions = bin_positions(4, torch.float64)
+    llr, chosen = shrunk_llr(weight, weighted_value, positions, (0.0, 1.0))
+    grid = response_variance_grid((0.0, 1.0))
+    assert float(chosen[0]) == grid[-1]
+    torch.testing.assert_close(llr, shrunk_llr_terms(weight, weighted_value, positions, grid[-1]))
