@@ -9,6 +9,7 @@ HParams tab reads each metric's last value).
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -32,13 +33,26 @@ def run_name(root: str | None, flavour: str) -> str:
 
 
 def next_version(folder: str | Path, name: str) -> str:
-    """``<name>_<n>`` with ``n`` one more than the largest of the existing ``<name>_<n>`` folders (0 for none)."""
+    """Create and return ``<name>_<n>``: the first free ``n`` above the existing ``<name>_<n>`` folders (0 for none).
+
+    The folder is taken with ``os.mkdir``, which fails if another process took it first (runs started at once): the
+    next number is tried then, so no two runs share a folder.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
     taken = [
         int(match.group(1))
-        for path in (Path(folder).iterdir() if Path(folder).is_dir() else ())
+        for path in folder.iterdir()
         if (match := re.fullmatch(rf"{re.escape(name)}_(\d+)", path.name))
     ]
-    return f"{name}_{max(taken, default=-1) + 1}"
+    number = max(taken, default=-1) + 1
+    while True:
+        try:
+            os.mkdir(folder / f"{name}_{number}")
+        except FileExistsError:
+            number += 1
+            continue
+        return f"{name}_{number}"
 
 
 def layout(sets: Sequence[str], masked_truth: bool) -> dict[str, dict[str, tuple[str, list[str]]]]:

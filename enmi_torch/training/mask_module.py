@@ -330,14 +330,24 @@ class MaskFitModule(LightningModule):
         One per factor ``k`` of ``localization_noise``: the residuals ``local - prior`` scaled by ``k`` (the variance by
         ``k^2``), named ``noise_x<k>``. Each is cropped to the central ``localization_crop`` square plus the search
         border. Another kind of held-out pairs (scene changes, say) is one more entry.
+
+        A scaled local image is clipped to ``value_range``, as a sensor's output saturates: strong noise on real pairs
+        would otherwise leave the range by many widths, which the scores refuse. The variance factor stays ``k^2``
+        (clipping lowers the true variance where it bites; every variance map is scaled alike, so the comparison
+        between them stays fair). ``noise_x1`` is the data as it is.
         """
         shift = self.hparams.localization_shift
         side = min(self.hparams.localization_crop + 2 * shift, *self.shape)
         top, left = (self.shape[0] - side) // 2, (self.shape[1] - side) // 2
         window = (..., slice(top, top + side), slice(left, left + side))
         local, prior = local[window], prior[window]
+        low, high = self.hparams.value_range
         return {
-            f"noise_x{factor:g}": (prior + factor * (local - prior), prior, factor**2)
+            f"noise_x{factor:g}": (
+                local if factor == 1 else (prior + factor * (local - prior)).clamp(low, high),
+                prior,
+                factor**2,
+            )
             for factor in self.hparams.localization_noise
         }
 

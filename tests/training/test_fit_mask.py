@@ -188,7 +188,7 @@ def test_training_speed_leaves_validation_out():
 def test_held_out_sets_scale_the_noise_of_the_central_crop():
     model = MaskFitModule(shape=(40, 44), localization_shift=2, localization_crop=16, localization_noise=(1, 4))
     generator = torch.Generator().manual_seed(0)
-    prior = torch.rand(3, 1, 40, 44, generator=generator, dtype=torch.float64) * 256
+    prior = 28 + torch.rand(3, 1, 40, 44, generator=generator, dtype=torch.float64) * 200  # noise x4 stays in range
     local = prior + torch.randn(3, 1, 40, 44, generator=generator, dtype=torch.float64)
     sets = model.held_out_sets(local, prior, torch.ones_like(local, dtype=torch.bool))
     assert list(sets) == ["noise_x1", "noise_x4"]
