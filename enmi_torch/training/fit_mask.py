@@ -614,3 +614,49 @@ def cli_config_keys() -> dict[str, str]:
             if name != "self":
                 flags.setdefault(name, f"--{group}.{name}")
     return flags
+
+
+# The simple types the quick reference checks a value against (the other options are the full parser's alone).
+SIMPLE_TYPES = {int: "int", float: "float", bool: "bool", int | None: "int|null", bool | None: "bool|null"}
+
+
+def quick_reference(columns: int) -> dict:
+    """What ``enmi-fit-mask`` answers without Lightning (:mod:`enmi_torch.cli.fit_mask`).
+
+    The help, formatted at ``columns``, and every option with its simple type (``"int"``, ``"bool|null"``, ...;
+    ``None`` for the others).
+    """
+    import importlib.metadata
+    from unittest import mock
+
+    class Caught(Exception):
+        pass
+
+    parsers = []
+
+    class Parser(FitMaskParser):
+        def parse_args(self, *args, **kwargs):
+            parsers.append(self)
+            raise Caught
+
+    with contextlib.suppress(Caught), mock.patch.dict(os.environ, {"COLUMNS": str(columns)}):
+        FitMaskCLI(
+            MaskFitModule,
+            PairDataModule,
+            run=False,
+            args=[],
+            parser_class=Parser,
+            parser_kwargs={"prog": PROG, "default_config_files": [str(config_file("fit_mask.yaml"))]},
+            auto_configure_optimizers=False,
+        )
+    (parser,) = parsers
+    with mock.patch.dict(os.environ, {"COLUMNS": str(columns)}):
+        text = parser.format_help()
+    options = {}
+    for action in parser._actions:
+        hint = getattr(action, "_typehint", None)
+        for option in action.option_strings:
+            if option.startswith("--") and not option.endswith("+"):
+                options[option] = SIMPLE_TYPES.get(hint) if action.nargs is None else None
+    versions = {name: importlib.metadata.version(name) for name in ("lightning", "jsonargparse")}
+    return {"help": text, "options": options, "run_keys": list(RUN_KEYS), "versions": versions}
