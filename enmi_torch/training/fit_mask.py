@@ -32,7 +32,7 @@ from enmi_torch._resources import config_file
 from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
 from enmi_torch.data.pairs import PairDataset
-from enmi_torch.training.localization_figure import METHOD_LABELS, held_out_order
+from enmi_torch.training.localization_figure import ANSWER_METHODS, METHOD_MEANINGS, held_out_order
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
@@ -460,18 +460,23 @@ def _by_set(metrics: dict, prefix: str) -> dict[str, dict[str, float]]:
 
 
 def _localization_lines(rates: dict[str, dict[str, float]], pairs: int) -> list[str]:
-    """A table: the share of held-out pairs each method located (rows), at each noise level (columns)."""
+    """A table: the share of held-out pairs each method located (rows), at each noise level (columns).
+
+    Rows are named as in TensorBoard (``localization/<set>/<method>``); the answer's lines first, what they mean below.
+    """
     sets = held_out_order(rates)
-    methods = [method for method in METHOD_LABELS if any(method in rates[name] for name in sets)]
+    methods = [method for method in METHOD_MEANINGS if any(method in rates[name] for name in sets)]
     stderr = 0.5 / pairs**0.5
-    header = "".join(f"{name.replace('_x', ' x'):>11}" for name in sets)
+    header = "".join(f"{name:>11}" for name in sets)
     lines = [
         f"  held-out pairs located within one pixel, share of {pairs} (standard error at most {stderr:.2f}):",
-        f"    {'':<26}{header}",
+        f"    {'':<19}{header}",
     ]
     for method in methods:
         cells = "".join(f"{rates[name][method]:>11.3f}" if method in rates[name] else f"{'-':>11}" for name in sets)
-        lines.append(f"    {METHOD_LABELS[method]:<26}{cells}")
+        lines.append(f"    {method:<19}{cells}")
+    shown = [method for method in ANSWER_METHODS if method in methods]
+    lines += [f"    {method}: {METHOD_MEANINGS[method]}" for method in shown]
     return lines
 
 

@@ -12,7 +12,7 @@ Dashboards (TensorBoard, written by :class:`~enmi_torch.training.logger.MaskLogg
 ``mask/empirical_rel_rms_vs_truth``; ``localization/<held-out set>/<method>`` (share of held-out pairs located
 within one pixel by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and
 ``localization_z/<held-out set>/<method>`` (the mean z-score of the true shift's score among the others: the margin)
-for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_analytic``, synthetic data) and the
+for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_true``, synthetic data) and the
 uniform controls (``*_uniform``: the learned mask's mean; ``enmi_best_uniform``: the best of the mean times
 ``localization_grid``), hard NMI and NCC. The held-out sets are the validation pairs with their residuals
 ``local - prior`` scaled by each of ``localization_noise`` (``noise_x16``: 16 times the noise, 256 times the
@@ -38,7 +38,7 @@ from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
-from enmi_torch.training.localization_figure import held_out_order, localization_figure
+from enmi_torch.training.localization_figure import ANSWER_METHODS, OTHER_METHODS, held_out_order, localization_figure
 from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
@@ -263,7 +263,14 @@ class MaskFitModule(LightningModule):
             metrics = [key for key in self.trainer.callback_metrics if key.startswith(final)]
             held_out = held_out_order({key.split("/")[1] for key in metrics if key.startswith("localization/")})[::-1]
             rank = {name: index for index, name in enumerate(held_out)}  # the hardest set first
-            metrics.sort(key=lambda key: (not key.startswith("mask/"), rank.get(key.split("/")[1], len(rank)), key))
+
+            def order(key: str) -> tuple:  # the answer's lines first, then the mask's errors, then the rest
+                parts = key.split("/")
+                if parts[0] == "localization" and parts[2] in ANSWER_METHODS:
+                    return 0, rank[parts[1]], ANSWER_METHODS.index(parts[2]), key
+                return 1 if parts[0] == "mask" else 2, rank.get(parts[1], len(rank)), 0, key
+
+            metrics.sort(key=order)
             data = self.trainer.datamodule.hparams if self.trainer.datamodule is not None else {}
             source = data.get("root") or data.get("flavour", "")
             self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch})
@@ -381,7 +388,7 @@ class MaskFitModule(LightningModule):
             for set_name, (set_local, set_prior, factor) in sets.items():
 
                 def fixed(set_local=set_local, set_prior=set_prior, factor=factor):
-                    analytic = {} if truth is None else {"analytic": truth.variance.to(local.device)[window] * factor}
+                    analytic = {} if truth is None else {"true": truth.variance.to(local.device)[window] * factor}
                     return localization_trials(
                         set_local,
                         set_prior,
@@ -475,16 +482,21 @@ class MaskFitModule(LightningModule):
             rates = {name: float(totals[index]) / pairs for index, name in enumerate(names)}
             margins = {name: float(totals[len(names) + index]) / pairs for index, name in enumerate(names)}
             for set_name in sorted({name.split("/")[0] for name in names}):
-                grid = [name for name in names if name.startswith(f"{set_name}/enmi_uniform")]
-                best = max(grid, key=lambda name: (rates[name], margins[name]))
-                best_name = f"{set_name}/enmi_best_uniform"
-                rates[best_name], margins[best_name] = rates[best], margins[best]
+                others = [f"{set_name}/{method}" for method in OTHER_METHODS]
+                for best_name, group in (
+                    ("enmi_best_uniform", [name for name in names if name.startswith(f"{set_name}/enmi_uniform")]),
+                    ("best_other", [name for name in others if name in rates]),
+                ):
+                    best = max(group, key=lambda name: (rates[name], margins[name]))
+                    rates[f"{set_name}/{best_name}"], margins[f"{set_name}/{best_name}"] = rates[best], margins[best]
             for name in sorted(rates):
                 if "/enmi_uniform_x" in name:
                     continue
                 self.log(f"localization/{name}", rates[name], sync_dist=False)
                 if math.isfinite(margins[name]):
                     self.log(f"localization_z/{name}", margins[name], sync_dist=False)
+            if isinstance(self.logger, MaskLogger):
+                self.logger.log_answer(rates, self.global_step)
         if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
             figure = self.figure()
             self.logger.experiment.add_figure("masks", figure, self.global_step)
