@@ -21,7 +21,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_only
 
 LAYOUT_TAG = "custom_scalars__config__"
-# The hyperparameters that tell runs apart, shown in the HParams tab.
+# The hyperparameters that tell runs apart, shown in the HParams tab where a run changed them from their defaults.
 SHOWN = ("form", "smoothness", "match_intensity", "train_pairs", "size", "noise_std", "lr")
 
 
@@ -186,18 +186,31 @@ class MaskLogger(TensorBoardLogger):
         self._answer_writers = {}
 
     @rank_zero_only
-    def log_final_metrics(self, metrics: Sequence[str], leading: Mapping[str, Any] | None = None) -> None:
+    def log_final_metrics(
+        self,
+        metrics: Sequence[str],
+        leading: Mapping[str, Any] | None = None,
+        defaults: Mapping[str, Any] | None = None,
+    ) -> None:
         """The hyperparameters with these metric tags: the HParams tab shows each tag's last logged value.
 
-        The hyperparameters are ``leading`` (the data, the epochs) and those of ``SHOWN`` (the ones that tell runs
-        apart; TensorBoard lists them by name and ticks the first few): every other one is in the run's
+        The hyperparameters are ``leading`` (the data, the epochs, the form) and those of ``SHOWN`` that differ from
+        ``defaults``: TensorBoard ticks only the first five hyperparameters and five metrics, so a run with the default
+        settings opens on its answer (the first metrics) on the first screen. Every hyperparameter is in the run's
         ``hparams.yaml`` and ``config.yaml``.
         """
         from torch.utils.tensorboard.summary import hparams
 
         stored = self._sanitize_params(_flatten_dict(_convert_params(dict(self.hparams))))
+        defaults = dict(defaults or {})
         params = dict(leading or {})
-        params.update({key: stored[key] for key in SHOWN if key in stored and key not in params})
+        params.update(
+            {
+                key: stored[key]
+                for key in SHOWN
+                if key in stored and key not in params and (key not in defaults or stored[key] != defaults[key])
+            }
+        )
         experiment, start, end = hparams(params, dict.fromkeys(metrics, 0.0))
         writer = self.experiment._get_file_writer()
         for summary in (experiment, start, end):

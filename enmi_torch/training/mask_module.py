@@ -24,6 +24,7 @@ standardised residuals.
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from collections.abc import Sequence
@@ -271,9 +272,16 @@ class MaskFitModule(LightningModule):
                 return 1 if parts[0] == "mask" else 2, rank.get(parts[1], len(rank)), 0, key
 
             metrics.sort(key=order)
-            data = self.trainer.datamodule.hparams if self.trainer.datamodule is not None else {}
+            datamodule = self.trainer.datamodule
+            data = datamodule.hparams if datamodule is not None else {}
             source = data.get("root") or data.get("flavour", "")
-            self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch})
+            defaults = {}
+            for owner in (self, datamodule):
+                if owner is not None:
+                    parameters = inspect.signature(type(owner).__init__).parameters.values()
+                    defaults.update({item.name: item.default for item in parameters if item.default is not item.empty})
+            leading = {"data": str(source), "epochs": self.current_epoch, "form": self.hparams.form}
+            self.logger.log_final_metrics(metrics, leading, defaults)
 
     def on_train_start(self) -> None:
         """Lay out the Custom Scalars tab: the held-out sets, hardest first, and the mask's errors."""

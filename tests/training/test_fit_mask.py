@@ -156,10 +156,8 @@ def test_dashboards_open_on_the_answer(tmp_path):
             assert last[f"localization/{held_out}/{method}"] == pytest.approx(rate, abs=1e-6)
     assert start.hparams["data"].string_value == "lidar" and start.hparams["form"].string_value == "pixel"
     assert start.hparams["epochs"].number_value == 2
-    assert set(start.hparams) == {"data", "epochs", "form", "smoothness", "match_intensity", "train_pairs", "size"} | {
-        "noise_std",
-        "lr",
-    }
+    # The leading ones, and those the smoke config changed (TensorBoard shows five; the answer comes after them).
+    assert set(start.hparams) == {"data", "epochs", "form", "train_pairs", "size"}
 
 
 class SlowEpochs(Callback):
