@@ -187,8 +187,9 @@ class FitMaskCLI(LightningCLI):
                 return
             data = self.config["data"]
             folder = Path(init_args.get("save_dir") or ".") / (init_args.get("name") or "")
+            missing = [path for path in (folder, *folder.parents) if not path.exists()]  # deepest first
             init_args.version = next_version(folder, run_name(data["root"], data["flavour"]))
-            self.created.append(folder / init_args.version)
+            self.created += [folder / init_args.version, *missing]
 
 
 class MaskProgressBar(TQDMProgressBar):
@@ -364,14 +365,14 @@ def check_pairs(datamodule: PairDataModule, bins: int, value_range: Sequence[flo
     from enmi_torch._checks import check_resolved_by_bins
 
     start = time.perf_counter()
-    low, high = float("inf"), float("-inf")
+    low, high = float("inf"), float("-inf")  # of the prior images (the maps, noise-free) where there are any
     refused = None
     for dataset in (datamodule.train_set, datamodule.val_set):
         for index in range(len(dataset)):
             item = dataset[index]
             for role in ("local", "prior"):
                 values, valid = item[role].reshape(1, -1).double(), item["valid"].reshape(1, -1)
-                if bool(valid.any()):
+                if role == "prior" and bool(valid.any()):  # noise may spill past the range: the map's range rules
                     low, high = min(low, float(values[valid].min())), max(high, float(values[valid].max()))
                 try:
                     check_resolved_by_bins(role, values, valid, bins, tuple(value_range))
@@ -385,8 +386,8 @@ def check_pairs(datamodule: PairDataModule, bins: int, value_range: Sequence[flo
     suggested_high = next((usual for usual in USUAL_RANGES if high <= usual), math.ceil(high) + 1.0)
     role, name = refused
     raise ValueError(
-        f"--model.value_range {[float(value) for value in value_range]} does not fit the pairs: their values run from "
-        f"{low:.4g} to {high:.4g} (the {role} image of {name} falls in one or two of its {bins} bins); pass "
+        f"--model.value_range {[float(value) for value in value_range]} does not fit the pairs: their prior images "
+        f"run from {low:.4g} to {high:.4g} (the {role} image of {name} falls in one or two of its {bins} bins); pass "
         f'--model.value_range "[{suggested_low:g}, {suggested_high:g}]"'
     )
 
@@ -525,9 +526,12 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
     try:
         return _fit_mask(argv, created)
     except BaseException:
-        for folder in created:
-            if not any((folder / kept).exists() for kept in ("checkpoints", "mask")):  # nothing learned there
-                shutil.rmtree(folder, ignore_errors=True)
+        run_folder, *parents = created or [None]
+        if run_folder is not None and not any((run_folder / kept).exists() for kept in ("checkpoints", "mask")):
+            shutil.rmtree(run_folder, ignore_errors=True)  # nothing learned there: no folder to clutter TensorBoard
+            for parent in parents:  # the folders made for it (runs/fit_mask), if nothing else went there since
+                with contextlib.suppress(OSError):
+                    parent.rmdir()
         raise
 
 

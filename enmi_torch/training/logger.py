@@ -194,7 +194,7 @@ class MaskLogger(TensorBoardLogger):
     ) -> None:
         """The hyperparameters with these metric tags: the HParams tab shows each tag's last logged value.
 
-        The hyperparameters are ``leading`` (the data, the epochs, the form) and those of ``SHOWN`` that differ from
+        The hyperparameters are ``leading`` (the data, the epochs) and those of ``SHOWN`` that differ from
         ``defaults``: TensorBoard ticks only the first five hyperparameters and five metrics, so a run with the default
         settings opens on its answer (the first metrics) on the first screen. Every hyperparameter is in the run's
         ``hparams.yaml`` and ``config.yaml``.

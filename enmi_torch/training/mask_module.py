@@ -280,8 +280,7 @@ class MaskFitModule(LightningModule):
                 if owner is not None:
                     parameters = inspect.signature(type(owner).__init__).parameters.values()
                     defaults.update({item.name: item.default for item in parameters if item.default is not item.empty})
-            leading = {"data": str(source), "epochs": self.current_epoch, "form": self.hparams.form}
-            self.logger.log_final_metrics(metrics, leading, defaults)
+            self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch}, defaults)
 
     def on_train_start(self) -> None:
         """Lay out the Custom Scalars tab: the held-out sets, hardest first, and the mask's errors."""

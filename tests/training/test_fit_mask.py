@@ -154,10 +154,10 @@ def test_dashboards_open_on_the_answer(tmp_path):
     for held_out, rates in summary["localization"].items():
         for method, rate in rates.items():
             assert last[f"localization/{held_out}/{method}"] == pytest.approx(rate, abs=1e-6)
-    assert start.hparams["data"].string_value == "lidar" and start.hparams["form"].string_value == "pixel"
+    assert start.hparams["data"].string_value == "lidar" and start.hparams["size"].number_value == 32
     assert start.hparams["epochs"].number_value == 2
     # The leading ones, and those the smoke config changed (TensorBoard shows five; the answer comes after them).
-    assert set(start.hparams) == {"data", "epochs", "form", "train_pairs", "size"}
+    assert set(start.hparams) == {"data", "epochs", "train_pairs", "size"}
 
 
 class SlowEpochs(Callback):
