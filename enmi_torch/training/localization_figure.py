@@ -11,7 +11,7 @@ import numpy as np
 # TensorBoard's tags (localization/<set>/<method>), the console table, summary.json and the figure. What the names mean:
 METHOD_MEANINGS = {
     "enmi_learned": "ENMI with the learned mask",
-    "enmi_true": "ENMI with the true variance (known for synthetic pairs)",
+    "enmi_true": "ENMI with the true variance (where the pairs name it: synthetic ones, meta.json truth)",
     "enmi_best_uniform": "ENMI with the best uniform variance (the mask's mean times 0.25, 1 or 4: best here)",
     "enmi_uniform": "ENMI with one uniform variance, the learned mask's mean",
     "best_other": "the best of the other scores (ECR with any variance, NMI, NCC)",
