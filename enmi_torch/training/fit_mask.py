@@ -340,9 +340,11 @@ class MaskWriter(Callback):
 
     def on_validation_start(self, trainer, pl_module: MaskFitModule) -> None:
         """Save the mask trained so far (the main process; every process holds the same mask)."""
-        if trainer.sanity_checking or not trainer.is_global_zero or pl_module.mask is None:
+        if trainer.sanity_checking or pl_module.mask is None:
             return
-        folder = self.folder(trainer)
+        folder = self.folder(trainer)  # every process asks: trainer.log_dir is a collective under DDP
+        if not trainer.is_global_zero:
+            return
         folder.mkdir(parents=True, exist_ok=True)
         for suffix in ("pt", "npy"):
             pl_module.mask.save(folder / f"variance_mask.{suffix}")
@@ -602,12 +604,12 @@ def _fit_mask(argv: Sequence[str], created: list[Path]) -> dict | None:
         raise type(error)(message) from error
     seconds = time.perf_counter() - start
     log_dir = cli.trainer.log_dir  # a collective under DDP: every process asks
+    output_dir = writer.folder(cli.trainer)
     if not cli.trainer.is_global_zero:
         return None
     data = cli.config["data"]
     source = data["root"] or f"synthetic, {data['flavour']}-like"
     # Checked before training; the files there now are this run's own (written before each evaluation).
-    output_dir = writer.folder(cli.trainer)
     summary = write_outputs(cli.model, cli.trainer, output_dir, log_dir, seconds, source, overwrite=True)
     print_summary(summary)
     return summary

@@ -433,19 +433,23 @@ def test_debug_shows_the_exception(tmp_path):
         main(["--config", SMOKE, "--data.flavour", "radar", "--debug"])
 
 
-def fit_in_subprocess(tmp_path, name, *overrides):
+def fit_in_subprocess(tmp_path, name, *overrides, output_dir=True):
     environment = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
     command = [sys.executable, str(ROOT / "train" / "fit_mask.py"), "--config", SMOKE]
     command += ["--trainer.logger.init_args.save_dir", str(tmp_path / name)]
-    command += ["--output_dir", str(tmp_path / name / "out"), *overrides]
-    subprocess.run(command, check=True, env=environment, cwd=tmp_path, capture_output=True, timeout=300)
-    return np.load(tmp_path / name / "out" / "variance_mask.npy", allow_pickle=False)
+    if output_dir:
+        command += ["--output_dir", str(tmp_path / name / "out")]
+    subprocess.run([*command, *overrides], check=True, env=environment, cwd=tmp_path, capture_output=True, timeout=300)
+    folder = tmp_path / name / "out" if output_dir else tmp_path / name / "fit_mask" / "lidar_0" / "mask"
+    return np.load(folder / "variance_mask.npy", allow_pickle=False)
 
 
 @pytest.mark.slow
 def test_two_process_ddp_gives_the_same_mask(tmp_path):
     single = fit_in_subprocess(tmp_path, "single")
-    ddp = fit_in_subprocess(tmp_path, "ddp", "--trainer.devices", "2", "--trainer.strategy", "ddp")
+    # In the run's own folder: both processes take the one the first chose, and neither waits for the other there.
+    ddp = fit_in_subprocess(tmp_path, "ddp", "--trainer.devices", "2", "--trainer.strategy", "ddp", output_dir=False)
+    assert sorted(path.name for path in (tmp_path / "ddp" / "fit_mask").iterdir()) == ["lidar_0"]
     assert np.array_equal(np.isfinite(single), np.isfinite(ddp))
     np.testing.assert_allclose(ddp, single, rtol=1e-5)
 
