@@ -31,7 +31,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         from enmi_torch.training.fit_mask import fit_mask
     except ImportError as error:
-        fail(PROG, f"{error}: training needs the train extra: pip install 'enmi_torch[train]'")
+        fail(
+            PROG,
+            f"{error}: training needs the train extra: pip install 'enmi_torch[train]' "
+            "(in a clone: pip install -e '.[train]')",
+        )
     run_command(PROG, fit_mask, arguments)
 
 

@@ -575,7 +575,7 @@ def _fit_mask(argv: Sequence[str], created: list[Path]) -> dict | None:
                     f"--data.batch_size must be divisible by the number of processes {world}, "
                     f"got {cli.datamodule.batch_size}"
                 )
-            if cli.trainer.is_global_zero:
+            if cli.trainer.is_global_zero and cli.config["data"]["root"] is not None:  # synthetic pairs fit by design
                 check_pairs(cli.datamodule, cli.model.hparams.bins, cli.model.hparams.value_range)
             for callback in cli.trainer.callbacks:
                 if isinstance(callback, Preemption):

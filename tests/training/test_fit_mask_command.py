@@ -65,7 +65,7 @@ def test_strong_clipped_noise_runs_to_the_end_and_writes_its_mask(tmp_path, stro
     mask = LearnedVariance.load(tmp_path / "out" / "variance_mask.pt")
     assert mask.shape == (32, 32) and (tmp_path / "out" / "summary.json").is_file()
     printed = capsys.readouterr().out
-    assert "noise x32" in printed
+    assert "noise_x32" in printed
 
 
 def test_held_out_sets_are_clipped_to_the_value_range_as_a_sensor_clips():
