@@ -12,6 +12,8 @@ import copy
 import json
 import logging
 import math
+import os
+import shutil
 import signal
 import time
 import warnings
@@ -20,15 +22,17 @@ from pathlib import Path
 
 import torch
 from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.callbacks import TQDMProgressBar
+from lightning.pytorch.callbacks import Callback, TQDMProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities.exceptions import SIGTERMException
+from torch.utils.data import Subset
 
 from enmi_torch._files import load_plain_torch
 from enmi_torch._resources import config_file
 from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
-from enmi_torch.training.localization_figure import METHOD_LABELS, held_out_order
+from enmi_torch.data.pairs import PairDataset
+from enmi_torch.training.localization_figure import ANSWER_METHODS, METHOD_MEANINGS, held_out_order
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
@@ -131,6 +135,10 @@ def _short(action: argparse.Action, defaults) -> argparse.Action:
     return short
 
 
+# The default config's logger save_dir, replaced by --trainer.default_root_dir when that is given.
+DEFAULT_SAVE_DIR = "runs"
+# The run folder chosen by the main process, for the processes DDP starts (they run the command again).
+RUN_FOLDER = "ENMI_FIT_MASK_RUN_FOLDER"
 OUTPUT_FILES = ("variance_mask.pt", "variance_mask.npy", "variance_mask.png", "summary.json")
 
 
@@ -152,16 +160,36 @@ class FitMaskCLI(LightningCLI):
         )
         parser.add_argument("--help_all", action="help", help="list every option, the Trainer's included")
 
+    def __init__(self, *args, created: list[Path] | None = None, **kwargs) -> None:
+        # The run folder this command takes is appended to ``created`` (the caller removes it if the run fails early).
+        self.created = [] if created is None else created
+        super().__init__(*args, **kwargs)
+
     def before_instantiate_classes(self) -> None:
-        """Name the run by its data (``lidar_0``); show the mask's error in the progress bar (unless turned off)."""
+        """Name the run by its data (``lidar_0``) and take its folder; show the mask's error in the progress bar.
+
+        The logs go under ``--trainer.default_root_dir`` when it is given (Lightning's convention), else under the
+        logger's ``save_dir`` (``runs`` in the default config). The run folder is created here, atomically, so runs
+        started at once take different folders; the processes that DDP starts use their parent's.
+        """
         if self.config["trainer"].get("enable_progress_bar") is not False:
             self.trainer_defaults["callbacks"] = [MaskProgressBar()]
         logger = self.config["trainer"].get("logger")
         init_args = getattr(logger, "init_args", None)
-        if init_args is not None and "version" in init_args and init_args.get("version") is None:
+        if init_args is None:
+            return
+        root_dir = self.config["trainer"].get("default_root_dir")
+        if root_dir is not None and init_args.get("save_dir") == DEFAULT_SAVE_DIR:
+            init_args.save_dir = str(root_dir)
+        if "version" in init_args and init_args.get("version") is None:
+            if RUN_FOLDER in os.environ and int(os.environ.get("LOCAL_RANK", "0")) > 0:
+                init_args.version = os.environ[RUN_FOLDER]
+                return
             data = self.config["data"]
             folder = Path(init_args.get("save_dir") or ".") / (init_args.get("name") or "")
+            missing = [path for path in (folder, *folder.parents) if not path.exists()]  # deepest first
             init_args.version = next_version(folder, run_name(data["root"], data["flavour"]))
+            self.created += [folder / init_args.version, *missing]
 
 
 class MaskProgressBar(TQDMProgressBar):
@@ -238,7 +266,15 @@ def check_checkpoint(path: str, model: torch.nn.Module | None = None) -> None:
     """
     if not Path(path).is_file():
         raise FileNotFoundError(f"ckpt_path must be a checkpoint file, got {path!r}")
-    checkpoint = load_plain_torch(path, "a plain checkpoint")
+    try:
+        checkpoint = load_plain_torch(path, "a plain checkpoint")
+    except ValueError as error:
+        raise ValueError(f"--ckpt_path {error}") from None
+    except Exception as error:  # torch's unpickler fails on foreign files in its own ways (IndexError on some text)
+        raise ValueError(
+            f"--ckpt_path {path} is refused: it is not a plain checkpoint that loads with weights_only=True "
+            f"({type(error).__name__}: {error})"
+        ) from None
     if model is None:
         return
     saved = checkpoint.get("state_dict") if isinstance(checkpoint, dict) else None
@@ -273,13 +309,97 @@ def finite_for_json(value: object, where: str = "") -> tuple[object, list[str]]:
 
 
 def check_output_dir(output_dir: Path, overwrite: bool) -> None:
-    """Refuse an ``output_dir`` holding an earlier run's files unless ``overwrite``."""
+    """Refuse an ``output_dir`` that cannot become a folder, or holds an earlier run's files unless ``overwrite``."""
+    existing = next(path for path in (output_dir, *output_dir.absolute().parents) if path.exists())
+    if not existing.is_dir():
+        which = "which is" if existing == output_dir else f"but {str(existing)!r} on its path is"
+        raise ValueError(f"--output_dir must be a folder, got {str(output_dir)!r}, {which} a file")
+    if not os.access(existing, os.W_OK):
+        raise ValueError(f"--output_dir {str(output_dir)!r} cannot be written: {str(existing)!r} is read-only")
     earlier = [name for name in OUTPUT_FILES if (output_dir / name).exists()]
     if earlier and not overwrite:
         raise FileExistsError(
             f"--output_dir {str(output_dir)!r} already holds {', '.join(earlier)} from an earlier run; choose another "
             "--output_dir, or pass --overwrite true to replace them"
         )
+
+
+class MaskWriter(Callback):
+    """Writes the mask (``.pt``, ``.npy``) before each held-out evaluation, so that no error there loses the fit.
+
+    ``output_dir``: the folder; ``None`` takes ``<log dir>/mask``. :attr:`written` is the ``.pt`` file once written.
+    """
+
+    def __init__(self, output_dir: Path | None) -> None:
+        self.output_dir = output_dir
+        self.written: Path | None = None
+
+    def folder(self, trainer) -> Path:
+        """The mask's folder."""
+        return self.output_dir or Path(trainer.log_dir) / "mask"
+
+    def on_validation_start(self, trainer, pl_module: MaskFitModule) -> None:
+        """Save the mask trained so far (the main process; every process holds the same mask)."""
+        if trainer.sanity_checking or pl_module.mask is None:
+            return
+        folder = self.folder(trainer)  # every process asks: trainer.log_dir is a collective under DDP
+        if not trainer.is_global_zero:
+            return
+        folder.mkdir(parents=True, exist_ok=True)
+        for suffix in ("pt", "npy"):
+            pl_module.mask.save(folder / f"variance_mask.{suffix}")
+        self.written = folder / "variance_mask.pt"
+
+
+# Reading the pairs to check them stops after this many seconds (the fit's first pass reads them all anyway).
+CHECK_SECONDS = 3.0
+# Ranges suggested for pairs that do not fit --model.value_range: the usual ones, the smallest that covers them.
+USUAL_RANGES = (1.0, 256.0, 4096.0, 65536.0)
+
+
+def check_pairs(datamodule: PairDataModule, bins: int, value_range: Sequence[float]) -> None:
+    """Read the pairs (for :data:`CHECK_SECONDS` at most) and refuse them before training if they cannot be fitted.
+
+    Reading raises on a file that cannot be read, of another shape, or with NaN at a valid pixel (naming it); here,
+    pairs that ``--model.value_range`` does not resolve (images in [0, 1] against the default [0, 256], 16-bit images)
+    are refused with the range to pass, spelt as on the command line.
+    """
+    from enmi_torch._checks import check_resolved_by_bins
+
+    start = time.perf_counter()
+    low, high = float("inf"), float("-inf")  # of the prior images (the maps, noise-free) where there are any
+    refused = None
+    for dataset in (datamodule.train_set, datamodule.val_set):
+        for index in range(len(dataset)):
+            item = dataset[index]
+            for role in ("local", "prior"):
+                values, valid = item[role].reshape(1, -1).double(), item["valid"].reshape(1, -1)
+                if role == "prior" and bool(valid.any()):  # noise may spill past the range: the map's range rules
+                    low, high = min(low, float(values[valid].min())), max(high, float(values[valid].max()))
+                try:
+                    check_resolved_by_bins(role, values, valid, bins, tuple(value_range))
+                except ValueError:
+                    refused = refused or (role, _pair_name(dataset, index))
+            if time.perf_counter() - start > CHECK_SECONDS and refused is None:
+                return
+    if refused is None:
+        return
+    suggested_low = 0.0 if low >= 0 else math.floor(low)
+    suggested_high = next((usual for usual in USUAL_RANGES if high <= usual), math.ceil(high) + 1.0)
+    role, name = refused
+    raise ValueError(
+        f"--model.value_range {[float(value) for value in value_range]} does not fit the pairs: their prior images "
+        f"run from {low:.4g} to {high:.4g} (the {role} image of {name} falls in one or two of its {bins} bins); pass "
+        f'--model.value_range "[{suggested_low:g}, {suggested_high:g}]"'
+    )
+
+
+def _pair_name(dataset, index: int) -> str:
+    """The pair's local file where it has one, else ``pair <index>``."""
+    if isinstance(dataset, Subset) and isinstance(dataset.dataset, PairDataset):
+        name = dataset.dataset.names[dataset.indices[index]]
+        return str(dataset.dataset._files["local"][name])
+    return f"pair {index}"
 
 
 def write_outputs(
@@ -343,18 +463,23 @@ def _by_set(metrics: dict, prefix: str) -> dict[str, dict[str, float]]:
 
 
 def _localization_lines(rates: dict[str, dict[str, float]], pairs: int) -> list[str]:
-    """A table: the share of held-out pairs each method located (rows), at each noise level (columns)."""
+    """A table: the share of held-out pairs each method located (rows), at each noise level (columns).
+
+    Rows are named as in TensorBoard (``localization/<set>/<method>``); the answer's lines first, what they mean below.
+    """
     sets = held_out_order(rates)
-    methods = [method for method in METHOD_LABELS if any(method in rates[name] for name in sets)]
+    methods = [method for method in METHOD_MEANINGS if any(method in rates[name] for name in sets)]
     stderr = 0.5 / pairs**0.5
-    header = "".join(f"{name.replace('_x', ' x'):>11}" for name in sets)
+    header = "".join(f"{name:>11}" for name in sets)
     lines = [
         f"  held-out pairs located within one pixel, share of {pairs} (standard error at most {stderr:.2f}):",
-        f"    {'':<26}{header}",
+        f"    {'':<19}{header}",
     ]
     for method in methods:
         cells = "".join(f"{rates[name][method]:>11.3f}" if method in rates[name] else f"{'-':>11}" for name in sets)
-        lines.append(f"    {METHOD_LABELS[method]:<26}{cells}")
+        lines.append(f"    {method:<19}{cells}")
+    shown = [method for method in ANSWER_METHODS if method in methods]
+    lines += [f"    {method}: {METHOD_MEANINGS[method]}" for method in shown]
     return lines
 
 
@@ -394,10 +519,29 @@ RUN_KEYS = ("ckpt_path", "output_dir", "overwrite", "torch_threads", "help_all")
 
 
 def fit_mask(argv: Sequence[str]) -> dict | None:
-    """Run the command with these arguments; returns the summary on the main process (``None`` on the others)."""
+    """Run the command with these arguments; returns the summary on the main process (``None`` on the others).
+
+    Everything that can be checked before training is (the options, the checkpoint, the output folder, the pairs),
+    before any of Lightning's lines; a run that fails before its first checkpoint leaves no run folder behind.
+    """
+    created: list[Path] = []
+    try:
+        return _fit_mask(argv, created)
+    except BaseException:
+        run_folder, *parents = created or [None]
+        if run_folder is not None and not any((run_folder / kept).exists() for kept in ("checkpoints", "mask")):
+            shutil.rmtree(run_folder, ignore_errors=True)  # nothing learned there: no folder to clutter TensorBoard
+            for parent in parents:  # the folders made for it (runs/fit_mask), if nothing else went there since
+                with contextlib.suppress(OSError):
+                    parent.rmdir()
+        raise
+
+
+def _fit_mask(argv: Sequence[str], created: list[Path]) -> dict | None:
     default_config = config_file("fit_mask.yaml")
     quiet_lightning()
     arguments = dashed_aliases(argv, RUN_KEYS)
+    writer = None
     try:
         with lightning_chatter_held():
             cli = FitMaskCLI(
@@ -413,6 +557,7 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
                 },
                 save_config_kwargs={"overwrite": True},
                 auto_configure_optimizers=False,
+                created=created,
             )
             if cli.config["torch_threads"] is not None:
                 if cli.config["torch_threads"] < 1:
@@ -421,41 +566,51 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
             ckpt_path = cli.config["ckpt_path"]
             if ckpt_path is not None:
                 check_checkpoint(ckpt_path, cli.model)
-            if cli.config["output_dir"] is not None:
-                check_output_dir(Path(cli.config["output_dir"]), cli.config["overwrite"])
+            output_dir = None if cli.config["output_dir"] is None else Path(cli.config["output_dir"])
+            if output_dir is not None:
+                check_output_dir(output_dir, cli.config["overwrite"])
             world = cli.trainer.num_devices * cli.trainer.num_nodes
             if cli.datamodule.batch_size % world:
                 raise ValueError(
                     f"--data.batch_size must be divisible by the number of processes {world}, "
                     f"got {cli.datamodule.batch_size}"
                 )
+            if cli.trainer.is_global_zero and cli.config["data"]["root"] is not None:  # synthetic pairs fit by design
+                check_pairs(cli.datamodule, cli.model.hparams.bins, cli.model.hparams.value_range)
             for callback in cli.trainer.callbacks:
                 if isinstance(callback, Preemption):
                     callback.command = [PROG, *argv]
+            writer = MaskWriter(output_dir)
+            cli.trainer.callbacks.append(writer)
         start = time.perf_counter()
+        if created:
+            os.environ[RUN_FOLDER] = created[0].name
         try:
             cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path, weights_only=True)
         except SIGTERMException as stop:  # Lightning ends a SIGTERM with exit code 0: a preemption is not a success
             if isinstance(stop, Preempted):
                 raise
             raise Preempted(EXIT_CODES[signal.SIGTERM]) from stop
+        finally:
+            os.environ.pop(RUN_FOLDER, None)
     except MisconfigurationException as error:  # Lightning's word for a bad option (devices, strategy, ...)
         raise ValueError(str(error)) from error
     except (ValueError, TypeError, FileNotFoundError) as error:
         message = with_flag_names(str(error), cli_config_keys())
+        if writer is not None and writer.written is not None:
+            message += f" (the mask trained before the error is in {writer.written.parent})"
         if message == str(error):
             raise
         raise type(error)(message) from error
     seconds = time.perf_counter() - start
     log_dir = cli.trainer.log_dir  # a collective under DDP: every process asks
+    output_dir = writer.folder(cli.trainer)
     if not cli.trainer.is_global_zero:
         return None
-    output_dir = Path(cli.config["output_dir"] or Path(log_dir) / "mask")
     data = cli.config["data"]
     source = data["root"] or f"synthetic, {data['flavour']}-like"
-    summary = write_outputs(
-        cli.model, cli.trainer, output_dir, log_dir, seconds, source, overwrite=cli.config["overwrite"]
-    )
+    # Checked before training; the files there now are this run's own (written before each evaluation).
+    summary = write_outputs(cli.model, cli.trainer, output_dir, log_dir, seconds, source, overwrite=True)
     print_summary(summary)
     return summary
 
@@ -470,3 +625,49 @@ def cli_config_keys() -> dict[str, str]:
             if name != "self":
                 flags.setdefault(name, f"--{group}.{name}")
     return flags
+
+
+# The simple types the quick reference checks a value against (the other options are the full parser's alone).
+SIMPLE_TYPES = {int: "int", float: "float", bool: "bool", int | None: "int|null", bool | None: "bool|null"}
+
+
+def quick_reference(columns: int) -> dict:
+    """What ``enmi-fit-mask`` answers without Lightning (:mod:`enmi_torch.cli.fit_mask`).
+
+    The help, formatted at ``columns``, and every option with its simple type (``"int"``, ``"bool|null"``, ...;
+    ``None`` for the others).
+    """
+    import importlib.metadata
+    from unittest import mock
+
+    class Caught(Exception):
+        pass
+
+    parsers = []
+
+    class Parser(FitMaskParser):
+        def parse_args(self, *args, **kwargs):
+            parsers.append(self)
+            raise Caught
+
+    with contextlib.suppress(Caught), mock.patch.dict(os.environ, {"COLUMNS": str(columns)}):
+        FitMaskCLI(
+            MaskFitModule,
+            PairDataModule,
+            run=False,
+            args=[],
+            parser_class=Parser,
+            parser_kwargs={"prog": PROG, "default_config_files": [str(config_file("fit_mask.yaml"))]},
+            auto_configure_optimizers=False,
+        )
+    (parser,) = parsers
+    with mock.patch.dict(os.environ, {"COLUMNS": str(columns)}):
+        text = parser.format_help()
+    options = {}
+    for action in parser._actions:
+        hint = getattr(action, "_typehint", None)
+        for option in action.option_strings:
+            if option.startswith("--") and not option.endswith("+"):
+                options[option] = SIMPLE_TYPES.get(hint) if action.nargs is None else None
+    versions = {name: importlib.metadata.version(name) for name in ("lightning", "jsonargparse")}
+    return {"help": text, "options": options, "run_keys": list(RUN_KEYS), "versions": versions}

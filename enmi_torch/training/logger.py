@@ -1,14 +1,16 @@
 """``MaskLogger``: the fit-mask dashboards open on the answer.
 
 TensorBoard's logger with, for this command: runs named by their data (``runs/fit_mask/lidar_0``, not
-``version_0``), no ``epoch`` staircase, no ``hp_metric = -1``; a custom-scalars layout (the Custom Scalars tab) with
-one chart per held-out set comparing every score and variance on the same pairs and one chart of the mask's error
-against its empirical floor; and, at the end of a fit, the hyperparameters with the run's real final metrics (the
-HParams tab reads each metric's last value).
+``version_0``), no ``epoch`` staircase, no ``hp_metric = -1``; a custom-scalars layout (the Custom Scalars tab) that
+opens on the answer, per held-out set one chart of ENMI with the learned mask, the true variance, the best uniform
+variance and the best other score, each line its own colour (a sub-run per method), then the mask's error against its
+empirical floor, and every score and variance folded below; and, at the end of a fit, the hyperparameters with the
+run's real final metrics, the answer's first (the HParams tab reads each metric's last value).
 """
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -19,7 +21,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_only
 
 LAYOUT_TAG = "custom_scalars__config__"
-# The hyperparameters that tell runs apart, shown in the HParams tab.
+# The hyperparameters that tell runs apart, shown in the HParams tab where a run changed them from their defaults.
 SHOWN = ("form", "smoothness", "match_intensity", "train_pairs", "size", "noise_std", "lr")
 
 
@@ -32,26 +34,51 @@ def run_name(root: str | None, flavour: str) -> str:
 
 
 def next_version(folder: str | Path, name: str) -> str:
-    """``<name>_<n>`` with ``n`` one more than the largest of the existing ``<name>_<n>`` folders (0 for none)."""
+    """Create and return ``<name>_<n>``: the first free ``n`` above the existing ``<name>_<n>`` folders (0 for none).
+
+    The folder is taken with ``os.mkdir``, which fails if another process took it first (runs started at once): the
+    next number is tried then, so no two runs share a folder.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
     taken = [
         int(match.group(1))
-        for path in (Path(folder).iterdir() if Path(folder).is_dir() else ())
+        for path in folder.iterdir()
         if (match := re.fullmatch(rf"{re.escape(name)}_(\d+)", path.name))
     ]
-    return f"{name}_{max(taken, default=-1) + 1}"
+    number = max(taken, default=-1) + 1
+    while True:
+        try:
+            os.mkdir(folder / f"{name}_{number}")
+        except FileExistsError:
+            number += 1
+            continue
+        return f"{name}_{number}"
+
+
+# The Custom Scalars category that answers the run's question, and the tag of its chart per held-out set.
+ANSWER = "does the learned mask beat a uniform variance? share of held-out pairs located, per noise level"
+
+
+def answer_tag(held_out: str) -> str:
+    """The tag of the answer chart of one held-out set; each of its lines is a sub-run named by the method."""
+    return f"answer/{held_out}"
 
 
 def layout(sets: Sequence[str], masked_truth: bool) -> dict[str, dict[str, tuple[str, list[str]]]]:
     """The Custom Scalars layout: category -> chart title -> ``("Multiline", [tag regex, ...])``.
 
     ``sets``: the held-out sets, hardest first; ``masked_truth``: whether the true variance is known (synthetic data).
+    The first category answers the question: per held-out set, one chart whose lines are
+    :data:`~enmi_torch.training.localization_figure.ANSWER_METHODS`, each logged to its own sub-run (TensorBoard colours
+    a chart's lines by run, so each method gets its own colour, named in the chart's legend).
     """
-    answer = {
-        f"{name}: share of held-out pairs located within one pixel, every score and variance": (
-            "Multiline",
-            [rf"localization/{re.escape(name)}/.*"],
-        )
-        for name in sets
+    from enmi_torch.training.localization_figure import ANSWER_METHODS
+
+    lines = [method for method in ANSWER_METHODS if masked_truth or method != "enmi_true"]
+    answer = {f"{name}: {', '.join(lines)}": ("Multiline", [rf"^{re.escape(answer_tag(name))}$"]) for name in sets}
+    every = {
+        f"{name}: every score and variance": ("Multiline", [rf"localization/{re.escape(name)}/.*"]) for name in sets
     }
     mask = {}
     if masked_truth:
@@ -72,8 +99,9 @@ def layout(sets: Sequence[str], masked_truth: bool) -> dict[str, dict[str, tuple
         "training speed (validation left out)": ("Multiline", ["speed/pairs_per_second"]),
     }
     return {
-        "localization: which score and variance find held-out pairs": answer,
+        ANSWER: answer,
         "the learned mask": mask,
+        "every score and variance: share of held-out pairs located": every,
         "localization margins": margins,
         "training": training,
     }
@@ -115,6 +143,7 @@ class MaskLogger(TensorBoardLogger):
 
     def __init__(self, *args: Any, default_hp_metric: bool = False, **kwargs: Any) -> None:
         super().__init__(*args, default_hp_metric=default_hp_metric, **kwargs)
+        self._answer_writers: dict[str, Any] = {}
 
     @rank_zero_only
     def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
@@ -123,24 +152,65 @@ class MaskLogger(TensorBoardLogger):
 
     @rank_zero_only
     def log_layout(self, sets: Sequence[str], masked_truth: bool) -> None:
-        """Write the Custom Scalars layout (:func:`layout`); the margins and training categories start folded."""
+        """Write the Custom Scalars layout (:func:`layout`); all but the answer and the mask start folded."""
         categories = layout(sets, masked_truth)
         summary = layout_summary(categories, closed=list(categories)[2:])
         self.experiment._get_file_writer().add_summary(summary)
 
     @rank_zero_only
-    def log_final_metrics(self, metrics: Sequence[str], leading: Mapping[str, Any] | None = None) -> None:
+    def log_answer(self, rates: Mapping[str, float], step: int) -> None:
+        """Log the answer's lines: ``rates`` (``"<set>/<method>"`` -> share) of the answer's methods, one sub-run each.
+
+        The sub-run ``<run>/<method>`` holds the tag ``answer/<set>``: one chart per set, one colour per method.
+        """
+        from torch.utils.tensorboard import SummaryWriter
+
+        from enmi_torch.training.localization_figure import ANSWER_METHODS
+
+        for name, rate in rates.items():
+            held_out, method = name.split("/")
+            if method not in ANSWER_METHODS:
+                continue
+            if method not in self._answer_writers:
+                self._answer_writers[method] = SummaryWriter(str(Path(self.log_dir) / method))
+            self._answer_writers[method].add_scalar(answer_tag(held_out), rate, step)
+        for writer in self._answer_writers.values():
+            writer.flush()
+
+    @rank_zero_only
+    def finalize(self, status: str) -> None:
+        """Close the answer's sub-run writers too."""
+        super().finalize(status)
+        for writer in self._answer_writers.values():
+            writer.close()
+        self._answer_writers = {}
+
+    @rank_zero_only
+    def log_final_metrics(
+        self,
+        metrics: Sequence[str],
+        leading: Mapping[str, Any] | None = None,
+        defaults: Mapping[str, Any] | None = None,
+    ) -> None:
         """The hyperparameters with these metric tags: the HParams tab shows each tag's last logged value.
 
-        The hyperparameters are ``leading`` (the data, the epochs) and those of ``SHOWN`` (the ones that tell runs
-        apart; TensorBoard lists them by name and ticks the first few): every other one is in the run's
+        The hyperparameters are ``leading`` (the data, the epochs) and those of ``SHOWN`` that differ from
+        ``defaults``: TensorBoard ticks only the first five hyperparameters and five metrics, so a run with the default
+        settings opens on its answer (the first metrics) on the first screen. Every hyperparameter is in the run's
         ``hparams.yaml`` and ``config.yaml``.
         """
         from torch.utils.tensorboard.summary import hparams
 
         stored = self._sanitize_params(_flatten_dict(_convert_params(dict(self.hparams))))
+        defaults = dict(defaults or {})
         params = dict(leading or {})
-        params.update({key: stored[key] for key in SHOWN if key in stored and key not in params})
+        params.update(
+            {
+                key: stored[key]
+                for key in SHOWN
+                if key in stored and key not in params and (key not in defaults or stored[key] != defaults[key])
+            }
+        )
         experiment, start, end = hparams(params, dict.fromkeys(metrics, 0.0))
         writer = self.experiment._get_file_writer()
         for summary in (experiment, start, end):

@@ -12,7 +12,7 @@ Dashboards (TensorBoard, written by :class:`~enmi_torch.training.logger.MaskLogg
 ``mask/empirical_rel_rms_vs_truth``; ``localization/<held-out set>/<method>`` (share of held-out pairs located
 within one pixel by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and
 ``localization_z/<held-out set>/<method>`` (the mean z-score of the true shift's score among the others: the margin)
-for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_analytic``, synthetic data) and the
+for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_true``, synthetic data) and the
 uniform controls (``*_uniform``: the learned mask's mean; ``enmi_best_uniform``: the best of the mean times
 ``localization_grid``), hard NMI and NCC. The held-out sets are the validation pairs with their residuals
 ``local - prior`` scaled by each of ``localization_noise`` (``noise_x16``: 16 times the noise, 256 times the
@@ -24,6 +24,7 @@ standardised residuals.
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from collections.abc import Sequence
@@ -38,7 +39,7 @@ from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
-from enmi_torch.training.localization_figure import held_out_order, localization_figure
+from enmi_torch.training.localization_figure import ANSWER_METHODS, OTHER_METHODS, held_out_order, localization_figure
 from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
@@ -263,10 +264,23 @@ class MaskFitModule(LightningModule):
             metrics = [key for key in self.trainer.callback_metrics if key.startswith(final)]
             held_out = held_out_order({key.split("/")[1] for key in metrics if key.startswith("localization/")})[::-1]
             rank = {name: index for index, name in enumerate(held_out)}  # the hardest set first
-            metrics.sort(key=lambda key: (not key.startswith("mask/"), rank.get(key.split("/")[1], len(rank)), key))
-            data = self.trainer.datamodule.hparams if self.trainer.datamodule is not None else {}
+
+            def order(key: str) -> tuple:  # the answer's lines first, then the mask's errors, then the rest
+                parts = key.split("/")
+                if parts[0] == "localization" and parts[2] in ANSWER_METHODS:
+                    return 0, rank[parts[1]], ANSWER_METHODS.index(parts[2]), key
+                return 1 if parts[0] == "mask" else 2, rank.get(parts[1], len(rank)), 0, key
+
+            metrics.sort(key=order)
+            datamodule = self.trainer.datamodule
+            data = datamodule.hparams if datamodule is not None else {}
             source = data.get("root") or data.get("flavour", "")
-            self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch})
+            defaults = {}
+            for owner in (self, datamodule):
+                if owner is not None:
+                    parameters = inspect.signature(type(owner).__init__).parameters.values()
+                    defaults.update({item.name: item.default for item in parameters if item.default is not item.empty})
+            self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch}, defaults)
 
     def on_train_start(self) -> None:
         """Lay out the Custom Scalars tab: the held-out sets, hardest first, and the mask's errors."""
@@ -330,14 +344,24 @@ class MaskFitModule(LightningModule):
         One per factor ``k`` of ``localization_noise``: the residuals ``local - prior`` scaled by ``k`` (the variance by
         ``k^2``), named ``noise_x<k>``. Each is cropped to the central ``localization_crop`` square plus the search
         border. Another kind of held-out pairs (scene changes, say) is one more entry.
+
+        A scaled local image is clipped to ``value_range``, as a sensor's output saturates: strong noise on real pairs
+        would otherwise leave the range by many widths, which the scores refuse. The variance factor stays ``k^2``
+        (clipping lowers the true variance where it bites; every variance map is scaled alike, so the comparison
+        between them stays fair). ``noise_x1`` is the data as it is.
         """
         shift = self.hparams.localization_shift
         side = min(self.hparams.localization_crop + 2 * shift, *self.shape)
         top, left = (self.shape[0] - side) // 2, (self.shape[1] - side) // 2
         window = (..., slice(top, top + side), slice(left, left + side))
         local, prior = local[window], prior[window]
+        low, high = self.hparams.value_range
         return {
-            f"noise_x{factor:g}": (prior + factor * (local - prior), prior, factor**2)
+            f"noise_x{factor:g}": (
+                local if factor == 1 else (prior + factor * (local - prior)).clamp(low, high),
+                prior,
+                factor**2,
+            )
             for factor in self.hparams.localization_noise
         }
 
@@ -371,7 +395,7 @@ class MaskFitModule(LightningModule):
             for set_name, (set_local, set_prior, factor) in sets.items():
 
                 def fixed(set_local=set_local, set_prior=set_prior, factor=factor):
-                    analytic = {} if truth is None else {"analytic": truth.variance.to(local.device)[window] * factor}
+                    analytic = {} if truth is None else {"true": truth.variance.to(local.device)[window] * factor}
                     return localization_trials(
                         set_local,
                         set_prior,
@@ -465,16 +489,21 @@ class MaskFitModule(LightningModule):
             rates = {name: float(totals[index]) / pairs for index, name in enumerate(names)}
             margins = {name: float(totals[len(names) + index]) / pairs for index, name in enumerate(names)}
             for set_name in sorted({name.split("/")[0] for name in names}):
-                grid = [name for name in names if name.startswith(f"{set_name}/enmi_uniform")]
-                best = max(grid, key=lambda name: (rates[name], margins[name]))
-                best_name = f"{set_name}/enmi_best_uniform"
-                rates[best_name], margins[best_name] = rates[best], margins[best]
+                others = [f"{set_name}/{method}" for method in OTHER_METHODS]
+                for best_name, group in (
+                    ("enmi_best_uniform", [name for name in names if name.startswith(f"{set_name}/enmi_uniform")]),
+                    ("best_other", [name for name in others if name in rates]),
+                ):
+                    best = max(group, key=lambda name: (rates[name], margins[name]))
+                    rates[f"{set_name}/{best_name}"], margins[f"{set_name}/{best_name}"] = rates[best], margins[best]
             for name in sorted(rates):
                 if "/enmi_uniform_x" in name:
                     continue
                 self.log(f"localization/{name}", rates[name], sync_dist=False)
                 if math.isfinite(margins[name]):
                     self.log(f"localization_z/{name}", margins[name], sync_dist=False)
+            if isinstance(self.logger, MaskLogger):
+                self.logger.log_answer(rates, self.global_step)
         if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
             figure = self.figure()
             self.logger.experiment.add_figure("masks", figure, self.global_step)
