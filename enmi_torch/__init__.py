@@ -1,41 +1,81 @@
-"""enmi_torch: noise-aware (enhanced) normalized mutual information for image matching and localization."""
+"""enmi_torch: noise-aware (enhanced) normalized mutual information for image matching and localization.
 
-from enmi_torch._budget import MemoryBudgetError, get_memory_budget, memory_budget, set_memory_budget
-from enmi_torch._checks import value_checks
-from enmi_torch.binning import (
-    bin_centers,
-    bin_edges,
-    gaussian_log_prior,
-    likelihood_weights,
-    parzen_weights,
-    truncated_likelihood_weights,
-)
-from enmi_torch.geometry.camera import RoadCamera
-from enmi_torch.geometry.rectify import GroundGrid, rectify, unrectify
-from enmi_torch.histogram import joint_histogram
-from enmi_torch.information import entropies, nmi_from_joint_histogram
-from enmi_torch.localization.peak import Localization, NoCandidateError
-from enmi_torch.localization.search import Localizer, localize
-from enmi_torch.losses import ECRLoss, ENMILoss, MixtureLoss, NMILoss, ScoreLoss
-from enmi_torch.placement import Surface
-from enmi_torch.registration import Registration, register, registration_score, warp_reference
-from enmi_torch.scores import ECR, ENMI, NCC, NMI, Mixture, Score, as_score, direct_surface
-from enmi_torch.scores.ecr import BinSums, ecr, ecr_from_bin_sums, ecr_loss, ecr_surface
-from enmi_torch.scores.enmi import enmi, enmi_loss, enmi_surface
-from enmi_torch.scores.mixture import mixture_information, mixture_loss, mixture_surface
-from enmi_torch.scores.ncc import ncc, ncc_loss, ncc_surface
-from enmi_torch.scores.nmi import nmi, nmi_loss, nmi_surface
-from enmi_torch.tracking import Calibration, Tracker
-from enmi_torch.variance import (
-    ConstantVariance,
-    EmpiricalVariance,
-    LearnedVariance,
-    PerspectiveVariance,
-    VarianceModel,
-    empirical_variance,
-    gaussian_nll,
-    perspective_variance,
-)
+The names below are imported on first use (as scikit-image's and SciPy's top levels do), so that ``import enmi_torch``
+and the commands' ``--help`` do not import torch until something needs it.
+"""
+
+import importlib
+
+# Where each public name lives.
+_SOURCES = {
+    "MemoryBudgetError": "enmi_torch._budget",
+    "get_memory_budget": "enmi_torch._budget",
+    "memory_budget": "enmi_torch._budget",
+    "set_memory_budget": "enmi_torch._budget",
+    "value_checks": "enmi_torch._checks",
+    "bin_centers": "enmi_torch.binning",
+    "bin_edges": "enmi_torch.binning",
+    "gaussian_log_prior": "enmi_torch.binning",
+    "likelihood_weights": "enmi_torch.binning",
+    "parzen_weights": "enmi_torch.binning",
+    "truncated_likelihood_weights": "enmi_torch.binning",
+    "RoadCamera": "enmi_torch.geometry.camera",
+    "GroundGrid": "enmi_torch.geometry.rectify",
+    "rectify": "enmi_torch.geometry.rectify",
+    "unrectify": "enmi_torch.geometry.rectify",
+    "joint_histogram": "enmi_torch.histogram",
+    "entropies": "enmi_torch.information",
+    "nmi_from_joint_histogram": "enmi_torch.information",
+    "Localization": "enmi_torch.localization.peak",
+    "NoCandidateError": "enmi_torch.localization.peak",
+    "Localizer": "enmi_torch.localization.search",
+    "localize": "enmi_torch.localization.search",
+    "ECRLoss": "enmi_torch.losses",
+    "ENMILoss": "enmi_torch.losses",
+    "MixtureLoss": "enmi_torch.losses",
+    "NMILoss": "enmi_torch.losses",
+    "ScoreLoss": "enmi_torch.losses",
+    "Surface": "enmi_torch.placement",
+    "Registration": "enmi_torch.registration",
+    "register": "enmi_torch.registration",
+    "registration_score": "enmi_torch.registration",
+    "warp_reference": "enmi_torch.registration",
+    "ECR": "enmi_torch.scores",
+    "ENMI": "enmi_torch.scores",
+    "NCC": "enmi_torch.scores",
+    "NMI": "enmi_torch.scores",
+    "Mixture": "enmi_torch.scores",
+    "Score": "enmi_torch.scores",
+    "as_score": "enmi_torch.scores",
+    "direct_surface": "enmi_torch.scores",
+    "BinSums": "enmi_torch.scores.ecr",
+    "ecr": "enmi_torch.scores.ecr",
+    "ecr_from_bin_sums": "enmi_torch.scores.ecr",
+    "ecr_loss": "enmi_torch.scores.ecr",
+    "ecr_surface": "enmi_torch.scores.ecr",
+    "enmi": "enmi_torch.scores.enmi",
+    "enmi_loss": "enmi_torch.scores.enmi",
+    "enmi_surface": "enmi_torch.scores.enmi",
+    "mixture_information": "enmi_torch.scores.mixture",
+    "mixture_loss": "enmi_torch.scores.mixture",
+    "mixture_surface": "enmi_torch.scores.mixture",
+    "ncc": "enmi_torch.scores.ncc",
+    "ncc_loss": "enmi_torch.scores.ncc",
+    "ncc_surface": "enmi_torch.scores.ncc",
+    "nmi": "enmi_torch.scores.nmi",
+    "nmi_loss": "enmi_torch.scores.nmi",
+    "nmi_surface": "enmi_torch.scores.nmi",
+    "Calibration": "enmi_torch.tracking",
+    "Tracker": "enmi_torch.tracking",
+    "ConstantVariance": "enmi_torch.variance",
+    "EmpiricalVariance": "enmi_torch.variance",
+    "LearnedVariance": "enmi_torch.variance",
+    "PerspectiveVariance": "enmi_torch.variance",
+    "VarianceModel": "enmi_torch.variance",
+    "empirical_variance": "enmi_torch.variance",
+    "gaussian_nll": "enmi_torch.variance",
+    "perspective_variance": "enmi_torch.variance",
+}
 
 __version__ = "0.1.0"
 
@@ -108,3 +148,17 @@ __all__ = [
     "value_checks",
     "warp_reference",
 ]
+
+
+def __getattr__(name: str):
+    """Import a public name from its module on first use."""
+    module = _SOURCES.get(name)
+    if module is None:
+        raise AttributeError(f"module 'enmi_torch' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

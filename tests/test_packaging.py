@@ -137,3 +137,17 @@ def test_the_installed_wheel_runs_its_commands_from_another_folder(wheel, tmp_pa
     package, configs = completed.stdout.splitlines()[0].split()
     assert Path(package).is_relative_to(target) and Path(configs) == target / "enmi_torch" / "configs"
     assert (tmp_path / "paper" / "paper_simulation.png").is_file()
+
+
+def test_the_top_level_imports_its_names_on_first_use():
+    # import enmi_torch (and so every command's --help) does not import torch; each public name resolves when used.
+    code = (
+        "import sys, enmi_torch; assert 'torch' not in sys.modules, 'torch imported'; "
+        "assert all(getattr(enmi_torch, name) is not None for name in enmi_torch.__all__); "
+        "assert set(enmi_torch.__all__) <= set(dir(enmi_torch)); print(enmi_torch.ECR.__module__)"
+    )
+    completed = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert completed.returncode == 0, completed.stderr
+    assert completed.stdout.strip() == "enmi_torch.scores.ecr"
+    with pytest.raises(AttributeError, match="has no attribute 'not_a_name'"):
+        enmi_torch.not_a_name  # noqa: B018
