@@ -34,11 +34,15 @@ import torch
 from torch import Tensor, nn
 
 from enmi_torch._checks import (
+    check_bool,
     check_floating,
+    check_mask_of,
     check_non_negative_int,
     check_option,
     check_positive_int,
     check_positive_number,
+    check_real_data,
+    check_same_device,
     check_shifts,
 )
 from enmi_torch.localization.peak import NoCandidateError
@@ -49,6 +53,7 @@ from enmi_torch.tracking.belief import (
     Belief,
     belief_pose,
     check_belief,
+    check_belief_memory,
     check_mismatch_probability,
     check_noise,
     finite_floor,
@@ -57,7 +62,7 @@ from enmi_torch.tracking.belief import (
     normalized,
     predict,
 )
-from enmi_torch.tracking.calibration import Calibration, grid_temperature
+from enmi_torch.tracking.calibration import Calibration, _checked, grid_temperature
 from enmi_torch.tracking.health import (
     Health,
     check_health,
@@ -182,19 +187,19 @@ def track_step(
     """
     check_belief(belief)
     score = default_score() if score is None else as_score(score)
-    if not isinstance(refine, bool):
-        raise TypeError(f"refine must be a bool, got {type(refine).__name__} {refine!r}")
-    if refine:
+    if check_bool("refine", refine):
         check_registration_score(score)
     check_floating("captured", captured)
+    check_real_data("captured", captured)
     if captured.ndim != 4 or captured.shape[1] != 1 or captured.shape[0] != belief.log_prob.shape[0]:
         raise ValueError(
             f"captured must be (B, 1, h, w) with B = {belief.log_prob.shape[0]} (the belief's vehicles), got "
             f"{tuple(captured.shape)}"
         )
-    check_floating("reference", reference)
-    if reference.ndim != 4 or reference.shape[:2] != (1, 1):
-        raise ValueError(f"reference must be one map (1, 1, Hm, Wm), got {tuple(reference.shape)}")
+    check_reference_map(reference)
+    check_same_device("captured", captured, "reference", reference)
+    if captured_mask is not None:
+        captured_mask = check_mask_of("captured_mask", captured_mask, "captured", captured)
     if isinstance(temperature, str) and temperature != "auto":
         raise ValueError(f"temperature must be 'auto' or a finite number > 0, got {temperature!r}")
     if temperature != "auto":
@@ -336,18 +341,26 @@ class Tracker(nn.Module):
         check_floating("reference", reference)
         if reference.ndim == 2:
             reference = reference[None, None]
+        check_reference_map(reference)
         self.register_buffer("reference", reference, persistent=False)
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
             raise TypeError(f"variance_model must be a VarianceModel or None, got {type(variance_model).__name__}")
         self.variance_model = variance_model
         self.shifts = check_shifts(shifts)
-        self.yaw_bins, self.yaw_step = yaw_bins, yaw_step
+        self.yaw_bins, self.yaw_step = check_positive_int("yaw_bins", yaw_bins), yaw_step
+        check_belief_memory(shifts, self.shifts, self.yaw_bins, 1)  # per vehicle; start() checks its batch
         if calibration is not None:
             if not isinstance(calibration, Calibration):
                 raise TypeError(f"calibration must be a Calibration or None, got {type(calibration).__name__}")
-            settings = {**calibration._asdict(), **settings}
+            settings = {**_checked(calibration, "calibration")._asdict(), **settings}
         if score is not None:
             settings["score"] = as_score(score)
+            if calibration is not None and as_score(calibration.score).name != settings["score"].name:
+                # Its temperature and peak threshold are on that score's scale, not this one's.
+                raise ValueError(
+                    f"calibration was fitted for score {calibration.score!r}, got score={settings['score'].name!r}: "
+                    f"pass score={calibration.score!r} (or leave score out), or calibrate {settings['score'].name!r}"
+                )
         unknown = set(settings) - set(_STEP_SETTINGS)
         if unknown:
             raise TypeError(f"Tracker got unknown setting(s) {sorted(unknown)}; known: {list(_STEP_SETTINGS)}")
@@ -401,6 +414,14 @@ _STEP_SETTINGS = (
     "refine",
     "mismatch_probability",
 )
+
+
+def check_reference_map(reference: Tensor) -> None:
+    """Raise unless ``reference`` is one real floating map ``(1, 1, Hm, Wm)`` with a cell at least."""
+    check_floating("reference", reference)
+    check_real_data("reference", reference)
+    if reference.ndim != 4 or reference.shape[:2] != (1, 1) or reference.numel() == 0:
+        raise ValueError(f"reference must be one map (1, 1, Hm, Wm) or (Hm, Wm), got {tuple(reference.shape)}")
 
 
 def default_score() -> ECR:

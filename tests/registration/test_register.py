@@ -119,7 +119,7 @@ def test_registration_refuses_what_it_cannot_fit(generator):
         register(captured, reference, pose=start, score=NMI())
     with pytest.raises(ValueError, match="variance is not used by score 'ncc'"):
         register(captured, reference, 1.0, pose=start, score="ncc")
-    with pytest.raises(ValueError, match=r"pose must be finite \(B, 3\) with B = 1"):
+    with pytest.raises(ValueError, match=r"pose must have shape \(1, 3\), rows \(x, y, yaw\), got \(2, 3\)"):
         register(captured, reference, 1.0, pose=torch.zeros(2, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="blur must be a non-empty sequence"):
         register(captured, reference, 1.0, pose=start, blur=())
