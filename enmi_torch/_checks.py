@@ -366,7 +366,7 @@ def check_variance_fits(name: str, variance: Tensor | float, dtype: torch.dtype,
         keep = torch.isfinite(variance) & (variance > 0)
         if valid is not None:
             keep = keep & valid
-        positive = variance[keep]
+        positive = variance.detach()[keep]
         if positive.numel() == 0:
             return
         low, high = float(positive.min()), float(positive.max())
@@ -379,6 +379,33 @@ def check_variance_fits(name: str, variance: Tensor | float, dtype: torch.dtype,
         raise ValueError(
             f"{name} must lie within {info.tiny:.3g} to {info.max / 1e3:.3g} to be held in {dtype}, got {value:.3g}; "
             f"pass float64 images (.double()) or rescale the images and their variance"
+        )
+
+
+def check_variance_weighs(name: str, variance: Tensor, values: Tensor, valid: Tensor | None) -> None:
+    """Raise ``ValueError`` if a variance whose gradient is wanted is too small for its dtype (ECR's weights).
+
+    ``variance`` and ``values`` ``(B, N)`` (broadcast), ``valid`` bool or ``None``. Each pixel weighs ``1 / variance``
+    and the gradient in the variance holds ``1 / variance^2`` times squared values summed over the ``N`` pixels: it
+    must stay 1e3 below the dtype's largest value, so the variance must be at least ``max(|value|, 1) * sqrt(1e3 N /
+    max)`` (7e-15 for float32 images of 256 grey levels of 16 x 16 pixels, 1e-149 in float64). The score and the
+    gradient in the images stay finite below that; only a variance that takes a gradient is checked. A value check.
+    """
+    if not _values_checked(variance):
+        return
+    keep = torch.isfinite(values) & torch.isfinite(variance).expand_as(values)
+    if valid is not None:
+        keep = keep & valid
+    if not bool(keep.any()):
+        return
+    scale = max(float(values.detach()[keep].abs().max()), 1.0)
+    low = scale * math.sqrt(1e3 * values.shape[-1] / torch.finfo(variance.dtype).max)
+    smallest = float(variance.detach().expand_as(values)[keep].min())
+    if smallest < low:
+        raise ValueError(
+            f"{name} must be at least {low:.3g} in {variance.dtype} for values up to {scale:.3g} over "
+            f"{values.shape[-1]} pixels, got {smallest:.3g}: each pixel weighs 1 / {name} and the gradient "
+            f"1 / {name}^2, which would overflow; pass float64 images (.double()) or a larger {name}"
         )
 
 

@@ -22,6 +22,7 @@ from enmi_torch._checks import (
     check_same_device,
     check_tensor,
     check_value_range,
+    check_variance_weighs,
 )
 from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_map
 from enmi_torch.binning import (
@@ -342,6 +343,8 @@ def _prepare(
     variance = None
     if captured_variance is not None:
         variance = variance_map(variance_name, captured_variance, captured, compute_dtype, valid)
+        if not captured_binned and variance.requires_grad:  # ECR: 1 / variance^2 in the variance's gradient
+            check_variance_weighs(variance_name, variance, captured_flat, valid)
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).to(captured_flat.device, compute_dtype)
 
