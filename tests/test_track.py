@@ -949,3 +949,106 @@ def test_a_weak_frame_nudges_the_belief_by_its_clearness_squared_or_is_skipped(g
     moved, full = nudged.log_prob - prior, used.log_prob - prior
     torch.testing.assert_close(moved - moved.max(), 0.25 * (full - full.max()), rtol=1e-6, atol=1e-6)
     assert abs(float(weak.pose[0, 0]) - 60.0) > 0.05  # the nudge moves the pose towards the match at (61, 39)
+
+
+def test_the_mismatch_mixing_takes_the_likelihood_at_a_fixed_temperature(generator):
+    # The frame's raw log-likelihood (score * n_valid, from localize itself) divided by the temperature, then mixed.
+    reference = _texture(generator, (60, 90)).float()
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=(4, 5), yaw_bins=3, std=(0.7, 0.7, 1.0))
+    frame, odometry, noise = _cut(reference, 46, 31), torch.zeros(1, 3), (0.5, 0.5, 0.3)
+    prior = predict(belief, odometry, noise)
+    found = localize(
+        frame, reference, 1.0, score=ECR(bins=16), shifts=prior.radius, center=prior.center, yaws=prior.yaws()[0]
+    )
+    raw = found.surface.double() * frame.numel()
+    for temperature in (3000.0, 30000.0):  # a few nats and a fraction of one between the best cells
+        settings = {"score": ECR(bins=16), "motion_noise": noise, "temperature": temperature}
+        posterior, output, _ = track_step(
+            belief, frame, reference, odometry, 1.0, mismatch_probability=0.05, **settings
+        )
+        assert bool(output.healthy[0])
+        expected = normalized(prior.log_prob + mixed_with_mismatch(raw / temperature, 0.05))
+        torch.testing.assert_close(posterior.log_prob, expected, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize(
+    ("offset", "previous", "yaw_step", "agree"),
+    [
+        ((10.0, -3.0, 1.0), (8.0, -5.0, -1.0), 1.0, True),  # 2 cells along x and y, 2 yaw bins: the edge agrees
+        ((10.0, -3.0, 1.0), (7.9, -3.0, 1.0), 1.0, False),  # 2.1 cells along x
+        ((10.0, -3.0, 1.0), (10.0, -0.9, 1.0), 1.0, False),  # 2.1 cells along y
+        ((10.0, -3.0, 1.0), (10.0, -3.0, -1.1), 1.0, False),  # 2.1 yaw bins
+        ((10.0, -3.0, 5.0), (10.0, -3.0, 1.0), 2.0, True),  # 4 degrees are 2 bins of 2 degrees
+        ((10.0, -3.0, 5.0), (10.0, -3.0, 0.5), 2.0, False),  # 4.5 degrees are 2.25 bins
+        ((10.0, -3.0, 1.0), (math.nan, math.nan, math.nan), 1.0, False),  # the previous frame found nothing
+    ],
+)
+def test_two_wide_searches_agree_within_two_cells_and_two_yaw_bins(offset, previous, yaw_step, agree):
+    from enmi_torch.tracking.tracker import wide_matches_agree
+
+    offset, previous = torch.tensor(offset, dtype=torch.float64), torch.tensor(previous, dtype=torch.float64)
+    assert wide_matches_agree(offset, previous, yaw_step) is agree
+    assert wide_matches_agree(previous, offset, yaw_step) is (agree and bool(torch.isfinite(previous).all()))
+
+
+def _frame_inputs(generator):
+    reference = _texture(generator, (60, 90)).float()
+    tracker = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
+    tracker.start(torch.tensor([[45.0, 30.0, 0.0]]))
+    return tracker, _cut(reference, 45, 30), torch.zeros(1, 3)
+
+
+@pytest.mark.parametrize(
+    ("change", "error", "match"),
+    [
+        ({"captured_mask": torch.ones(1, 1, 8, 8, dtype=torch.bool)}, ValueError, "captured_mask must be as large as"),
+        ({"captured_mask": torch.ones(1, 1, *FRAME)}, TypeError, "captured_mask must be a bool tensor"),
+        ({"captured": "meta"}, ValueError, "captured must hold data, got a meta tensor"),
+        ({"odometry": torch.zeros(3)}, ValueError, r"odometry must have shape \(1, 3\), rows \(x, y, yaw\)"),
+        ({"odometry": torch.zeros(1, 2)}, ValueError, r"odometry must have shape \(1, 3\)"),
+        ({"odometry": torch.zeros(1, 3, dtype=torch.long)}, TypeError, "odometry must be a floating-point tensor"),
+        ({"variance": torch.ones(1, 1, 8, 8)}, ValueError, "variance must have the spatial shape of captured"),
+    ],
+)
+def test_a_trackers_frame_inputs_are_refused_naming_the_argument(generator, change, error, match):
+    tracker, frame, odometry = _frame_inputs(generator)
+    arguments = {"captured": frame, "odometry": odometry, "variance": 1.0, "captured_mask": None}
+    arguments.update(change)
+    if arguments["captured"] == "meta":
+        arguments["captured"] = frame.to("meta")
+    with pytest.raises(error, match=match):
+        tracker(**arguments)
+
+
+def test_a_tracker_refuses_a_start_pose_of_the_wrong_shape_or_type(generator):
+    tracker, _, _ = _frame_inputs(generator)
+    for pose, error, match in (
+        (torch.tensor([45.0, 30.0, 0.0]), ValueError, r"pose must have shape \(B, 3\), rows \(x, y, yaw\), got \(3,\)"),
+        (torch.tensor([[45.0, 30.0]]), ValueError, r"pose must have shape \(B, 3\)"),
+        (torch.tensor([[45, 30, 0]]), TypeError, "pose must be a floating-point tensor"),
+        (torch.zeros(1, 3, device="meta"), ValueError, "pose must hold data, got a meta tensor"),
+    ):
+        with pytest.raises(error, match=match):
+            tracker.start(pose)
+
+
+def test_a_tracker_refuses_a_calibration_of_another_score():
+    reference = torch.rand(1, 1, 32, 32) * 255
+    with pytest.raises(ValueError, match=r"calibration was fitted for score 'ecr', got score='nmi'"):
+        Tracker(reference, score="nmi", calibration=Calibration("ecr", 2.0, 3.0))
+    tracker = Tracker(reference, score=ECR(bins=16), calibration=Calibration("ecr", 2.0, 3.0))
+    assert tracker.settings["temperature"] == 2.0 and tracker.settings["score"] == ECR(bins=16)
+
+
+def test_a_tracker_refuses_a_belief_over_the_memory_budget_before_allocating():
+    from enmi_torch import MemoryBudgetError
+
+    reference = torch.rand(1, 1, 64, 64) * 255
+    with pytest.raises(MemoryBudgetError, match=r"shifts=1000000 with yaw_bins=5 needs about .* TiB for the belief"):
+        Tracker(reference, shifts=10**6)
+    tracker = Tracker(reference, shifts=300, yaw_bins=1)  # one vehicle fits, a thousand do not
+    with pytest.raises(MemoryBudgetError, match=r"for the belief \(1000, 1, 601, 601\)"):
+        tracker.start(torch.zeros(1000, 3))
+    for reference in (torch.rand(1, 1, 0, 4), torch.rand(2, 1, 8, 8), torch.rand(8, 8, device="meta")):
+        with pytest.raises(ValueError, match=r"reference must (be one map|hold data)"):
+            Tracker(reference)

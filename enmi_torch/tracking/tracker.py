@@ -247,8 +247,7 @@ def track_step(
         offset = found.to(candidate) - window_center
         previous = health.candidate[vehicle]
         candidate[vehicle] = offset
-        agrees = bool(torch.isfinite(previous).all()) and bool((offset[:2] - previous[:2]).abs().max() <= 2.0)
-        if not (agrees and bool((offset[2] - previous[2]).abs() <= 2 * prior.yaw_step)):
+        if not wide_matches_agree(offset, previous, prior.yaw_step):
             continue
         fresh = _restart(prior, vehicle, found)
         fresh_raw, fresh_score, fresh_z, fresh_temperature = search.window(fresh, vehicle)
@@ -558,6 +557,28 @@ class _Searcher:
         pose = found.pose[0].double()
         center = belief.center[vehicle].double()
         return torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]])
+
+
+AGREEMENT_CELLS = 2.0  # two wide searches agree within this many cells (and as many yaw bins)
+
+
+def wide_matches_agree(offset: Tensor, previous: Tensor, yaw_step: float) -> bool:
+    """Whether two frames' wide searches found the same place: the relocalization's agreement rule.
+
+    ``offset`` and ``previous`` are ``(3,)`` ``(x, y, yaw)`` of each frame's best wide match relative to its own
+    predicted window (NaN: that frame had none). They agree within :data:`AGREEMENT_CELLS` cells along ``x`` and
+    along ``y`` and within as many yaw bins of ``yaw_step`` degrees.
+
+    Example:
+        >>> wide_matches_agree(torch.tensor([10.0, -3.0, 1.0]), torch.tensor([8.0, -4.5, -1.0]), 1.0)
+        True
+        >>> wide_matches_agree(torch.tensor([10.0, -3.0, 1.0]), torch.tensor([10.0, -5.5, 1.0]), 1.0)
+        False
+    """
+    if not bool(torch.isfinite(previous).all()):
+        return False
+    near = bool((offset[:2] - previous[:2]).abs().max() <= AGREEMENT_CELLS)
+    return near and bool((offset[2] - previous[2]).abs() <= AGREEMENT_CELLS * yaw_step)
 
 
 def _restart(belief: Belief, vehicle: int, pose: Tensor) -> Belief:
