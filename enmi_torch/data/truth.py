@@ -11,6 +11,7 @@ Convention:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -145,10 +146,11 @@ def check_std(name: str, value: object, *, positive: bool = False) -> float:
     low = "> 0" if positive else ">= 0"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{name} must be a finite number {low}, got {value!r}")
-    if not (0 < value if positive else 0 <= value) or not value <= MAX_STD:
+    if not (0 < value if positive else 0 <= value) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number {low}, got {value!r}")
+    if value > MAX_STD:
         raise ValueError(
-            f"{name} must be a finite number {low} and at most {MAX_STD:.0e} (the pairs are float32 images of grey "
-            f"levels), got {value!r}"
+            f"{name} must be at most {MAX_STD:.0e} (the pairs are float32 images of grey levels), got {value!r}"
         )
     return float(value)
 
