@@ -191,3 +191,44 @@ def test_a_margin_and_a_mask_are_refused_by_name():
             check_mask_of("mask", mask.bool(), "map", like)
     with pytest.raises(TypeError, match=r"mask must be a bool tensor, got dtype torch\.float32"):
         check_mask_of("mask", torch.ones(1, 1, 5, 7), "map", like)
+
+
+IMAGE = torch.rand(64, 64, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 255
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda image: nmi(image, image),
+        lambda image: enmi(image, image, 1.0),
+        lambda image: ecr(image, image, 1.0),
+        lambda image: mixture_information(image, image, 1.0),
+        lambda image: joint_histogram(image, image),
+        lambda image: hard_entropies(image, image),
+        lambda image: NMILoss()(image, image),
+        lambda image: ENMILoss()(image, image, variance=1.0),
+    ],
+)
+def test_a_2d_tensor_is_refused_naming_both_readings_not_scored_per_row(call):
+    # nmi(captured[0, 0], reference[0, 0]) on a (64, 64) image returned 64 per-row scores before.
+    with pytest.raises(ValueError, match=r"captured must have shape \(B, 1, H, W\) or \(B, H, W\), got the 2-D shape"):
+        call(IMAGE)
+    with pytest.raises(ValueError, match=r"one \(H, W\) image or \(B, N\) flat samples: pass one image as"):
+        call(IMAGE)
+
+
+def test_flat_samples_are_one_row_of_pixels_each_and_take_their_maps_flat():
+    from enmi_torch import ncc
+
+    generator = torch.Generator().manual_seed(4)
+    captured = torch.rand(3, 1, 40, generator=generator, dtype=torch.float64) * 255
+    reference = captured + 20 * torch.randn(3, 1, 40, generator=generator, dtype=torch.float64)
+    variance = torch.rand(3, 40, generator=generator, dtype=torch.float64) + 0.5
+    as_images = [score(captured[:, None], reference[:, None]) for score in (nmi, ncc)]
+    assert [score(captured, reference).tolist() for score in (nmi, ncc)] == [value.tolist() for value in as_images]
+    per_sample = enmi(captured, reference, variance)  # (B, N) beside flat samples (B, 1, N): one row per sample
+    torch.testing.assert_close(per_sample, enmi(captured, reference, variance[:, None]))
+    shared = enmi(captured, reference, variance[0])  # (N,): one map for every sample
+    torch.testing.assert_close(shared, enmi(captured, reference, variance[:1, None].expand(3, 1, 40)))
+    with pytest.raises(ValueError, match=r"variance must have the spatial shape of captured \(1, 40\)"):
+        enmi(captured, reference, variance[:2])
