@@ -232,3 +232,60 @@ def test_flat_samples_are_one_row_of_pixels_each_and_take_their_maps_flat():
     torch.testing.assert_close(shared, enmi(captured, reference, variance[:1, None].expand(3, 1, 40)))
     with pytest.raises(ValueError, match=r"variance must have the spatial shape of captured \(1, 40\)"):
         enmi(captured, reference, variance[:2])
+
+
+def test_the_far_outside_range_rule_counts_valid_pixels_only_and_strictly_beyond_eight_widths():
+    from enmi_torch._checks import check_resolved_by_bins
+
+    value_range = (0.0, 2.0)  # eight widths below 0 is -16
+    inside = torch.linspace(0.0, 2.0, 10, dtype=torch.float64).repeat(1, 10)  # (1, 100)
+    first = torch.arange(100)[None]
+
+    def with_far(count: int, value: float = -16.5) -> torch.Tensor:
+        return torch.where(first < count, value, inside)
+
+    check_resolved_by_bins("captured", with_far(60, -16.0), None, 8, value_range)  # exactly eight widths: not beyond
+    with pytest.raises(
+        ValueError, match=r"captured lies far outside value_range=\(0.0, 2.0\): 60% of its valid pixels"
+    ):
+        check_resolved_by_bins("captured", with_far(60), None, 8, value_range)
+    check_resolved_by_bins("captured", with_far(40), None, 8, value_range)  # 40 %: noise spilling over
+    valid = first >= 60  # the far pixels masked out
+    check_resolved_by_bins("captured", with_far(60), valid, 8, value_range)
+    valid = (first >= 50) & (first < 70)  # 10 far of 20 valid: half is not more than half
+    check_resolved_by_bins("captured", with_far(60), valid, 8, value_range)
+    valid = (first >= 49) & (first < 70)  # 11 of 21
+    with pytest.raises(ValueError, match=r"52% of its valid pixels in sample 0"):
+        check_resolved_by_bins("captured", with_far(60), valid, 8, value_range)
+
+
+def test_the_number_checks_hold_at_their_edges():
+    from enmi_torch._checks import (
+        check_bins,
+        check_captured_in_reference,
+        check_counts,
+        check_positive_number,
+        check_positive_where,
+        check_value_range,
+        check_variance_fits,
+    )
+
+    with pytest.raises(ValueError, match="x must be a finite number > 0, got 0"):
+        check_positive_number("x", 0)
+    assert check_bins(2) == 2
+    with pytest.raises(ValueError, match=r"value_range must be finite with low < high, got \(1.0, 1.0\)"):
+        check_value_range((1.0, 1.0))
+    tiny, largest = torch.finfo(torch.float32).tiny, torch.finfo(torch.float32).max / 1e3
+    check_variance_fits("variance", tiny, torch.float32)  # the edges themselves fit
+    check_variance_fits("variance", largest, torch.float32)
+    check_variance_fits("variance", 0.0, torch.float32)  # not positive: left to the positivity check
+    check_variance_fits("variance", torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64), torch.float32)
+    with pytest.raises(ValueError, match=r"variance must lie within 1.18e-38 to 3.4e\+35 to be held in torch.float32"):
+        check_variance_fits("variance", 1e37, torch.float32)
+    with pytest.raises(ValueError, match=r"got 1e-39"):
+        check_variance_fits("variance", torch.tensor([1e-39, 1.0], dtype=torch.float64), torch.float32)
+    with pytest.raises(ValueError, match=r"variance must be finite and > 0 where valid_mask is True, got 1 value"):
+        check_positive_where("variance", torch.tensor([[1.0, -1.0]]), None)
+    with pytest.raises(ValueError, match=r"counts must be finite counts >= 0, got 1 value\(s\) outside"):
+        check_counts("counts", torch.tensor([1.0, -1.0]))
+    assert check_captured_in_reference(torch.zeros(1, 1, 4, 6), torch.zeros(1, 1, 4, 6), "H, W") == (1, 4, 6)

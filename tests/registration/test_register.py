@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -392,3 +393,60 @@ def test_warp_reference_counts_samples_up_to_the_right_and_bottom_borders(margin
     corner = torch.tensor([[width - 1.0, height - 1.0, 0.0]], dtype=torch.float64)  # the bottom-right cell itself
     corner_value, corner_valid = warp_reference(reference, corner, (1, 1))
     assert float(corner_value) == height * width - 1 and bool(corner_valid)
+
+
+def test_the_binned_response_is_the_weighted_least_squares_fit_of_hat_functions_at_the_bin_centres(generator):
+    # An independent fit: numpy least squares on hat functions with knots at the bin centres (values beyond the first
+    # and last knot held at them), each pixel weighed by 1 / (sigma^2 + tau^2).
+    reference = _map(generator)
+    pose = torch.tensor([[44.4, 33.8, 3.0]], dtype=torch.float64)
+    captured = warp_reference(reference, pose + 0.4, SHAPE)[0] + torch.randn(1, 1, *SHAPE, generator=generator)
+    variance = 1 + torch.rand(1, 1, *SHAPE, generator=generator, dtype=torch.float64) * 9
+    bins, value_range, tau2 = 5, (0.0, 256.0), 3.0
+    value = registration_score(captured, reference, pose, variance, score=ECR(bins=bins, model_variance=tau2))
+    warped = warp_reference(reference, pose, SHAPE)[0].flatten().numpy()
+    step = (value_range[1] - value_range[0]) / bins
+    knots = value_range[0] + step * (np.arange(bins) + 0.5)
+    position = np.clip((warped - knots[0]) / step, 0, bins - 1)
+    design = np.maximum(0.0, 1 - np.abs(position[:, None] - np.arange(bins)[None, :]))  # hat functions
+    weights = 1 / (variance.flatten().numpy() + tau2)
+    values = captured.flatten().numpy()
+    root = np.sqrt(weights)
+    coefficients = np.linalg.lstsq(design * root[:, None], values * root, rcond=None)[0]
+    residual = (weights * (values - design @ coefficients) ** 2).sum()
+    mean = (weights * values).sum() / weights.sum()
+    expected = 0.5 * ((weights * (values - mean) ** 2).sum() - residual) / values.size
+    assert float(value) == pytest.approx(expected, rel=1e-9)
+
+
+def test_the_blur_is_normalised_over_the_pixels_that_count():
+    from enmi_torch.registration.refine import _gaussian
+
+    generator = torch.Generator().manual_seed(5)
+    images = torch.rand(1, 1, 5, 7, generator=generator, dtype=torch.float64) * 255
+    weight = (torch.rand(1, 1, 5, 7, generator=generator) > 0.3).double()
+    blurred, mass = _gaussian(images, 1.0, weight)
+    taps = np.exp(-0.5 * np.arange(-3, 4) ** 2)
+    taps /= taps.sum()
+    image, counted = images[0, 0].numpy(), weight[0, 0].numpy()
+    for row in range(5):
+        for col in range(7):
+            total = held = 0.0
+            for dy in range(-3, 4):
+                for dx in range(-3, 4):
+                    if 0 <= row + dy < 5 and 0 <= col + dx < 7:  # zero padding beyond the border
+                        tap = taps[dy + 3] * taps[dx + 3] * counted[row + dy, col + dx]
+                        total, held = total + tap * image[row + dy, col + dx], held + tap
+            assert float(mass[0, 0, row, col]) == pytest.approx(held, rel=1e-12)
+            assert float(blurred[0, 0, row, col]) == pytest.approx(total / held, rel=1e-12)
+
+
+def test_the_blur_budget_counts_the_taps_and_the_padded_map(generator):
+    from enmi_torch import MemoryBudgetError, memory_budget
+    from enmi_torch._budget import format_bytes
+
+    captured, reference, pose = _inputs(generator)  # a 64 x 64 map, 16 x 16 captured
+    radius = 300  # sigma 100: 3 sigma, the padded map a sixth of the total
+    expected = 8 * (64 * 64 * (2 * radius + 1) + (64 + 2 * radius) * (64 + 2 * radius))
+    with memory_budget(100_000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):
+        register(captured, reference, 1.0, pose=pose, blur=(100.0, 0.0))
