@@ -293,6 +293,10 @@ def test_warp_reference_takes_integer_sizes_only_and_refuses_a_small_mask(genera
         warp_reference(reference, pose, (4, 4), torch.ones(1, 1, 32, 32, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"margin must be a finite number >= 0"):
         warp_reference(reference, pose, (4, 4), margin=-3.0)
+    with pytest.raises(ValueError, match=r"margin must be a finite number >= 0"):
+        warp_reference(reference, pose, (4, 4), margin=float("nan"))
+    with pytest.raises(TypeError, match=r"reference must be a floating-point tensor, got dtype torch\.complex128"):
+        warp_reference(reference.to(torch.complex128), pose, (4, 4))  # its imaginary part was dropped
 
 
 def test_nan_map_cells_count_as_unobserved_like_a_mask_says(generator):
