@@ -1052,3 +1052,54 @@ def test_a_tracker_refuses_a_belief_over_the_memory_budget_before_allocating():
     for reference in (torch.rand(1, 1, 0, 4), torch.rand(2, 1, 8, 8), torch.rand(8, 8, device="meta")):
         with pytest.raises(ValueError, match=r"reference must (be one map|hold data)"):
             Tracker(reference)
+
+
+def test_the_relocalization_gain_is_the_fresh_best_over_the_windows_best():
+    from enmi_torch.tracking.tracker import relocalization_gain
+
+    window = torch.tensor([[[[120.0, 150.0], [90.0, 10.0]]]], dtype=torch.float64)
+    assert float(relocalization_gain(window + 7.5, window)) == 7.5
+    assert float(relocalization_gain(window - 20.0, window)) == -20.0  # a worse match elsewhere: no jump
+    assert float(relocalization_gain(torch.full_like(window, 155.0), window)) == 5.0
+
+
+def test_the_initial_gaussian_belief_is_the_product_of_its_three_axes():
+    pose = torch.tensor([[10.3, 20.6, 3.4]], dtype=torch.float64)
+    std = (0.8, 1.7, 2.5)  # unequal on every axis: a swapped or inverted one fails
+    belief = initial_belief(pose, shifts=(2, 3), yaw_bins=3, yaw_step=2.0, std=std)
+    yaws = torch.tensor([1.4, 3.4, 5.4], dtype=torch.float64)[:, None, None]
+    rows = torch.arange(19.0, 24.0, dtype=torch.float64)[None, :, None]  # centre row 21 = round(20.6)
+    cols = torch.arange(7.0, 14.0, dtype=torch.float64)[None, None, :]  # centre column 10
+    log_density = -0.5 * (((cols - 10.3) / 0.8) ** 2 + ((rows - 20.6) / 1.7) ** 2 + ((yaws - 3.4) / 2.5) ** 2)
+    expected = log_density - torch.logsumexp(log_density.flatten(), 0)
+    torch.testing.assert_close(belief.log_prob[0], expected)
+
+
+def test_belief_pose_refines_up_to_half_a_bin_inside_the_window_and_not_at_its_edge():
+    belief = initial_belief(torch.tensor([[5.0, 7.0, 0.0]]), shifts=2, yaw_bins=1)
+    ruled_out = torch.full((1, 1, 5, 5), -80.0, dtype=torch.float64)
+    near = ruled_out.clone()
+    near[0, 0, 2, 1:4] = torch.tensor([-1.0, 0.0, -9.0])  # vertex 0.4 bins left of column 5
+    pose, _ = belief_pose(belief._replace(log_prob=near))
+    assert pose[0, 0].item() == pytest.approx(4.6, abs=1e-12) and pose[0, 1].item() == pytest.approx(7.0, abs=1e-12)
+    edge = ruled_out.clone()
+    edge[0, 0, 2, 3:5] = torch.tensor([-3.0, 0.0])  # the peak on the window's last column: no parabola through it
+    pose, _ = belief_pose(belief._replace(log_prob=edge))
+    assert pose[0, 0].item() == pytest.approx(7.0, abs=1e-12)
+
+
+def test_a_flat_beliefs_covariance_is_its_second_moment_plus_a_bin_spread_uniformly():
+    belief = initial_belief(torch.tensor([[5.0, 7.0, 0.0]]), shifts=(1, 2), yaw_bins=3, yaw_step=2.0)
+    _, covariance = belief_pose(belief)  # flat: no bin holds half the mass
+    # x over -2..2 cells: variance 2 + 1/12; y over -1..1: 2/3 + 1/12; yaw over -2, 0, 2 degrees: 8/3 + 4/12.
+    expected = torch.diag(torch.tensor([2 + 1 / 12, 2 / 3 + 1 / 12, 8 / 3 + 4 / 12], dtype=torch.float64))
+    torch.testing.assert_close(covariance[0], expected)
+
+
+def test_the_belief_budget_counts_every_cell_of_the_window():
+    from enmi_torch import memory_budget
+    from enmi_torch._budget import format_bytes
+
+    expected = 8 * 8 * 4 * 3 * (2 * 300 + 1) * (2 * 200 + 1)  # 8 float64 copies of (4, 3, 601, 401)
+    with memory_budget(1000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):
+        initial_belief(torch.zeros(4, 3), shifts=(300, 200), yaw_bins=3)

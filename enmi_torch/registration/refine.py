@@ -95,15 +95,22 @@ def warp_reference(
     """The map under captured images of ``shape`` at ``pose``: bilinear samples and where they count.
 
     Args:
-        reference: ``(1 or B, 1, Hm, Wm)`` map, floating point.
-        pose: ``(B, 3)`` ``(x, y, yaw)`` (see the module's convention); the samples are differentiable in it.
-        shape: ``(h, w)`` of the captured images.
-        reference_mask: optional bool map ``(1 or B, 1, Hm, Wm)``: ``False`` cells are unobserved.
-        margin: cells a sample must keep from the map's border.
+        reference: ``(1 or B, 1, Hm, Wm)`` map, real floating point; NaN or inf cells count as unobserved.
+        pose: ``(B, 3)`` finite floating ``(x, y, yaw)`` (see the module's convention); the samples are
+            differentiable in it.
+        shape: ``(h, w)`` of the captured images, two positive ints.
+        reference_mask: optional bool map ``(1 or B, 1, Hm, Wm)`` or ``(Hm, Wm)``, the map's size: ``False`` cells are
+            unobserved.
+        margin: cells ``>= 0`` a sample must keep from the map's border.
 
     Returns:
-        ``(warped, valid)``: ``(B, 1, h, w)`` samples (0 off the map) and bool ``(B, 1, h, w)``: the sample lies on the
-        map, ``margin`` cells inside its border, and its four neighbouring cells are observed.
+        ``(warped, valid)``: ``(B, 1, h, w)`` samples (0 off the map and on non-finite cells) and bool
+        ``(B, 1, h, w)``: the sample lies on the map, ``margin`` cells inside its border, and its four neighbouring
+        cells are observed.
+
+    Raises:
+        TypeError, ValueError: naming the argument that is not as above.
+        MemoryBudgetError: when the ``B x h x w`` samples would exceed the memory budget (nothing is allocated).
 
     Example:
         >>> reference = torch.arange(20.0).reshape(1, 1, 4, 5)
@@ -398,6 +405,12 @@ def register(
 
     Returns:
         :class:`Registration` (``pose``, ``score``, ``converged``, ``iterations``).
+
+    Raises:
+        TypeError, ValueError: naming the argument (shapes, dtypes, devices, finite values, masks the size of what
+            they mask, a pose where no pixel counts).
+        MemoryBudgetError: when the score's normal equations (``ECR(bins=...)``) or the blur's taps would exceed the
+            memory budget, before anything is allocated.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)

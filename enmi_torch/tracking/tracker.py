@@ -252,8 +252,7 @@ def track_step(
         fresh = _restart(prior, vehicle, found)
         fresh_raw, fresh_score, fresh_z, fresh_temperature = search.window(fresh, vehicle)
         fresh_likelihood = fresh_raw / (temperature[vehicle] if isinstance(temperature, Tensor) else temperature)
-        # A jump needs a much better match than the window's, in nats at the window's temperature.
-        gain = fresh_likelihood[0].max() - log_likelihood[vehicle].max()
+        gain = relocalization_gain(fresh_likelihood[0], log_likelihood[vehicle])
         # ... and a peak as clear and as sharp as the recent matches' (their z-score and grid temperature, within
         # z_drop): a featureless stretch has weak, flat peaks everywhere, and the best of them is no place.
         typical_z, typical_temperature = health.typical_z[vehicle], health.typical_temperature[vehicle]
@@ -557,6 +556,18 @@ class _Searcher:
         pose = found.pose[0].double()
         center = belief.center[vehicle].double()
         return torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]])
+
+
+def relocalization_gain(fresh: Tensor, window: Tensor) -> Tensor:
+    """Nats by which the best of the restarted window's log-likelihood ``fresh`` beats the predicted ``window``'s.
+
+    A jump needs a much better match than the window's (``relocalize_odds``), both at the window's temperature.
+
+    Example:
+        >>> relocalization_gain(torch.tensor([3.0, 40.0]), torch.tensor([[31.0, -2.0]])).item()
+        9.0
+    """
+    return fresh.max() - window.max()
 
 
 AGREEMENT_CELLS = 2.0  # two wide searches agree within this many cells (and as many yaw bins)
