@@ -1103,3 +1103,24 @@ def test_the_belief_budget_counts_every_cell_of_the_window():
     expected = 8 * 8 * 4 * 3 * (2 * 300 + 1) * (2 * 200 + 1)  # 8 float64 copies of (4, 3, 601, 401)
     with memory_budget(1000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):
         initial_belief(torch.zeros(4, 3), shifts=(300, 200), yaw_bins=3)
+
+
+@pytest.mark.parametrize(
+    ("peak_z", "temperature", "typical_z", "typical_temperature", "clear"),
+    [
+        (6.0, 30.0, 20.0, 100.0, True),  # z 6 >= 0.3 * 20, temperature 30 >= 0.3 * 100: the edges themselves pass
+        (5.9, 30.0, 20.0, 100.0, False),  # a weaker peak than 0.3 of the recent matches'
+        (6.0, 29.0, 20.0, 100.0, False),  # a flatter one
+        (2.4, 30.0, 1.0, 1.0, False),  # below min_peak_z
+        (2.5, 1.0, math.nan, math.nan, True),  # no recent match: only min_peak_z holds
+    ],
+)
+def test_a_relocalization_peak_must_be_as_clear_and_sharp_as_the_recent_matches(
+    peak_z, temperature, typical_z, typical_temperature, clear
+):
+    from enmi_torch.tracking.tracker import fresh_peak_is_clear
+
+    values = (
+        torch.tensor(value, dtype=torch.float64) for value in (peak_z, temperature, typical_z, typical_temperature)
+    )
+    assert fresh_peak_is_clear(*values, min_peak_z=2.5, z_drop=0.3) is clear

@@ -253,11 +253,8 @@ def track_step(
         fresh_raw, fresh_score, fresh_z, fresh_temperature = search.window(fresh, vehicle)
         fresh_likelihood = fresh_raw / (temperature[vehicle] if isinstance(temperature, Tensor) else temperature)
         gain = relocalization_gain(fresh_likelihood[0], log_likelihood[vehicle])
-        # ... and a peak as clear and as sharp as the recent matches' (their z-score and grid temperature, within
-        # z_drop): a featureless stretch has weak, flat peaks everywhere, and the best of them is no place.
-        typical_z, typical_temperature = health.typical_z[vehicle], health.typical_temperature[vehicle]
-        clear = bool(fresh_z[0] >= min_peak_z) and not bool(fresh_z[0] < z_drop * typical_z)
-        clear = clear and not bool(fresh_temperature[0] < z_drop * typical_temperature)
+        typical = health.typical_z[vehicle], health.typical_temperature[vehicle]
+        clear = fresh_peak_is_clear(fresh_z[0], fresh_temperature[0], *typical, min_peak_z, z_drop)
         if clear and bool(gain >= relocalize_odds):
             log_prob[vehicle] = normalized(fresh_likelihood)[0]
             center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
@@ -568,6 +565,32 @@ def relocalization_gain(fresh: Tensor, window: Tensor) -> Tensor:
         9.0
     """
     return fresh.max() - window.max()
+
+
+def fresh_peak_is_clear(
+    peak_z: Tensor,
+    temperature: Tensor,
+    typical_z: Tensor,
+    typical_temperature: Tensor,
+    min_peak_z: float,
+    z_drop: float,
+) -> bool:
+    """Whether a relocalization's peak is as clear and as sharp as the recent matches', within ``z_drop``.
+
+    Its robust z-score must reach ``min_peak_z`` and ``z_drop`` times the recent matches' (``typical_z``), its grid
+    temperature ``z_drop`` times theirs: a featureless stretch has weak, flat peaks everywhere, and the best of them
+    is no place. NaN typical values (no recent match) rule nothing out.
+
+    Example:
+        >>> nan = torch.tensor(float("nan"))
+        >>> fresh_peak_is_clear(torch.tensor(4.0), torch.tensor(9.0), torch.tensor(12.0), nan, 2.5, 0.3)
+        True
+        >>> fresh_peak_is_clear(torch.tensor(3.0), torch.tensor(9.0), torch.tensor(12.0), nan, 2.5, 0.3)  # < 3.6
+        False
+    """
+    if not bool(peak_z >= min_peak_z) or bool(peak_z < z_drop * typical_z):
+        return False
+    return not bool(temperature < z_drop * typical_temperature)
 
 
 AGREEMENT_CELLS = 2.0  # two wide searches agree within this many cells (and as many yaw bins)
