@@ -92,15 +92,22 @@ def check_option(name: str, value: Any, allowed: Sequence[str]) -> str:
     return value
 
 
-def check_bins(bins: Any) -> int:
-    """Raise unless ``bins`` is an integer in ``[2, 2**24]``."""
+def check_bool(name: str, value: Any) -> bool:
+    """Raise ``TypeError`` unless ``value`` is ``True`` or ``False`` (a truthy ``'no'`` must not switch a step on)."""
+    if not isinstance(value, bool):
+        raise TypeError(f"{name} must be a bool (True or False), got {type(value).__name__} {value!r}")
+    return value
+
+
+def check_bins(bins: Any, name: str = "bins") -> int:
+    """Raise unless ``bins`` is an integer in ``[2, 2**24]``; ``name``: the argument as the caller's user gives it."""
     if isinstance(bins, bool) or not isinstance(bins, int):
-        raise TypeError(f"bins must be an int >= 2, got {type(bins).__name__} {bins!r}")
+        raise TypeError(f"{name} must be an int >= 2, got {type(bins).__name__} {bins!r}")
     if bins < 2:
-        raise ValueError(f"bins must be an int >= 2, got {bins}")
+        raise ValueError(f"{name} must be an int >= 2, got {bins}")
     if bins > MAX_BINS:
         # Beyond 2**24 float32 values no longer tell neighbouring bins apart (and bins**2 cell indices near int64's).
-        raise ValueError(f"bins must be at most {MAX_BINS} (2**24), got {bins}")
+        raise ValueError(f"{name} must be at most {MAX_BINS} (2**24), got {bins}")
     return bins
 
 
@@ -116,6 +123,21 @@ def check_value_range(value_range: Any, name: str = "value_range") -> tuple[floa
         # Bin widths and positions are taken from high - low: it must be a float64 number too.
         raise ValueError(f"{name} must have a finite width high - low (at most ~1.8e308), got {value_range!r}")
     return low, high
+
+
+def check_margin(
+    name: str, value: Any, *, positive: bool = False, meaning: str = "cells from the map's border"
+) -> float:
+    """Raise unless ``value`` is a finite number ``>= 0`` (``> 0`` with ``positive``); ``meaning`` in the message.
+
+    A negative margin would count samples off the map (zero padding) as observed; NaN would drop every sample.
+    """
+    expected = f"a finite number {'> 0' if positive else '>= 0'} ({meaning})"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be {expected}, got {type(value).__name__} {value!r}")
+    if not math.isfinite(value) or value < 0 or (positive and value == 0):
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+    return float(value)
 
 
 def check_positive_number(name: str, value: Any) -> float:
@@ -164,12 +186,71 @@ def check_not_empty(name: str, images: Tensor) -> None:
 
 
 def check_image_shape(name: str, value: Any) -> tuple[int, int]:
-    """Raise unless ``value`` is a pair of positive integers ``(H, W)``; returns it as a tuple."""
+    """Raise unless ``value`` is a pair of positive integers ``(H, W)``; returns it as a tuple.
+
+    ``torch.Size`` and integer tensors' sizes count; ``4.5`` is refused, not rounded.
+    """
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != 2:
         raise ValueError(f"{name} must be (H, W), two positive ints, got {value!r}")
     if any(isinstance(size, bool) or not isinstance(size, int) or size < 1 for size in value):
         raise ValueError(f"{name} must be (H, W), two positive ints, got {value!r}")
     return int(value[0]), int(value[1])
+
+
+def check_pose(name: str, pose: Any, batch: int | None = None) -> Tensor:
+    """Raise unless ``pose`` is a floating ``(B, 3)`` tensor ``(x, y, yaw)`` (``batch`` rows if given), finite.
+
+    Returns it unchanged (the caller picks the compute dtype). Meta and complex tensors are refused by name; the
+    finiteness check reads the values on the host (a pose is small).
+    """
+    check_floating(name, pose)
+    check_real_data(name, pose)
+    expected = "(B, 3)" if batch is None else f"({batch}, 3)"
+    if pose.ndim != 2 or pose.shape[1] != 3 or (batch is not None and pose.shape[0] != batch):
+        raise ValueError(f"{name} must have shape {expected}, rows (x, y, yaw), got {tuple(pose.shape)}")
+    if pose.shape[0] == 0:
+        raise ValueError(f"{name} must hold at least one row (x, y, yaw), got shape {tuple(pose.shape)}")
+    if not bool(torch.isfinite(pose).all()):
+        raise ValueError(f"{name} must be finite, got NaN or inf in {pose.tolist()}")
+    return pose
+
+
+def check_map(name: str, value: Any, batch: int, like_name: str, like: Tensor) -> Tensor:
+    """Raise unless ``value`` is a real floating map ``(1 or batch, 1, Hm, Wm)`` on the device of ``like``."""
+    check_floating(name, value)
+    check_real_data(name, value)
+    if value.ndim != 4 or value.shape[1] != 1 or value.shape[0] not in (1, batch) or value.numel() == 0:
+        shapes = "(1, 1, Hm, Wm)" + ("" if batch == 1 else f" or ({batch}, 1, Hm, Wm)")
+        raise ValueError(
+            f"{name} must have shape {shapes} with Hm, Wm >= 1 for {like_name} of batch {batch}, got "
+            f"{tuple(value.shape)}"
+        )
+    check_same_device(name, value, like_name, like)
+    return value
+
+
+def check_mask_of(name: str, mask: Any, like_name: str, like: Tensor) -> Tensor:
+    """Raise unless ``mask`` is a bool ``(1 or B, 1, H, W)`` (or ``(H, W)``) mask of the ``(B, 1, H, W)`` ``like``.
+
+    A mask of another size than what it masks would leave cells beyond it counted as observed (or fail in
+    ``expand``). Returns it as ``(1 or B, 1, H, W)`` on ``like``'s device.
+    """
+    check_bool_mask(name, mask)
+    check_real_data(name, mask)
+    spatial = tuple(like.shape[-2:])
+    if mask.ndim == 2:
+        mask = mask[None, None]
+    if mask.ndim != 4 or tuple(mask.shape[1:]) != (1, *spatial) or mask.shape[0] not in (1, like.shape[0]):
+        batch = like.shape[0]
+        shapes = f"(1, 1, {spatial[0]}, {spatial[1]})" + (
+            "" if batch == 1 else f" or ({batch}, 1, {spatial[0]}, {spatial[1]})"
+        )
+        raise ValueError(
+            f"{name} must be as large as {like_name}, {shapes} or {spatial}, got {tuple(mask.shape)} for {like_name} "
+            f"of shape {tuple(like.shape)}"
+        )
+    check_same_device(name, mask, like_name, like)
+    return mask
 
 
 FAR_OUTSIDE = 8  # range widths beyond value_range past which a pixel counts as far outside it
@@ -285,7 +366,7 @@ def check_variance_fits(name: str, variance: Tensor | float, dtype: torch.dtype,
         keep = torch.isfinite(variance) & (variance > 0)
         if valid is not None:
             keep = keep & valid
-        positive = variance[keep]
+        positive = variance.detach()[keep]
         if positive.numel() == 0:
             return
         low, high = float(positive.min()), float(positive.max())
@@ -298,6 +379,33 @@ def check_variance_fits(name: str, variance: Tensor | float, dtype: torch.dtype,
         raise ValueError(
             f"{name} must lie within {info.tiny:.3g} to {info.max / 1e3:.3g} to be held in {dtype}, got {value:.3g}; "
             f"pass float64 images (.double()) or rescale the images and their variance"
+        )
+
+
+def check_variance_weighs(name: str, variance: Tensor, values: Tensor, valid: Tensor | None) -> None:
+    """Raise ``ValueError`` if a variance whose gradient is wanted is too small for its dtype (ECR's weights).
+
+    ``variance`` and ``values`` ``(B, N)`` (broadcast), ``valid`` bool or ``None``. Each pixel weighs ``1 / variance``
+    and the gradient in the variance holds ``1 / variance^2`` times squared values summed over the ``N`` pixels: it
+    must stay 1e3 below the dtype's largest value, so the variance must be at least ``max(|value|, 1) * sqrt(1e3 N /
+    max)`` (7e-15 for float32 images of 256 grey levels of 16 x 16 pixels, 1e-149 in float64). The score and the
+    gradient in the images stay finite below that; only a variance that takes a gradient is checked. A value check.
+    """
+    if not _values_checked(variance):
+        return
+    keep = torch.isfinite(values) & torch.isfinite(variance).expand_as(values)
+    if valid is not None:
+        keep = keep & valid
+    if not bool(keep.any()):
+        return
+    scale = max(float(values.detach()[keep].abs().max()), 1.0)
+    low = scale * math.sqrt(1e3 * values.shape[-1] / torch.finfo(variance.dtype).max)
+    smallest = float(variance.detach().expand_as(values)[keep].min())
+    if smallest < low:
+        raise ValueError(
+            f"{name} must be at least {low:.3g} in {variance.dtype} for values up to {scale:.3g} over "
+            f"{values.shape[-1]} pixels, got {smallest:.3g}: each pixel weighs 1 / {name} and the gradient "
+            f"1 / {name}^2, which would overflow; pass float64 images (.double()) or a larger {name}"
         )
 
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import math
 import os
-import pickle
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -137,8 +135,11 @@ def load_plain_torch(path: str | Path, what: str) -> object:
 
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, OSError) as error:
-        raise ValueError(f"{path} is refused: it is not {what} that loads with weights_only=True ({error})") from None
+    except MemoryError:
+        raise
+    except Exception as error:  # the weights-only unpickler raises anything (IndexError, KeyError) on a foreign file
+        detail = str(error) if isinstance(error, (RuntimeError, OSError, ValueError)) else repr(error)
+        raise ValueError(f"{path} is refused: it is not {what} that loads with weights_only=True ({detail})") from None
 
 
 def read_json(path: str | Path, source: str) -> object:

@@ -1,4 +1,10 @@
-"""Image layouts: public functions accept ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)`` and work on ``(B, N)``."""
+"""Image layouts: public functions accept ``(B, 1, H, W)`` or ``(B, H, W)`` and work on ``(B, N)``.
+
+A 2-D tensor is refused: ``(64, 64)`` could be one ``(H, W)`` image (``captured[0, 0]``) or 64 flat samples of 64
+pixels, and reading it either way would answer the other reading silently (64 per-row scores for one image). Flat
+samples (tiles, point sets) are given as ``(B, 1, N)``, one row of ``N`` pixels per sample; one image as
+``(1, 1, H, W)``.
+"""
 
 from __future__ import annotations
 
@@ -20,18 +26,24 @@ from enmi_torch._checks import (
 
 
 def spatial_shape(name: str, image: Tensor) -> tuple[int, ...]:
-    """The per-sample shape of ``image`` without batch and channel: ``(H, W)`` or ``(N,)``."""
+    """The per-sample shape of ``image`` without batch and channel: ``(H, W)``; a 2-D tensor is refused."""
     if image.ndim == 4:
         if image.shape[1] != 1:
             raise ValueError(f"{name} must have one channel, (B, 1, H, W), got shape {tuple(image.shape)}")
         return tuple(image.shape[2:])
-    if image.ndim in (2, 3):
+    if image.ndim == 3:
         return tuple(image.shape[1:])
-    raise ValueError(f"{name} must have shape (B, 1, H, W), (B, H, W) or (B, N), got shape {tuple(image.shape)}")
+    if image.ndim == 2:
+        raise ValueError(
+            f"{name} must have shape (B, 1, H, W) or (B, H, W), got the 2-D shape {tuple(image.shape)}, which could be "
+            f"one (H, W) image or (B, N) flat samples: pass one image as {name}[None, None] (1, 1, H, W), flat samples "
+            f"as {name}[:, None] (B, 1, N)"
+        )
+    raise ValueError(f"{name} must have shape (B, 1, H, W) or (B, H, W), got shape {tuple(image.shape)}")
 
 
 def flatten_image(name: str, image: Tensor) -> Tensor:
-    """``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)`` to ``(B, N)``."""
+    """``(B, 1, H, W)`` or ``(B, H, W)`` to ``(B, N)``."""
     check_floating(name, image)
     spatial_shape(name, image)
     check_not_empty(name, image)
@@ -41,26 +53,32 @@ def flatten_image(name: str, image: Tensor) -> Tensor:
 def broadcast_map(name: str, values: Tensor, like: Tensor, like_name: str = "captured") -> Tensor:
     """A per-pixel map (variance or mask) given per image or per sample, as ``(1, N)`` or ``(B, N)``.
 
-    Accepted: the spatial shape of ``like`` (``(H, W)`` or ``(N,)``), that shape behind leading ones
-    (``(1, 1, H, W)``), or one map per sample (``(B, 1, H, W)``, ``(B, H, W)``, ``(B, N)``).
+    Accepted: the spatial shape of ``like`` (``(H, W)``), that shape behind leading ones (``(1, 1, H, W)``), or one
+    map per sample (``(B, 1, H, W)``, ``(B, H, W)``); for flat samples ``(B, 1, N)`` also ``(N,)`` and ``(B, N)``.
     """
     check_tensor(name, values)
     spatial = spatial_shape(like_name, like)
     batch = like.shape[0]
-    leading = tuple(values.shape[: values.ndim - len(spatial)])
-    per_sample_ok = leading in ((batch,), (batch, 1)) if like.ndim == 4 else leading == (batch,)
-    shared_ok = all(size == 1 for size in leading)
-    if (
-        values.ndim < len(spatial)
-        or tuple(values.shape[values.ndim - len(spatial) :]) != spatial
-        or not (shared_ok or per_sample_ok)
-    ):
+
+    def fits(pixels: tuple[int, ...]) -> bool:
+        leading = tuple(values.shape[: values.ndim - len(pixels)])
+        per_sample_ok = leading in ((batch,), (batch, 1)) if like.ndim == 4 else leading == (batch,)
+        shared_ok = all(size == 1 for size in leading)
+        return (
+            values.ndim >= len(pixels)
+            and tuple(values.shape[values.ndim - len(pixels) :]) == pixels
+            and (shared_ok or per_sample_ok)
+        )
+
+    # Flat samples (B, 1, N) take their maps as (N,) or (B, N) too: beside a 3-D or 4-D like, that is unambiguous.
+    if not (fits(spatial) or (spatial[0] == 1 and fits(spatial[1:]))):
         raise ValueError(
             f"{name} must have the spatial shape of {like_name} {spatial}, optionally behind leading ones or one map "
             f"per sample (batch {batch}), got shape {tuple(values.shape)} for {like_name} of shape {tuple(like.shape)}"
         )
-    rows = math.prod(leading) if leading else 1
-    return values.reshape(rows, -1)
+    pixels = math.prod(spatial)
+    rows = values.numel() // pixels if pixels else math.prod(values.shape[: values.ndim - len(spatial)])
+    return values.reshape(rows, pixels)
 
 
 def scalar_or_map(name: str, values: Tensor | float, like: Tensor) -> Tensor:

@@ -22,6 +22,7 @@ from enmi_torch._checks import (
     check_same_device,
     check_tensor,
     check_value_range,
+    check_variance_weighs,
 )
 from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_map
 from enmi_torch.binning import (
@@ -64,7 +65,7 @@ def joint_histogram(
     """Joint histogram (counts) of a captured image and a reference image, ``(B, bins, bins)``.
 
     Args:
-        captured: captured (sensor) image, ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: captured (sensor) image ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating.
         reference: reference (map) image of the same shape, or ``C`` candidate references per captured image,
             ``(C, *captured.shape)``: each captured image is then histogrammed against each candidate, its pixel
             weights computed once (the costly part of the likelihood kernels), and the result is
@@ -106,7 +107,7 @@ def joint_histogram(
         accumulated in chunks by a custom autograd function that never stores the ``(B, N, bins)`` weights.
 
     Example:
-        >>> captured = torch.tensor([[0.5, 1.5, 2.5, 3.5]])
+        >>> captured = torch.tensor([[[0.5, 1.5, 2.5, 3.5]]])  # one flat sample (1, 1, N)
         >>> joint_histogram(captured, captured, bins=2, value_range=(0, 4))
         tensor([[[2., 0.],
                  [0., 2.]]])
@@ -198,7 +199,7 @@ def hard_entropies(
     and 32 bins), where :func:`~enmi_torch.nmi` uses it.
 
     Args:
-        captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
         reference: same shape as ``captured``, or ``(C, *captured.shape)`` for ``C`` candidates.
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``; values outside are clipped into the edge bins.
@@ -208,7 +209,7 @@ def hard_entropies(
         Three tensors ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``; no gradient (hard bins).
 
     Example:
-        >>> captured = torch.tensor([[0.5, 1.5, 2.5, 3.5]])
+        >>> captured = torch.tensor([[[0.5, 1.5, 2.5, 3.5]]])  # one flat sample (1, 1, N)
         >>> [round(h.item(), 4) for h in hard_entropies(captured, captured.flip(-1), bins=2, value_range=(0, 4))]
         [0.6931, 0.6931, 0.6931]
     """
@@ -342,6 +343,8 @@ def _prepare(
     variance = None
     if captured_variance is not None:
         variance = variance_map(variance_name, captured_variance, captured, compute_dtype, valid)
+        if not captured_binned and variance.requires_grad:  # ECR: 1 / variance^2 in the variance's gradient
+            check_variance_weighs(variance_name, variance, captured_flat, valid)
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).to(captured_flat.device, compute_dtype)
 

@@ -69,7 +69,7 @@ class ScoreLoss(nn.Module):
         *,
         valid_mask: Tensor | None = None,
     ) -> Tensor:
-        """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)`` (or ``(B, H, W)``, ``(B, N)``).
+        """Loss for ``captured`` and ``reference`` ``(B, 1, H, W)`` (or ``(B, H, W)``, flat samples ``(B, 1, N)``).
 
         ``variance`` as in the score, unless the module has a ``variance_model``.
         """

@@ -201,12 +201,13 @@ def count_errors(
             f"log_prior must be given for score 'enmi_mass_prior' only, got score={score!r} and log_prior "
             f"{'None' if log_prior is None else 'a tensor'}"
         )
-    references = torch.stack([amplitudes, candidates])
+    # The trials as flat samples (T, 1, K): one row of K tiles each.
+    captured, references = captured[:, None], torch.stack([amplitudes, candidates])[:, :, None]
     if score == "nmi":
         values = nmi(captured, references, bins=bins, value_range=value_range)
     else:
         kernel = "density" if score == "enmi_density" else "mass"
-        variance = variance.reshape(1, -1)
+        variance = variance.reshape(1, 1, -1)
         values = enmi(
             captured, references, variance, bins=bins, value_range=value_range, kernel=kernel, log_prior=log_prior
         )

@@ -86,6 +86,7 @@ def test_ecr_is_centred_under_independence_with_any_variances():
     variance = torch.rand(samples, pixels, generator=generator, dtype=torch.float64) ** 4 * 1e4 + 0.5
     captured = 100 + torch.randn(samples, pixels, generator=generator, dtype=torch.float64) * variance.sqrt()
     reference = torch.rand(samples, pixels, generator=generator, dtype=torch.float64) * 256
+    captured, reference = captured[:, None], reference[:, None]  # flat samples (B, 1, N)
     centred_llr = ecr(captured, reference, variance, bins=bins, model_variance=0.0, response="binned") * pixels
     standard_error = math.sqrt((bins - 1) / 2) / math.sqrt(samples)
     assert abs(centred_llr.mean().item()) < 4 * standard_error
@@ -102,6 +103,7 @@ def test_a_pixel_with_a_flat_likelihood_adds_no_evidence(response):
     grown_captured = torch.cat([captured.flatten(1), torch.tensor([[1e4]], dtype=torch.float64)], 1)
     grown_reference = torch.cat([reference.flatten(1), reference.flatten(1)[:, :1]], 1)
     grown_variance = torch.cat([variance.flatten(1), torch.tensor([[1e16]], dtype=torch.float64)], 1)
+    grown_captured, grown_reference = grown_captured[:, None], grown_reference[:, None]  # flat samples (B, 1, N)
     grown = ecr(grown_captured, grown_reference, grown_variance, bins=4, model_variance=0.0, **response) * 37
     assert abs((grown - base).item()) < 1e-6
     # The paper's ENMI gives such a pixel a full unit of histogram weight instead.
@@ -143,8 +145,11 @@ def test_ecr_from_bin_sums_streams():
     ]
     summed = BinSums(*(first + second for first, second in zip(*halves, strict=True)))
     torch.testing.assert_close(ecr_from_bin_sums(summed), ecr_from_bin_sums(whole), rtol=1e-12, atol=1e-12)
-    # The sums' own estimate of delta^2 takes the pixels as independent, as ecr does for (B, N) values.
-    torch.testing.assert_close(ecr_from_bin_sums(whole), ecr(*flat[:2], flat[2] - tau2, bins=4, model_variance=tau2))
+    # The sums' own estimate of delta^2, as ecr's on the flat samples.
+    flat_samples = captured.flatten(1)[:, None], reference.flatten(1)[None, :, None]  # (B, 1, N), (1, B, 1, N)
+    torch.testing.assert_close(
+        ecr_from_bin_sums(whole), ecr(*flat_samples, flat[2] - tau2, bins=4, model_variance=tau2)
+    )
 
 
 def test_ecr_loss_agrees_with_function_and_its_variance_model():

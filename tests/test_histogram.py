@@ -198,9 +198,9 @@ def test_variance_broadcast_forms_agree(pair):
     ]
     for result in results[1:]:
         torch.testing.assert_close(result, results[0])
-    flat = joint_histogram(
-        captured.flatten(1),
-        reference.flatten(1),
+    flat = joint_histogram(  # flat samples (B, 1, N), the map as (N,)
+        captured.flatten(1)[:, None],
+        reference.flatten(1)[:, None],
         bins=BINS,
         value_range=RANGE,
         captured_variance=variance_map.flatten(),

@@ -124,10 +124,12 @@ def test_streaming_joint_histograms_give_the_whole_score(generator):
         captured[3:], reference[3:], captured_variance=50.0
     )
     whole = enmi(captured.reshape(1, 1, 96, 16)[:, :, :48], reference.reshape(1, 1, 96, 16)[:, :, :48], 50.0)
-    first_half = joint_histogram(captured[:3].reshape(1, -1), reference[:3].reshape(1, -1), captured_variance=50.0)
+    first_half = joint_histogram(
+        captured[:3].reshape(1, 1, -1), reference[:3].reshape(1, 1, -1), captured_variance=50.0
+    )  # flat samples (B, 1, N)
     torch.testing.assert_close(
         summed.sum(0, keepdim=True),
-        joint_histogram(captured.reshape(1, -1), reference.reshape(1, -1), captured_variance=50.0),
+        joint_histogram(captured.reshape(1, 1, -1), reference.reshape(1, 1, -1), captured_variance=50.0),
     )
     torch.testing.assert_close(nmi_from_joint_histogram(first_half), whole)
 
@@ -179,8 +181,8 @@ def test_gradcheck_soft_nmi_captured_and_reference(generator):
 
 
 def test_empty_bins_and_tiny_variances_give_finite_values_and_gradients():
-    captured = torch.tensor([[10.0, 10.0, 200.0, 201.0]], requires_grad=True)
-    reference = torch.tensor([[10.0, 10.0, 200.0, 200.0]])
+    captured = torch.tensor([[[10.0, 10.0, 200.0, 201.0]]], requires_grad=True)  # flat samples (B, 1, N)
+    reference = torch.tensor([[[10.0, 10.0, 200.0, 200.0]]])
     variance = torch.tensor([1e-30, 1e-12, 1e-6, 1.0], requires_grad=True)
     score = enmi(captured, reference, variance, bins=64)
     score.sum().backward()

@@ -12,7 +12,7 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch import ECR, ENMI, NCC, Mixture, as_score, direct_surface, ecr_surface
+from enmi_torch import ECR, ENMI, NCC, Mixture, NoCandidateError, as_score, direct_surface, ecr_surface
 from enmi_torch.localization.cli import _command, main
 from enmi_torch.localization.peak import Localization, _quadratic_peak
 from enmi_torch.localization.search import Localizer, _rotated, localize
@@ -785,3 +785,37 @@ def test_a_nan_is_refused_naming_the_mask_argument_of_the_function(gravel_map):
     reference[..., 80, 80] = float("nan")
     with pytest.raises(ValueError, match="reference must be finite where reference_mask is True"):
         localize(_cut(gravel_map, 80, 80), reference, 9.0, shifts=4, center=(80, 80))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (8, 8)])
+def test_a_captured_image_of_one_value_is_refused_not_placed_at_the_windows_corner(gravel_map, shape):
+    # Every placement scores alike: the "peak" was the window's first cell (dx -4, dy -4, score 0).
+    flat = torch.full((1, 1, *shape), 120.0, dtype=torch.float64)
+    if shape == (1, 1):
+        flat = gravel_map[..., 80:81, 80:81].clone()
+    for score, variance in (("ecr", 4.0), ("nmi", None), ("ncc", None)):
+        with pytest.raises(NoCandidateError, match=r"captured sample\(s\) \[0\] hold one value at all their"):
+            localize(flat, gravel_map, variance, shifts=4, score=score)
+    masked = _cut(gravel_map, 80, 80, size=8).clone()
+    mask = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+    mask[..., 2, 3] = True  # one valid pixel is one value too
+    with pytest.raises(NoCandidateError, match=r"hold one value at all their 1 valid pixel\(s\)"):
+        localize(masked, gravel_map, 4.0, shifts=4, captured_mask=mask)
+
+
+def test_command_line_refuses_a_one_pixel_image_and_an_output_folder_before_searching(gravel_map, tmp_path, capsys):
+    np.save(tmp_path / "map.npy", gravel_map[0, 0].numpy())
+    np.save(tmp_path / "pixel.npy", gravel_map[0, 0, 80:81, 80:81].numpy())
+    np.save(tmp_path / "local.npy", _cut(gravel_map, 80, 80)[0, 0].numpy())
+    pixel = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "pixel.npy"), "--variance", "4"]
+    assert "--local sample(s) [0] hold one value" in _one_line_error(capsys, [*pixel, "--shifts", "4"])
+    files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy"), "--variance", "4"]
+    folder = tmp_path / "surfaces"
+    folder.mkdir()
+    error = _one_line_error(capsys, [*files, "--output", str(folder)])
+    assert f"--output must name a PNG file to write, got the existing folder '{folder}'" in error
+    assert list(tmp_path.glob("surfaces*")) == [folder] and not list(folder.iterdir())  # no surfaces.png beside it
+    assert "lies in a folder that does not exist" in _one_line_error(capsys, [*files, "--output", str(folder / "a/b")])
+    _command([*files, "--shifts", "4", "--output", str(tmp_path / "surface")])  # no suffix: written as named
+    assert (tmp_path / "surface").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert capsys.readouterr().err.strip() == f"wrote {tmp_path / 'surface'}"

@@ -202,8 +202,8 @@ def test_a_pixel_with_a_flat_likelihood_adds_nothing_of_its_own():
     variance = torch.cat([torch.full((1, 144), 1e-12, dtype=torch.float64), torch.tensor([[1e16]])], 1)
     grown = (
         mixture_information(
-            torch.cat([captured.flatten(1), torch.tensor([[1e4]], dtype=torch.float64)], 1),
-            torch.cat([reference.flatten(1), reference.flatten(1)[:, :1]], 1),
+            torch.cat([captured.flatten(1), torch.tensor([[1e4]], dtype=torch.float64)], 1)[:, None],  # (B, 1, N)
+            torch.cat([reference.flatten(1), reference.flatten(1)[:, :1]], 1)[:, None],
             variance,
             bins=bins,
         )

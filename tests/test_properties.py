@@ -103,10 +103,10 @@ def test_a_batch_scores_as_its_samples_one_by_one(name, pair):
 def test_permuting_pixels_with_their_variances_changes_nothing(name, pair, order_seed):
     captured, reference, variance, value_range = pair
     batch = captured.shape[0]
-    captured, reference, variance = (tensor.reshape(batch, -1) for tensor in (captured, reference, variance))
-    order = torch.randperm(captured.shape[1], generator=torch.Generator().manual_seed(order_seed))
+    captured, reference, variance = (tensor.reshape(batch, 1, -1) for tensor in (captured, reference, variance))
+    order = torch.randperm(captured.shape[-1], generator=torch.Generator().manual_seed(order_seed))
     before = score_of(name, captured, reference, variance, value_range)
-    after = score_of(name, captured[:, order], reference[:, order], variance[:, order], value_range)
+    after = score_of(name, captured[..., order], reference[..., order], variance[..., order], value_range)
     torch.testing.assert_close(after, before, **tolerance(captured.dtype))
 
 

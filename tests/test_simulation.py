@@ -138,11 +138,13 @@ def test_count_errors_scores_each_reference_like_a_separate_call(paper_tiles, sc
     log_prior = gaussian_log_prior(128, 32, 32, (0, 256), dtype=dtype) if score == "enmi_mass_prior" else None
     wrong = count_errors(captured, trials.amplitudes, trials.candidates, variance, score, log_prior=log_prior)
 
-    def separate(reference):
+    def separate(reference):  # the trials as flat samples (T, 1, K)
         if score == "nmi":
-            return nmi(captured, reference)
+            return nmi(captured[:, None], reference[:, None])
         weights = "density" if score == "enmi_density" else "mass"
-        return enmi(captured, reference, variance.reshape(1, -1), kernel=weights, log_prior=log_prior)
+        return enmi(
+            captured[:, None], reference[:, None], variance.reshape(1, 1, -1), kernel=weights, log_prior=log_prior
+        )
 
     assert wrong.tolist() == (separate(trials.candidates) >= separate(trials.amplitudes)).tolist()
 
@@ -180,12 +182,13 @@ def test_trusted_scores_are_the_public_scores_bit_for_bit(paper_tiles, score, dt
         variance = noise_power / paper_tiles.area.to(dtype)
         part = slice(40, 137)
         captured = trials.captured(variance, part)
+        flat, flat_references = captured[:, None], references[:, part, None]  # flat samples (T, 1, K)
         if score == "nmi":
-            expected = nmi(captured, references[:, part])
+            expected = nmi(flat, flat_references)
         else:
             weights = "density" if score == "enmi_density" else "mass"
             prior = log_prior if score == "enmi_mass_prior" else None
-            expected = enmi(captured, references[:, part], variance.reshape(1, -1), kernel=weights, log_prior=prior)
+            expected = enmi(flat, flat_references, variance.reshape(1, 1, -1), kernel=weights, log_prior=prior)
         assert torch.equal(scorer.scores(captured, part, variance, score), expected)
 
 

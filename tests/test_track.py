@@ -954,3 +954,178 @@ def test_a_weak_frame_nudges_the_belief_by_its_clearness_squared_or_is_skipped(g
     moved, full = nudged.log_prob - prior, used.log_prob - prior
     torch.testing.assert_close(moved - moved.max(), 0.25 * (full - full.max()), rtol=1e-6, atol=1e-6)
     assert abs(float(weak.pose[0, 0]) - 60.0) > 0.05  # the nudge moves the pose towards the match at (61, 39)
+
+
+def test_the_mismatch_mixing_takes_the_likelihood_at_a_fixed_temperature(generator):
+    # The frame's raw log-likelihood (score * n_valid, from localize itself) divided by the temperature, then mixed.
+    reference = _texture(generator, (60, 90)).float()
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=(4, 5), yaw_bins=3, std=(0.7, 0.7, 1.0))
+    frame, odometry, noise = _cut(reference, 46, 31), torch.zeros(1, 3), (0.5, 0.5, 0.3)
+    prior = predict(belief, odometry, noise)
+    found = localize(
+        frame, reference, 1.0, score=ECR(bins=16), shifts=prior.radius, center=prior.center, yaws=prior.yaws()[0]
+    )
+    raw = found.surface.double() * frame.numel()
+    for temperature in (3000.0, 30000.0):  # a few nats and a fraction of one between the best cells
+        settings = {"score": ECR(bins=16), "motion_noise": noise, "temperature": temperature}
+        posterior, output, _ = track_step(
+            belief, frame, reference, odometry, 1.0, mismatch_probability=0.05, **settings
+        )
+        assert bool(output.healthy[0])
+        expected = normalized(prior.log_prob + mixed_with_mismatch(raw / temperature, 0.05))
+        torch.testing.assert_close(posterior.log_prob, expected, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize(
+    ("offset", "previous", "yaw_step", "agree"),
+    [
+        ((10.0, -3.0, 1.0), (8.0, -5.0, -1.0), 1.0, True),  # 2 cells along x and y, 2 yaw bins: the edge agrees
+        ((10.0, -3.0, 1.0), (7.9, -3.0, 1.0), 1.0, False),  # 2.1 cells along x
+        ((10.0, -3.0, 1.0), (10.0, -0.9, 1.0), 1.0, False),  # 2.1 cells along y
+        ((10.0, -3.0, 1.0), (10.0, -3.0, -1.1), 1.0, False),  # 2.1 yaw bins
+        ((10.0, -3.0, 5.0), (10.0, -3.0, 1.0), 2.0, True),  # 4 degrees are 2 bins of 2 degrees
+        ((10.0, -3.0, 5.0), (10.0, -3.0, 0.5), 2.0, False),  # 4.5 degrees are 2.25 bins
+        ((10.0, -3.0, 1.0), (math.nan, math.nan, math.nan), 1.0, False),  # the previous frame found nothing
+    ],
+)
+def test_two_wide_searches_agree_within_two_cells_and_two_yaw_bins(offset, previous, yaw_step, agree):
+    from enmi_torch.tracking.tracker import wide_matches_agree
+
+    offset, previous = torch.tensor(offset, dtype=torch.float64), torch.tensor(previous, dtype=torch.float64)
+    assert wide_matches_agree(offset, previous, yaw_step) is agree
+    assert wide_matches_agree(previous, offset, yaw_step) is (agree and bool(torch.isfinite(previous).all()))
+
+
+def _frame_inputs(generator):
+    reference = _texture(generator, (60, 90)).float()
+    tracker = Tracker(reference, score=ECR(bins=16), shifts=3, yaw_bins=1)
+    tracker.start(torch.tensor([[45.0, 30.0, 0.0]]))
+    return tracker, _cut(reference, 45, 30), torch.zeros(1, 3)
+
+
+@pytest.mark.parametrize(
+    ("change", "error", "match"),
+    [
+        ({"captured_mask": torch.ones(1, 1, 8, 8, dtype=torch.bool)}, ValueError, "captured_mask must be as large as"),
+        ({"captured_mask": torch.ones(1, 1, *FRAME)}, TypeError, "captured_mask must be a bool tensor"),
+        ({"captured": "meta"}, ValueError, "captured must hold data, got a meta tensor"),
+        ({"odometry": torch.zeros(3)}, ValueError, r"odometry must have shape \(1, 3\), rows \(x, y, yaw\)"),
+        ({"odometry": torch.zeros(1, 2)}, ValueError, r"odometry must have shape \(1, 3\)"),
+        ({"odometry": torch.zeros(1, 3, dtype=torch.long)}, TypeError, "odometry must be a floating-point tensor"),
+        ({"variance": torch.ones(1, 1, 8, 8)}, ValueError, "variance must have the spatial shape of captured"),
+    ],
+)
+def test_a_trackers_frame_inputs_are_refused_naming_the_argument(generator, change, error, match):
+    tracker, frame, odometry = _frame_inputs(generator)
+    arguments = {"captured": frame, "odometry": odometry, "variance": 1.0, "captured_mask": None}
+    arguments.update(change)
+    if arguments["captured"] == "meta":
+        arguments["captured"] = frame.to("meta")
+    with pytest.raises(error, match=match):
+        tracker(**arguments)
+
+
+def test_a_tracker_refuses_a_start_pose_of_the_wrong_shape_or_type(generator):
+    tracker, _, _ = _frame_inputs(generator)
+    for pose, error, match in (
+        (torch.tensor([45.0, 30.0, 0.0]), ValueError, r"pose must have shape \(B, 3\), rows \(x, y, yaw\), got \(3,\)"),
+        (torch.tensor([[45.0, 30.0]]), ValueError, r"pose must have shape \(B, 3\)"),
+        (torch.tensor([[45, 30, 0]]), TypeError, "pose must be a floating-point tensor"),
+        (torch.zeros(1, 3, device="meta"), ValueError, "pose must hold data, got a meta tensor"),
+    ):
+        with pytest.raises(error, match=match):
+            tracker.start(pose)
+
+
+def test_a_tracker_refuses_a_calibration_of_another_score():
+    reference = torch.rand(1, 1, 32, 32) * 255
+    with pytest.raises(ValueError, match=r"calibration was fitted for score 'ecr', got score='nmi'"):
+        Tracker(reference, score="nmi", calibration=Calibration("ecr", 2.0, 3.0))
+    tracker = Tracker(reference, score=ECR(bins=16), calibration=Calibration("ecr", 2.0, 3.0))
+    assert tracker.settings["temperature"] == 2.0 and tracker.settings["score"] == ECR(bins=16)
+
+
+def test_a_tracker_refuses_a_belief_over_the_memory_budget_before_allocating():
+    from enmi_torch import MemoryBudgetError
+
+    reference = torch.rand(1, 1, 64, 64) * 255
+    with pytest.raises(MemoryBudgetError, match=r"shifts=1000000 with yaw_bins=5 needs about .* TiB for the belief"):
+        Tracker(reference, shifts=10**6)
+    tracker = Tracker(reference, shifts=300, yaw_bins=1)  # one vehicle fits, a thousand do not
+    with pytest.raises(MemoryBudgetError, match=r"for the belief \(1000, 1, 601, 601\)"):
+        tracker.start(torch.zeros(1000, 3))
+    for reference in (torch.rand(1, 1, 0, 4), torch.rand(2, 1, 8, 8), torch.rand(8, 8, device="meta")):
+        with pytest.raises(ValueError, match=r"reference must (be one map|hold data)"):
+            Tracker(reference)
+
+
+def test_the_relocalization_gain_is_the_fresh_best_over_the_windows_best():
+    from enmi_torch.tracking.tracker import relocalization_gain
+
+    window = torch.tensor([[[[120.0, 150.0], [90.0, 10.0]]]], dtype=torch.float64)
+    assert float(relocalization_gain(window + 7.5, window)) == 7.5
+    assert float(relocalization_gain(window - 20.0, window)) == -20.0  # a worse match elsewhere: no jump
+    assert float(relocalization_gain(torch.full_like(window, 155.0), window)) == 5.0
+
+
+def test_the_initial_gaussian_belief_is_the_product_of_its_three_axes():
+    pose = torch.tensor([[10.3, 20.6, 3.4]], dtype=torch.float64)
+    std = (0.8, 1.7, 2.5)  # unequal on every axis: a swapped or inverted one fails
+    belief = initial_belief(pose, shifts=(2, 3), yaw_bins=3, yaw_step=2.0, std=std)
+    yaws = torch.tensor([1.4, 3.4, 5.4], dtype=torch.float64)[:, None, None]
+    rows = torch.arange(19.0, 24.0, dtype=torch.float64)[None, :, None]  # centre row 21 = round(20.6)
+    cols = torch.arange(7.0, 14.0, dtype=torch.float64)[None, None, :]  # centre column 10
+    log_density = -0.5 * (((cols - 10.3) / 0.8) ** 2 + ((rows - 20.6) / 1.7) ** 2 + ((yaws - 3.4) / 2.5) ** 2)
+    expected = log_density - torch.logsumexp(log_density.flatten(), 0)
+    torch.testing.assert_close(belief.log_prob[0], expected)
+
+
+def test_belief_pose_refines_up_to_half_a_bin_inside_the_window_and_not_at_its_edge():
+    belief = initial_belief(torch.tensor([[5.0, 7.0, 0.0]]), shifts=2, yaw_bins=1)
+    ruled_out = torch.full((1, 1, 5, 5), -80.0, dtype=torch.float64)
+    near = ruled_out.clone()
+    near[0, 0, 2, 1:4] = torch.tensor([-1.0, 0.0, -9.0])  # vertex 0.4 bins left of column 5
+    pose, _ = belief_pose(belief._replace(log_prob=near))
+    assert pose[0, 0].item() == pytest.approx(4.6, abs=1e-12) and pose[0, 1].item() == pytest.approx(7.0, abs=1e-12)
+    edge = ruled_out.clone()
+    edge[0, 0, 2, 3:5] = torch.tensor([-3.0, 0.0])  # the peak on the window's last column: no parabola through it
+    pose, _ = belief_pose(belief._replace(log_prob=edge))
+    assert pose[0, 0].item() == pytest.approx(7.0, abs=1e-12)
+
+
+def test_a_flat_beliefs_covariance_is_its_second_moment_plus_a_bin_spread_uniformly():
+    belief = initial_belief(torch.tensor([[5.0, 7.0, 0.0]]), shifts=(1, 2), yaw_bins=3, yaw_step=2.0)
+    _, covariance = belief_pose(belief)  # flat: no bin holds half the mass
+    # x over -2..2 cells: variance 2 + 1/12; y over -1..1: 2/3 + 1/12; yaw over -2, 0, 2 degrees: 8/3 + 4/12.
+    expected = torch.diag(torch.tensor([2 + 1 / 12, 2 / 3 + 1 / 12, 8 / 3 + 4 / 12], dtype=torch.float64))
+    torch.testing.assert_close(covariance[0], expected)
+
+
+def test_the_belief_budget_counts_every_cell_of_the_window():
+    from enmi_torch import memory_budget
+    from enmi_torch._budget import format_bytes
+
+    expected = 8 * 8 * 4 * 3 * (2 * 300 + 1) * (2 * 200 + 1)  # 8 float64 copies of (4, 3, 601, 401)
+    with memory_budget(1000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):
+        initial_belief(torch.zeros(4, 3), shifts=(300, 200), yaw_bins=3)
+
+
+@pytest.mark.parametrize(
+    ("peak_z", "temperature", "typical_z", "typical_temperature", "clear"),
+    [
+        (6.0, 30.0, 20.0, 100.0, True),  # z 6 >= 0.3 * 20, temperature 30 >= 0.3 * 100: the edges themselves pass
+        (5.9, 30.0, 20.0, 100.0, False),  # a weaker peak than 0.3 of the recent matches'
+        (6.0, 29.0, 20.0, 100.0, False),  # a flatter one
+        (2.4, 30.0, 1.0, 1.0, False),  # below min_peak_z
+        (2.5, 1.0, math.nan, math.nan, True),  # no recent match: only min_peak_z holds
+    ],
+)
+def test_a_relocalization_peak_must_be_as_clear_and_sharp_as_the_recent_matches(
+    peak_z, temperature, typical_z, typical_temperature, clear
+):
+    from enmi_torch.tracking.tracker import fresh_peak_is_clear
+
+    values = (
+        torch.tensor(value, dtype=torch.float64) for value in (peak_z, temperature, typical_z, typical_temperature)
+    )
+    assert fresh_peak_is_clear(*values, min_peak_z=2.5, z_drop=0.3) is clear

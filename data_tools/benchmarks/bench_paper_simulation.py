@@ -51,11 +51,13 @@ VALUE_RANGE = (0.0, 256.0)
 def separate_errors(captured, amplitudes, candidates, variance, score, log_prior):
     """The same decision as ``count_errors``, one library call per reference."""
 
-    def score_against(reference):
+    def score_against(reference):  # the trials as flat samples (T, 1, K)
         if score == "nmi":
-            return nmi_from_joint_histogram(joint_histogram(captured, reference))
+            return nmi_from_joint_histogram(joint_histogram(captured[:, None], reference[:, None]))
         weights = "density" if score == "enmi_density" else "mass"
-        return enmi(captured, reference, variance.reshape(1, -1), kernel=weights, log_prior=log_prior)
+        return enmi(
+            captured[:, None], reference[:, None], variance.reshape(1, 1, -1), kernel=weights, log_prior=log_prior
+        )
 
     return score_against(candidates) >= score_against(amplitudes)
 
@@ -178,8 +180,8 @@ def main() -> None:
     generator = torch.Generator().manual_seed(1)
     for pixels in IMAGE_PIXELS:
         images = 262_144 // pixels
-        captured = torch.rand(images, pixels, generator=generator) * 256
-        reference = torch.rand(images, pixels, generator=generator) * 256
+        captured = torch.rand(images, 1, pixels, generator=generator) * 256  # flat samples (B, 1, N)
+        reference = torch.rand(images, 1, pixels, generator=generator) * 256
         timings = {"pixel-wise": [], "dense": []}
         for _ in range(args.repeats + 1):
             for way in ("pixel-wise", "dense"):

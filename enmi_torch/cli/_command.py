@@ -7,6 +7,7 @@ import difflib
 import re
 import sys
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import NoReturn
 
 # Exceptions that mean "the input or the options are wrong" (the library's checks, missing or unreadable files).
@@ -30,6 +31,26 @@ def run_command(prog: str, command: Callable[[list[str]], object], argv: Sequenc
         if debug:
             raise
         fail(prog, str(error) or type(error).__name__)
+
+
+def check_text_files(argv: Sequence[str], flag: str) -> None:
+    """Raise ``ValueError`` naming ``flag`` if a file it names (``FLAG FILE`` or ``FLAG=FILE``) is not UTF-8 text.
+
+    A parser that reads the file itself would say only "'utf-8' codec can't decode byte ...".
+    """
+    for index, argument in enumerate(argv):
+        if argument == flag and index + 1 < len(argv):
+            path = argv[index + 1]
+        elif argument.startswith(f"{flag}="):
+            path = argument.partition("=")[2]
+        else:
+            continue
+        try:
+            Path(path).read_bytes().decode("utf-8")
+        except UnicodeDecodeError:
+            raise ValueError(f"{flag} {path!r} is not UTF-8 text (a binary file?): pass a YAML file") from None
+        except OSError:
+            continue  # the parser says that a file is missing, in its own words
 
 
 def fail(prog: str, message: str) -> NoReturn:

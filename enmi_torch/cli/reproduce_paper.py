@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from enmi_torch import RoadCamera
 from enmi_torch._resources import config_file
-from enmi_torch.cli._command import dashed_aliases, parser_error, run_command
+from enmi_torch.cli._command import check_text_files, dashed_aliases, parser_error, run_command
 from enmi_torch.simulation import SCORES, ErrorRates, error_rates, road_tiles
 
 PROG = "enmi-reproduce-paper"
@@ -247,6 +247,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 def reproduce_paper(argv: Sequence[str]) -> None:
     """The command with these arguments."""
+    check_text_files(argv, "--config")
     args = build_parser().parse_args(dashed_aliases(argv, [key.replace("_", "-") for key in CONFIG_KEYS]))
     for flag, value in (("--threads", args.threads), ("--workers", args.workers)):
         if value < 1:

@@ -61,7 +61,7 @@ class PairDataset(Dataset):
         self.names = sorted(files["local"])
         self._files = {folder: files[folder] for folder in ("local", *partners)}
         self.shape = (
-            check_image_shape("meta.json shape", tuple(meta["shape"]))
+            check_image_shape(f"{self.root / 'meta.json'} shape", meta["shape"])
             if "shape" in meta
             else tuple(_read_image(self._files["local"][self.names[0]]).shape)
         )

@@ -17,7 +17,7 @@ import torch
 from torch.utils.data import Dataset
 
 from enmi_torch._checks import check_non_negative_int, check_positive_int
-from enmi_torch.data.truth import VarianceTruth
+from enmi_torch.data.truth import VarianceTruth, check_std
 
 
 @functools.cache
@@ -110,10 +110,7 @@ class SyntheticPairs(Dataset):
         self.truth = truth
         self.count = check_positive_int("count", count)
         self.seed = check_non_negative_int("seed", seed)
-        for name, value in (("gain_std", gain_std), ("offset_std", offset_std)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        self.gain_std, self.offset_std = float(gain_std), float(offset_std)
+        self.gain_std, self.offset_std = check_std("gain_std", gain_std), check_std("offset_std", offset_std)
         texture_shape = gravel_texture().shape
         if truth.shape[0] > texture_shape[0] or truth.shape[1] > texture_shape[1]:
             raise ValueError(f"truth must be at most {texture_shape} (the gravel texture), got shape {truth.shape}")

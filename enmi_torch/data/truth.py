@@ -11,12 +11,19 @@ Convention:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_image_shape, check_option, check_positive_number, check_value_range
+from enmi_torch._checks import (
+    FLOAT32_MAGNITUDE,
+    check_image_shape,
+    check_option,
+    check_positive_number,
+    check_value_range,
+)
 from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.geometry.rectify import GroundGrid, visible_cells
 from enmi_torch.variance.perspective import perspective_variance
@@ -129,6 +136,25 @@ def camera_truth(
     return VarianceTruth(torch.where(valid, variance, torch.nan), valid, "camera")
 
 
+# Pairs are float32 images of grey levels 0-255: draws of a few standard deviations, times 256, stay within the
+# values the scores accept in float32 (FLOAT32_MAGNITUDE).
+MAX_STD = FLOAT32_MAGNITUDE / 1e4
+
+
+def check_std(name: str, value: object, *, positive: bool = False) -> float:
+    """``value`` as a float in ``[0, MAX_STD]`` (``(0, MAX_STD]`` with ``positive``), else ``ValueError``."""
+    low = "> 0" if positive else ">= 0"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a finite number {low}, got {value!r}")
+    if not (0 < value if positive else 0 <= value) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number {low}, got {value!r}")
+    if value > MAX_STD:
+        raise ValueError(
+            f"{name} must be at most {MAX_STD:.0e} (the pairs are float32 images of grey levels), got {value!r}"
+        )
+    return float(value)
+
+
 def make_truth(flavour: str, shape: tuple[int, int], noise_std: float) -> VarianceTruth:
     """The ``flavour`` field (``"lidar"`` or ``"camera"``) scaled to an RMS noise std of ``noise_std`` where valid.
 
@@ -138,6 +164,7 @@ def make_truth(flavour: str, shape: tuple[int, int], noise_std: float) -> Varian
         100.0
     """
     check_option("flavour", flavour, FLAVOURS)
-    target = check_positive_number("noise_std", noise_std) ** 2
+    noise_std = check_std("noise_std", noise_std, positive=True)
+    target = noise_std**2
     shape_only = lidar_truth(shape) if flavour == "lidar" else camera_truth(shape, 1.0)
     return shape_only.scaled(target / shape_only.mean_variance())

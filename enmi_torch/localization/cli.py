@@ -180,6 +180,8 @@ def main(argv: Sequence[str] | None = None) -> None:
 def _command(argv: Sequence[str]) -> dict:
     """The command with these arguments; returns the printed result as a dict."""
     args = _parser().parse_args(argv)
+    if args.output is not None:
+        _check_output(args.output)
     dtype = getattr(torch, args.dtype)
     prior_map = torch.as_tensor(_read_array(args.map, "map"), dtype=dtype)
     local = torch.as_tensor(_read_array(args.local, "local"), dtype=dtype)
@@ -247,6 +249,15 @@ def _command(argv: Sequence[str]) -> dict:
     return report
 
 
+def _check_output(path: str) -> None:
+    """Refuse an ``--output`` that could not be written as named, before the search runs."""
+    output = Path(path)
+    if output.is_dir():
+        raise ValueError(f"--output must name a PNG file to write, got the existing folder {path!r}")
+    if not output.parent.is_dir():
+        raise ValueError(f"--output {path!r} lies in a folder that does not exist ({str(output.parent)!r})")
+
+
 def _draw_surface(result: Localization, path: str, score_name: str) -> None:
     import matplotlib
 
@@ -279,7 +290,7 @@ def _draw_surface(result: Localization, path: str, score_name: str) -> None:
         axes[0, 1].axvline(yaw, color="red")
         axes[0, 1].set(xlabel="yaw (degrees)", ylabel="best score over shifts", title=f"peak at yaw {yaw:.2f}°")
     figure.tight_layout()
-    figure.savefig(path, dpi=90)
+    figure.savefig(path, dpi=90, format="png")  # at the path as named (no ".png" appended)
     plt.close(figure)
 
 

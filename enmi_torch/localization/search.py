@@ -32,6 +32,7 @@ from torch import Tensor, nn
 from enmi_torch._budget import check_search_memory
 from enmi_torch._checks import (
     check_bins,
+    check_bool,
     check_captured_in_reference,
     check_mask_not_empty,
     check_non_negative_int,
@@ -147,6 +148,7 @@ def localize(
         ([[3.0, -2.0, 0.0]], torch.Size([1, 1, 13, 13]))
     """
     score = as_score(score)
+    check_bool("refine", refine)
     check_option("resample", resample, RESAMPLING)
     check_same_device("reference", reference, "captured", captured)
     batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
@@ -223,7 +225,7 @@ def _check_two_stage(score: Score, coarse_factor: int, cheap_bins: int) -> None:
             "search='two_stage' needs an ECR score with response='shrunk' or 'binned' and coarse_factor=1, got "
             f"score={score!r}, coarse_factor={coarse_factor!r}"
         )
-    if check_bins(cheap_bins) > score.bins:
+    if check_bins(cheap_bins, "cheap_bins") > score.bins:
         raise ValueError(f"cheap_bins must be at most bins ({score.bins}), got {cheap_bins}")
 
 
@@ -281,8 +283,11 @@ class Localizer(nn.Module):
             "coarse_peaks": coarse_peaks,
             "resample": check_option("resample", resample, RESAMPLING),
             "search": check_option("search", search, SEARCHES),
-            "cheap_bins": cheap_bins,
+            "cheap_bins": check_bins(cheap_bins, "cheap_bins"),
         }
+        _check_search_settings(min_overlap, exclusion_radius, coarse_factor, coarse_peaks, search)
+        if search == "two_stage":
+            _check_two_stage(self.score, coarse_factor, cheap_bins)
 
     def forward(
         self,
@@ -369,7 +374,27 @@ def _captured_valid(captured: Tensor, captured_mask: Tensor | None, variance) ->
         if mask is not None:
             valid = valid & mask_map(name, mask, captured).view_as(captured)
     check_mask_not_empty("captured_mask", valid.flatten(1))
+    _check_something_to_match(captured, valid)
     return valid
+
+
+def _check_something_to_match(captured: Tensor, valid: Tensor) -> None:
+    """Raise :class:`NoCandidateError` if a sample's valid pixels hold one value (one pixel, a flat image).
+
+    Every placement of such an image scores alike: the surface is flat and its "peak" would be the window's corner.
+    """
+    values = captured.flatten(1)
+    keep = valid.flatten(1)
+    large = torch.finfo(values.dtype).max
+    flat = torch.where(keep, values, -large).amax(1) <= torch.where(keep, values, large).amin(1)
+    if bool(flat.any()):
+        samples = flat.nonzero()[:, 0].tolist()
+        count = int(keep[samples[0]].sum())
+        raise NoCandidateError(
+            f"captured sample(s) {samples} hold one value at all their {count} valid pixel(s) (shape "
+            f"{tuple(captured.shape[2:])}): every placement scores alike, there is nothing to match; pass an image "
+            "with some texture"
+        )
 
 
 def _variance_map(captured: Tensor, variance, valid: Tensor) -> Tensor | None:

@@ -40,13 +40,21 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from enmi_torch._budget import check_cells_memory
 from enmi_torch._checks import (
-    check_bool_mask,
     check_floating,
+    check_image_shape,
+    check_map,
+    check_margin,
+    check_mask_of,
+    check_not_empty,
+    check_pose,
     check_positive_int,
     check_positive_number,
+    check_real_data,
     check_variance_given,
 )
+from enmi_torch._layout import variance_map
 from enmi_torch.binning import hard_bin_index
 from enmi_torch.scores import ECR, NCC, Score, as_score
 from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
@@ -93,15 +101,22 @@ def warp_reference(
     """The map under captured images of ``shape`` at ``pose``: bilinear samples and where they count.
 
     Args:
-        reference: ``(1 or B, 1, Hm, Wm)`` map, floating point.
-        pose: ``(B, 3)`` ``(x, y, yaw)`` (see the module's convention); the samples are differentiable in it.
-        shape: ``(h, w)`` of the captured images.
-        reference_mask: optional bool map ``(1 or B, 1, Hm, Wm)``: ``False`` cells are unobserved.
-        margin: cells a sample must keep from the map's border.
+        reference: ``(1 or B, 1, Hm, Wm)`` map, real floating point; NaN or inf cells count as unobserved.
+        pose: ``(B, 3)`` finite floating ``(x, y, yaw)`` (see the module's convention); the samples are
+            differentiable in it.
+        shape: ``(h, w)`` of the captured images, two positive ints.
+        reference_mask: optional bool map ``(1 or B, 1, Hm, Wm)`` or ``(Hm, Wm)``, the map's size: ``False`` cells are
+            unobserved.
+        margin: cells ``>= 0`` a sample must keep from the map's border.
 
     Returns:
-        ``(warped, valid)``: ``(B, 1, h, w)`` samples (0 off the map) and bool ``(B, 1, h, w)``: the sample lies on the
-        map, ``margin`` cells inside its border, and its four neighbouring cells are observed.
+        ``(warped, valid)``: ``(B, 1, h, w)`` samples (0 off the map and on non-finite cells) and bool
+        ``(B, 1, h, w)``: the sample lies on the map, ``margin`` cells inside its border, and its four neighbouring
+        cells are observed.
+
+    Raises:
+        TypeError, ValueError: naming the argument that is not as above.
+        MemoryBudgetError: when the ``B x h x w`` samples would exceed the memory budget (nothing is allocated).
 
     Example:
         >>> reference = torch.arange(20.0).reshape(1, 1, 4, 5)
@@ -109,15 +124,43 @@ def warp_reference(
         >>> warped.flatten().tolist(), valid.flatten().tolist()  # centre pixel (0, 1) on column 2.5 of row 1
         ([6.5, 7.5], [True, True])
     """
+    pose = check_pose("pose", pose)
+    reference = check_map("reference", reference, pose.shape[0], "pose", pose)
+    shape = check_image_shape("shape", shape)
+    if reference_mask is not None:
+        reference_mask = check_mask_of("reference_mask", reference_mask, "reference", reference)
+    margin = check_margin("margin", margin)
+    check_cells_memory(
+        f"shape={shape}",
+        pose.shape[0] * shape[0] * shape[1],
+        WARP_BYTES_PER_ITEM * pose.element_size() + 2,
+        f"the map positions, samples and masks of {pose.shape[0]} image(s) of {shape[0]} x {shape[1]}",
+        "pass the captured images' own (h, w)",
+    )
+    return _warp(reference, pose, shape, reference_mask, margin)
+
+
+WARP_BYTES_PER_ITEM = 8  # per sample: positions (x, y), their normalised copy, the sample, the mask taps
+
+
+def _warp(
+    reference: Tensor, pose: Tensor, shape: tuple[int, int], reference_mask: Tensor | None, margin: float
+) -> tuple[Tensor, Tensor]:
+    """:func:`warp_reference` on checked inputs; NaN or inf map cells count as unobserved (and sample as 0)."""
     height, width = reference.shape[-2:]
     positions = sample_positions(pose, shape)
+    finite = torch.isfinite(reference)
+    unobserved = None if reference_mask is None else ~reference_mask
+    if not bool(finite.all()):
+        reference = torch.where(finite, reference, 0.0)
+        unobserved = ~finite if unobserved is None else unobserved | ~finite
     warped = _sample(reference.to(pose.dtype), positions)
     x, y = positions.detach().unbind(-1)
     valid = (x >= margin) & (x <= width - 1 - margin) & (y >= margin) & (y <= height - 1 - margin)
-    if reference_mask is not None:
+    if unobserved is not None:
         # A cell the bilinear sample leans on at all (weight > 0) must be observed: each lies within the 3 x 3 cells
         # around the nearest one.
-        near_unobserved = F.max_pool2d((~reference_mask).to(pose.dtype), 3, 1, 1)
+        near_unobserved = F.max_pool2d(unobserved.to(pose.dtype), 3, 1, 1)
         near = _sample(near_unobserved, positions.detach(), mode="nearest")
         valid = valid & (near[:, 0] <= 0)
     return warped, valid[:, None]
@@ -257,25 +300,76 @@ def _penalty(score: Score, values: Tensor, warped: Tensor, weights: Tensor) -> T
         return response_variance.clamp_min(floor).reciprocal()
 
 
-def _prepare(captured, reference, variance, captured_mask, reference_mask, score: Score):
+class _Inputs(NamedTuple):
+    """Checked inputs of :func:`register` and :func:`registration_score`."""
+
+    captured: Tensor
+    reference: Tensor
+    variance: Tensor | None  # (B, 1, h, w) in captured's dtype, 1 where a pixel does not count
+    captured_mask: Tensor | None  # bool (1 or B, 1, h, w)
+    reference_mask: Tensor | None  # bool (1 or B, 1, Hm, Wm)
+    pose: Tensor
+
+
+def _prepare(captured, reference, variance, captured_mask, reference_mask, score: Score, pose) -> _Inputs:
+    """Every input by name (shapes, dtypes, devices, finite values, masks the size of what they mask); the budget."""
     check_floating("captured", captured)
-    check_floating("reference", reference)
+    check_real_data("captured", captured)
     if captured.ndim != 4 or captured.shape[1] != 1:
-        raise ValueError(f"captured must be (B, 1, h, w), got {tuple(captured.shape)}")
-    if reference.ndim != 4 or reference.shape[1] != 1 or reference.shape[0] not in (1, captured.shape[0]):
-        raise ValueError(
-            f"reference must be (1 or B, 1, Hm, Wm) with B = {captured.shape[0]}, got {tuple(reference.shape)}"
-        )
+        raise ValueError(f"captured must have shape (B, 1, h, w), got {tuple(captured.shape)}")
+    check_not_empty("captured", captured)
+    batch = captured.shape[0]
+    reference = check_map("reference", reference, batch, "captured", captured)
+    pose = check_pose("pose", pose, batch)
+    if pose.device != captured.device:
+        raise ValueError(f"pose must be on the device of captured ({captured.device}), got {pose.device}")
+    if captured_mask is not None:
+        captured_mask = check_mask_of("captured_mask", captured_mask, "captured", captured)
+    if reference_mask is not None:
+        reference_mask = check_mask_of("reference_mask", reference_mask, "reference", reference)
     if isinstance(variance, VarianceModel):
+        model_mask = variance.valid_mask(captured)
         variance = variance(captured)
+        if model_mask is not None:
+            captured_mask = model_mask if captured_mask is None else captured_mask & model_mask
     if score.uses_variance:
         check_variance_given(variance)
+        check_same_device_of("variance", variance, captured)
+        valid = None if captured_mask is None else captured_mask.expand_as(captured).flatten(1)
+        variance = variance_map("variance", variance, captured, captured.dtype, valid).view_as(captured)
     elif variance is not None:
         raise ValueError(f"variance is not used by score {score.name!r}; pass None")
-    for name, mask in (("captured_mask", captured_mask), ("reference_mask", reference_mask)):
-        if mask is not None:
-            check_bool_mask(name, mask)
-    return variance
+    size = score.bins if isinstance(score, ECR) and score.response == "binned" else 2
+    check_cells_memory(
+        f"bins={size}" if size > 2 else "score",
+        (3 * batch + 1) * size * size,
+        8,
+        f"the normal equations ({batch}, {size}, {size}) of the fitted response in float64",
+        "lower the score's bins",
+    )
+    return _Inputs(captured, reference, variance, captured_mask, reference_mask, pose)
+
+
+def check_same_device_of(name: str, value, captured: Tensor) -> None:
+    """A tensor ``value`` must hold data on the device of ``captured`` (a number is fine)."""
+    if isinstance(value, Tensor):
+        check_real_data(name, value)
+        if value.device != captured.device:
+            raise ValueError(f"{name} must be on the device of captured ({captured.device}), got {value.device}")
+
+
+def _check_counting(valid: Tensor, pose: Tensor, map_shape, margin: float, masked: bool) -> None:
+    """Raise ``ValueError`` naming the pose if a sample has no pixel that counts at ``pose``."""
+    empty = ~valid.flatten(1).any(1)
+    if bool(empty.any()):
+        samples = empty.nonzero()[:, 0].tolist()
+        raise ValueError(
+            f"no captured pixel counts at pose {pose[samples[0]].tolist()} (sample(s) {samples}): its samples of the "
+            f"{map_shape[0]} x {map_shape[1]} map all lie off the map, within margin={margin} cells of its border or "
+            "by unobserved cells (reference_mask, NaN cells)"
+            + (", or are masked out by captured_mask" if masked else "")
+            + "; start from a pose on the map"
+        )
 
 
 def registration_score(
@@ -304,11 +398,13 @@ def registration_score(
         True
     """
     score = check_registration_score(score)
-    variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
-    check_floating("pose", pose)
-    warped, valid = warp_reference(reference, pose, captured.shape[-2:], reference_mask, margin)
+    inputs = _prepare(captured, reference, variance, captured_mask, reference_mask, score, pose)
+    margin = check_margin("margin", margin)
+    captured, reference, variance, captured_mask, reference_mask, pose = inputs
+    warped, valid = _warp(reference, pose, tuple(captured.shape[-2:]), reference_mask, margin)
     if captured_mask is not None:
         valid = valid & captured_mask.expand_as(valid)
+    _check_counting(valid, pose, reference.shape[-2:], margin, captured_mask is not None)
     values = captured.to(pose.dtype)
     weights = _weights(score, values, warped, variance, valid)
     fit = _Fit(score, weights, _penalty(score, values, warped.detach(), weights))
@@ -352,6 +448,12 @@ def register(
     Returns:
         :class:`Registration` (``pose``, ``score``, ``converged``, ``iterations``).
 
+    Raises:
+        TypeError, ValueError: naming the argument (shapes, dtypes, devices, finite values, masks the size of what
+            they mask, a pose where no pixel counts).
+        MemoryBudgetError: when the score's normal equations (``ECR(bins=...)``) or the blur's taps would exceed the
+            memory budget, before anything is allocated.
+
     Example:
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = F.avg_pool2d(torch.rand(1, 1, 80, 80, generator=generator, dtype=torch.float64), 3, 1) * 255
@@ -363,21 +465,23 @@ def register(
         ([[39.3, 40.6, 2.5]], True)
     """
     score = check_registration_score(score)
-    variance = _prepare(captured, reference, variance, captured_mask, reference_mask, score)
+    inputs = _prepare(captured, reference, variance, captured_mask, reference_mask, score, pose)
+    captured, reference, variance, captured_mask, reference_mask, pose = inputs
     iterations = check_positive_int("iterations", iterations)
     tolerance = check_positive_number("tolerance", tolerance)
-    if not isinstance(margin, (int, float)) or isinstance(margin, bool) or not math.isfinite(margin) or margin <= 0:
-        raise ValueError(f"margin must be a finite number > 0 (the largest move, in cells), got {margin!r}")
+    margin = check_margin("margin", margin, positive=True, meaning="the largest move, in cells")
     if (
-        isinstance(blur, (int, float))
+        isinstance(blur, (int, float, str))
+        or not hasattr(blur, "__len__")
         or not len(blur)
-        or any(not isinstance(sigma, (int, float)) or not math.isfinite(sigma) or sigma < 0 for sigma in blur)
+        or any(
+            isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not math.isfinite(sigma) or sigma < 0
+            for sigma in blur
+        )
     ):
         raise ValueError(f"blur must be a non-empty sequence of standard deviations >= 0, got {blur!r}")
-    check_floating("pose", pose)
+    _check_blur_memory(blur, captured, reference)
     batch = captured.shape[0]
-    if pose.shape != (batch, 3) or not bool(torch.isfinite(pose).all()):
-        raise ValueError(f"pose must be finite (B, 3) with B = {batch}, got {tuple(pose.shape)}")
     dtype = torch.float64
     start = pose.detach().to(dtype)
     current = start.clone()
@@ -399,9 +503,29 @@ def register(
     return Registration(current.to(pose.dtype), final.score(current).to(captured.dtype), converged, steps)
 
 
+def _check_blur_memory(blur, captured: Tensor, reference: Tensor) -> None:
+    """Refuse a blur whose kernels (and their unfolded copies of the images) exceed the memory budget."""
+    radius = _blur_radius(max(blur))
+    height, width = reference.shape[-2:]
+    cells = max(reference[:, 0].numel(), captured[:, 0].numel())
+    # A 1-D convolution on the CPU unfolds every output cell's taps; the map is padded by the radius on both sides.
+    needed_cells = cells * (2 * radius + 1) + reference.shape[0] * (height + 2 * radius) * (width + 2 * radius)
+    check_cells_memory(
+        f"blur={tuple(blur)!r}",
+        needed_cells,
+        8,
+        f"the Gaussian taps ({2 * radius + 1} per cell) over the {height} x {width} map and the captured images",
+        "blur by a few cells at most (a blur wider than the map averages it away)",
+    )
+
+
+def _blur_radius(sigma: float) -> int:
+    return max(1, math.ceil(3 * sigma))
+
+
 def _gaussian(images: Tensor, sigma: float, weight: Tensor) -> tuple[Tensor, Tensor]:
     """Normalised Gaussian blur of ``images`` over ``weight`` (0 or 1), and the blurred weight."""
-    radius = max(1, math.ceil(3 * sigma))
+    radius = _blur_radius(sigma)
     offsets = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
     kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
     kernel = kernel / kernel.sum()
@@ -423,22 +547,28 @@ class _Stage:
         self.reference = reference.detach().to(dtype)
         self.noise, self.score_, self.margin, self.reference_mask = noise, score, margin, reference_mask
         self.captured_valid = torch.ones_like(self.captured, dtype=torch.bool)
+        self.masked = captured_mask is not None
         if captured_mask is not None:
             self.captured_valid = self.captured_valid & captured_mask.expand_as(self.captured)
         self.captured_valid = self.captured_valid & torch.isfinite(self.captured)
         self.captured = torch.where(self.captured_valid, self.captured, 0.0)
         self.sigma = sigma
+        finite = torch.isfinite(self.reference)
+        if not bool(finite.all()):  # NaN or inf map cells are unobserved, and must not bleed into the blur
+            self.reference_mask = finite if reference_mask is None else reference_mask & finite
+            self.reference = torch.where(finite, self.reference, 0.0)
         if sigma > 0:
             observed = torch.ones_like(self.reference)
-            if reference_mask is not None:
-                observed = reference_mask.expand_as(self.reference).to(dtype)
+            if self.reference_mask is not None:
+                observed = self.reference_mask.expand_as(self.reference).to(dtype)
             self.reference, _ = _gaussian(self.reference, sigma, observed)
         self.shape = captured.shape[-2:]
 
     def _setup(self, pose: Tensor) -> _Fit:
         """The pixels that count at ``pose`` (the captured image blurred over them alone) and their weights."""
-        warped, valid = warp_reference(self.reference, pose, self.shape, self.reference_mask, self.margin)
+        warped, valid = _warp(self.reference, pose, self.shape, self.reference_mask, self.margin)
         self.valid = valid & self.captured_valid
+        _check_counting(self.valid, pose, self.reference.shape[-2:], self.margin, self.masked)
         self.values = self.captured
         if self.sigma > 0:  # pixels off the map must not bleed into the blurred image
             self.values, _ = _gaussian(self.captured, self.sigma, self.valid.to(self.captured.dtype))
@@ -451,7 +581,7 @@ class _Stage:
 
     def score_with(self, fit: _Fit, pose: Tensor) -> Tensor:
         """The score at ``pose`` with the pixels and weights of ``fit``."""
-        warped, _ = warp_reference(self.reference, pose, self.shape)
+        warped, _ = _warp(self.reference, pose, self.shape, None, 0.0)
         return fit.solve(self.values.flatten(1), warped.flatten(1))[2]
 
     def _residuals(self, fit: _Fit, pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:

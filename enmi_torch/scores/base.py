@@ -125,7 +125,7 @@ class Score:
         """The score of aligned pairs, ``(B,)`` (``(C, B)`` for ``C`` candidate references per captured image).
 
         Args:
-            captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+            captured: ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
             reference: the same shape, or ``(C, *captured.shape)``.
             variance: the captured pixels' noise variance (a number or a per-pixel map) for the scores that use one
                 (:attr:`uses_variance`), else ``None``.

@@ -51,7 +51,7 @@ def enmi(
     the reference pixel's bin; ENMI is the Studholme NMI of that joint histogram.
 
     Args:
-        captured: noisy image ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: noisy image ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
         reference: noiseless map section, same shape; or ``(C, *captured.shape)``, ``C`` candidate sections per
             captured image, scored against likelihood weights computed once (the costly part).
         variance: per-pixel noise variance (> 0 where valid): a number, ``(H, W)``, ``(1, 1, H, W)`` or

@@ -72,7 +72,7 @@ def mixture_information(
     """Mixture-likelihood mutual information: the noise-aware log-likelihood ratio per valid pixel, nats, ``(B,)``.
 
     Args:
-        captured: noisy image ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: noisy image ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
         reference: noiseless map section, same shape; or ``(C, *captured.shape)``, ``C`` candidates per image (the
             captured likelihoods are computed once).
         variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,

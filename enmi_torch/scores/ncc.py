@@ -22,7 +22,7 @@ def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None
     """Pearson correlation of each captured/reference pair over its valid pixels, ``(B,)``.
 
     Args:
-        captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
         reference: same shape as ``captured``, or ``(C, *captured.shape)`` for ``C`` candidates per captured image.
         valid_mask: bool ``(H, W)``, ``(1, 1, H, W)`` or ``(B, 1, H, W)``; ``False`` pixels are left out (they may
             hold NaN).
@@ -35,7 +35,7 @@ def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None
         Differentiable in ``captured`` and ``reference``.
 
     Example:
-        >>> captured = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+        >>> captured = torch.tensor([[[1.0, 2.0, 3.0, 4.0]]])  # one flat sample (1, 1, N)
         >>> ncc(captured, captured**2), ncc(captured, -captured)
         (tensor([0.9844]), tensor([-1.]))
     """
@@ -136,7 +136,7 @@ def ncc_loss(
     """``1 - ncc(captured, reference)`` reduced over the batch (0 when aligned), in ``[0, 2]``.
 
     Example:
-        >>> captured = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+        >>> captured = torch.tensor([[[1.0, 2.0, 3.0, 4.0]]])  # one flat sample (1, 1, N)
         >>> ncc_loss(captured, 2 * captured + 1), ncc_loss(captured, -captured)
         (tensor(0.), tensor(2.))
     """
@@ -148,7 +148,7 @@ class NCC(Score):
     """NCC as an object: :func:`ncc`, :func:`ncc_surface` and :func:`ncc_loss` (no options).
 
     Example:
-        >>> captured = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+        >>> captured = torch.tensor([[[1.0, 2.0, 3.0, 4.0]]])  # one flat sample (1, 1, N)
         >>> NCC()(captured, 2 * captured + 1), NCC().loss(captured, 2 * captured + 1)
         (tensor([1.]), tensor(0.))
     """

@@ -34,7 +34,7 @@ def nmi(
     """Normalized mutual information of each captured/reference pair, ``(B,)``.
 
     Args:
-        captured: ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
         reference: same shape as ``captured``, or ``(C, *captured.shape)`` to score each captured image against
             ``C`` candidates (the captured bins are computed once).
         bins: number of equal-width bins over ``value_range``.

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from enmi_torch._budget import check_cells_memory
-from enmi_torch._checks import check_floating, check_positive_int, check_positive_number, check_shifts
+from enmi_torch._checks import check_floating, check_pose, check_positive_int, check_positive_number, check_shifts
 
 # Chi-square quantile with 2 degrees of freedom at 95 %: the (x, y) ellipse radius squared.
 CHI2_95_2D = 5.991464547107979
@@ -90,13 +90,14 @@ def initial_belief(
         >>> belief.log_prob.shape, belief.center.tolist(), belief.yaws().tolist()
         (torch.Size([1, 3, 5, 7]), [[20, 10]], [[2.0, 3.0, 4.0]])
     """
-    pose = check_pose("pose", pose)
+    pose = check_pose("pose", pose).double()
     radius = check_shifts(shifts)
     yaw_bins = check_positive_int("yaw_bins", yaw_bins)
     if yaw_bins % 2 == 0:
         raise ValueError(f"yaw_bins must be odd (a middle bin on the predicted yaw), got {yaw_bins}")
     yaw_step = check_positive_number("yaw_step", yaw_step)
     batch = pose.shape[0]
+    check_belief_memory(shifts, radius, yaw_bins, batch)
     center = torch.stack([pose[:, 1], pose[:, 0]], 1).round().long()
     shape = (batch, yaw_bins, 2 * radius[0] + 1, 2 * radius[1] + 1)
     log_prob = torch.zeros(shape, dtype=torch.float64, device=pose.device)
@@ -141,7 +142,7 @@ def predict(belief: Belief, odometry: Tensor, noise: Sequence[float] | Tensor) -
     """
     check_belief(belief)
     batch, yaw_count = belief.log_prob.shape[:2]
-    odometry = check_pose("odometry", odometry, batch)
+    odometry = check_pose("odometry", odometry, batch).double()
     noise = check_noise("noise", noise, batch)
     peak = belief.log_prob.flatten(1).amax(1).clamp_min(-1e300)
     mass = (belief.log_prob - peak[:, None, None, None]).exp()
@@ -430,15 +431,20 @@ def check_belief(belief: object) -> None:
         raise ValueError(f"belief.log_prob must be (B, Y, 2 ry + 1, 2 rx + 1), got {tuple(belief.log_prob.shape)}")
 
 
-def check_pose(name: str, pose: object, batch: int | None = None) -> Tensor:
-    """``pose`` ``(B, 3)`` (``batch`` rows if given), finite, as float64."""
-    check_floating(name, pose)
-    expected = "(B, 3)" if batch is None else f"({batch}, 3)"
-    if pose.ndim != 2 or pose.shape[1] != 3 or (batch is not None and pose.shape[0] != batch):
-        raise ValueError(f"{name} must have shape {expected}, got {tuple(pose.shape)}")
-    if not bool(torch.isfinite(pose).all()):
-        raise ValueError(f"{name} must be finite, got NaN or inf")
-    return pose.double()
+BELIEF_COPIES = 8  # float64 tensors of the belief's size a filter step holds at once (prior, likelihoods, poses)
+
+
+def check_belief_memory(shifts: object, radius: tuple[int, int], yaw_bins: int, batch: int) -> None:
+    """Refuse a belief window (and a filter step's copies of it) over the memory budget, before it is allocated."""
+    cells = batch * yaw_bins * (2 * radius[0] + 1) * (2 * radius[1] + 1)
+    check_cells_memory(
+        f"shifts={shifts!r} with yaw_bins={yaw_bins}",
+        cells,
+        8 * BELIEF_COPIES,
+        f"the belief ({batch}, {yaw_bins}, {2 * radius[0] + 1}, {2 * radius[1] + 1}) in float64 and a filter step's "
+        "copies of it",
+        "lower shifts or yaw_bins (relocalize_shifts widens the search when the vehicle is lost)",
+    )
 
 
 def check_noise(name: str, noise: object, batch: int) -> Tensor:

@@ -34,11 +34,15 @@ import torch
 from torch import Tensor, nn
 
 from enmi_torch._checks import (
+    check_bool,
     check_floating,
+    check_mask_of,
     check_non_negative_int,
     check_option,
     check_positive_int,
     check_positive_number,
+    check_real_data,
+    check_same_device,
     check_shifts,
 )
 from enmi_torch.localization.peak import NoCandidateError
@@ -49,6 +53,7 @@ from enmi_torch.tracking.belief import (
     Belief,
     belief_pose,
     check_belief,
+    check_belief_memory,
     check_mismatch_probability,
     check_noise,
     finite_floor,
@@ -57,7 +62,7 @@ from enmi_torch.tracking.belief import (
     normalized,
     predict,
 )
-from enmi_torch.tracking.calibration import Calibration, grid_temperature
+from enmi_torch.tracking.calibration import Calibration, _checked, grid_temperature
 from enmi_torch.tracking.health import (
     Health,
     check_health,
@@ -182,19 +187,19 @@ def track_step(
     """
     check_belief(belief)
     score = default_score() if score is None else as_score(score)
-    if not isinstance(refine, bool):
-        raise TypeError(f"refine must be a bool, got {type(refine).__name__} {refine!r}")
-    if refine:
+    if check_bool("refine", refine):
         check_registration_score(score)
     check_floating("captured", captured)
+    check_real_data("captured", captured)
     if captured.ndim != 4 or captured.shape[1] != 1 or captured.shape[0] != belief.log_prob.shape[0]:
         raise ValueError(
             f"captured must be (B, 1, h, w) with B = {belief.log_prob.shape[0]} (the belief's vehicles), got "
             f"{tuple(captured.shape)}"
         )
-    check_floating("reference", reference)
-    if reference.ndim != 4 or reference.shape[:2] != (1, 1):
-        raise ValueError(f"reference must be one map (1, 1, Hm, Wm), got {tuple(reference.shape)}")
+    check_reference_map(reference)
+    check_same_device("captured", captured, "reference", reference)
+    if captured_mask is not None:
+        captured_mask = check_mask_of("captured_mask", captured_mask, "captured", captured)
     if isinstance(temperature, str) and temperature != "auto":
         raise ValueError(f"temperature must be 'auto' or a finite number > 0, got {temperature!r}")
     if temperature != "auto":
@@ -242,19 +247,14 @@ def track_step(
         offset = found.to(candidate) - window_center
         previous = health.candidate[vehicle]
         candidate[vehicle] = offset
-        agrees = bool(torch.isfinite(previous).all()) and bool((offset[:2] - previous[:2]).abs().max() <= 2.0)
-        if not (agrees and bool((offset[2] - previous[2]).abs() <= 2 * prior.yaw_step)):
+        if not wide_matches_agree(offset, previous, prior.yaw_step):
             continue
         fresh = _restart(prior, vehicle, found)
         fresh_raw, fresh_score, fresh_z, fresh_temperature = search.window(fresh, vehicle)
         fresh_likelihood = fresh_raw / (temperature[vehicle] if isinstance(temperature, Tensor) else temperature)
-        # A jump needs a much better match than the window's, in nats at the window's temperature.
-        gain = fresh_likelihood[0].max() - log_likelihood[vehicle].max()
-        # ... and a peak as clear and as sharp as the recent matches' (their z-score and grid temperature, within
-        # z_drop): a featureless stretch has weak, flat peaks everywhere, and the best of them is no place.
-        typical_z, typical_temperature = health.typical_z[vehicle], health.typical_temperature[vehicle]
-        clear = bool(fresh_z[0] >= min_peak_z) and not bool(fresh_z[0] < z_drop * typical_z)
-        clear = clear and not bool(fresh_temperature[0] < z_drop * typical_temperature)
+        gain = relocalization_gain(fresh_likelihood[0], log_likelihood[vehicle])
+        typical = health.typical_z[vehicle], health.typical_temperature[vehicle]
+        clear = fresh_peak_is_clear(fresh_z[0], fresh_temperature[0], *typical, min_peak_z, z_drop)
         if clear and bool(gain >= relocalize_odds):
             log_prob[vehicle] = normalized(fresh_likelihood)[0]
             center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
@@ -338,18 +338,26 @@ class Tracker(nn.Module):
         check_floating("reference", reference)
         if reference.ndim == 2:
             reference = reference[None, None]
+        check_reference_map(reference)
         self.register_buffer("reference", reference, persistent=False)
         if variance_model is not None and not isinstance(variance_model, VarianceModel):
             raise TypeError(f"variance_model must be a VarianceModel or None, got {type(variance_model).__name__}")
         self.variance_model = variance_model
         self.shifts = check_shifts(shifts)
-        self.yaw_bins, self.yaw_step = yaw_bins, yaw_step
+        self.yaw_bins, self.yaw_step = check_positive_int("yaw_bins", yaw_bins), yaw_step
+        check_belief_memory(shifts, self.shifts, self.yaw_bins, 1)  # per vehicle; start() checks its batch
         if calibration is not None:
             if not isinstance(calibration, Calibration):
                 raise TypeError(f"calibration must be a Calibration or None, got {type(calibration).__name__}")
-            settings = {**calibration._asdict(), **settings}
+            settings = {**_checked(calibration, "calibration")._asdict(), **settings}
         if score is not None:
             settings["score"] = as_score(score)
+            if calibration is not None and as_score(calibration.score).name != settings["score"].name:
+                # Its temperature and peak threshold are on that score's scale, not this one's.
+                raise ValueError(
+                    f"calibration was fitted for score {calibration.score!r}, got score={settings['score'].name!r}: "
+                    f"pass score={calibration.score!r} (or leave score out), or calibrate {settings['score'].name!r}"
+                )
         unknown = set(settings) - set(_STEP_SETTINGS)
         if unknown:
             raise TypeError(f"Tracker got unknown setting(s) {sorted(unknown)}; known: {list(_STEP_SETTINGS)}")
@@ -403,6 +411,14 @@ _STEP_SETTINGS = (
     "refine",
     "mismatch_probability",
 )
+
+
+def check_reference_map(reference: Tensor) -> None:
+    """Raise unless ``reference`` is one real floating map ``(1, 1, Hm, Wm)`` with a cell at least."""
+    check_floating("reference", reference)
+    check_real_data("reference", reference)
+    if reference.ndim != 4 or reference.shape[:2] != (1, 1) or reference.numel() == 0:
+        raise ValueError(f"reference must be one map (1, 1, Hm, Wm) or (Hm, Wm), got {tuple(reference.shape)}")
 
 
 def default_score() -> ECR:
@@ -544,6 +560,66 @@ class _Searcher:
         pose = found.pose[0].double()
         center = belief.center[vehicle].double()
         return torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]])
+
+
+def relocalization_gain(fresh: Tensor, window: Tensor) -> Tensor:
+    """Nats by which the best of the restarted window's log-likelihood ``fresh`` beats the predicted ``window``'s.
+
+    A jump needs a much better match than the window's (``relocalize_odds``), both at the window's temperature.
+
+    Example:
+        >>> relocalization_gain(torch.tensor([3.0, 40.0]), torch.tensor([[31.0, -2.0]])).item()
+        9.0
+    """
+    return fresh.max() - window.max()
+
+
+def fresh_peak_is_clear(
+    peak_z: Tensor,
+    temperature: Tensor,
+    typical_z: Tensor,
+    typical_temperature: Tensor,
+    min_peak_z: float,
+    z_drop: float,
+) -> bool:
+    """Whether a relocalization's peak is as clear and as sharp as the recent matches', within ``z_drop``.
+
+    Its robust z-score must reach ``min_peak_z`` and ``z_drop`` times the recent matches' (``typical_z``), its grid
+    temperature ``z_drop`` times theirs: a featureless stretch has weak, flat peaks everywhere, and the best of them
+    is no place. NaN typical values (no recent match) rule nothing out.
+
+    Example:
+        >>> nan = torch.tensor(float("nan"))
+        >>> fresh_peak_is_clear(torch.tensor(4.0), torch.tensor(9.0), torch.tensor(12.0), nan, 2.5, 0.3)
+        True
+        >>> fresh_peak_is_clear(torch.tensor(3.0), torch.tensor(9.0), torch.tensor(12.0), nan, 2.5, 0.3)  # < 3.6
+        False
+    """
+    if not bool(peak_z >= min_peak_z) or bool(peak_z < z_drop * typical_z):
+        return False
+    return not bool(temperature < z_drop * typical_temperature)
+
+
+AGREEMENT_CELLS = 2.0  # two wide searches agree within this many cells (and as many yaw bins)
+
+
+def wide_matches_agree(offset: Tensor, previous: Tensor, yaw_step: float) -> bool:
+    """Whether two frames' wide searches found the same place: the relocalization's agreement rule.
+
+    ``offset`` and ``previous`` are ``(3,)`` ``(x, y, yaw)`` of each frame's best wide match relative to its own
+    predicted window (NaN: that frame had none). They agree within :data:`AGREEMENT_CELLS` cells along ``x`` and
+    along ``y`` and within as many yaw bins of ``yaw_step`` degrees.
+
+    Example:
+        >>> wide_matches_agree(torch.tensor([10.0, -3.0, 1.0]), torch.tensor([8.0, -4.5, -1.0]), 1.0)
+        True
+        >>> wide_matches_agree(torch.tensor([10.0, -3.0, 1.0]), torch.tensor([10.0, -5.5, 1.0]), 1.0)
+        False
+    """
+    if not bool(torch.isfinite(previous).all()):
+        return False
+    near = bool((offset[:2] - previous[:2]).abs().max() <= AGREEMENT_CELLS)
+    return near and bool((offset[2] - previous[2]).abs() <= AGREEMENT_CELLS * yaw_step)
 
 
 def _restart(belief: Belief, vehicle: int, pose: Tensor) -> Belief:

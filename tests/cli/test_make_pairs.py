@@ -29,6 +29,9 @@ def test_refuses_a_folder_with_files_in_one_line(tmp_path, capsys):
         (["--size", "600"], "--size must be from 1 to 512"),
         (["--pairs", "0"], "--pairs must be an int >= 1, got 0"),
         (["--noise-std", "-1"], "--noise-std must be a finite number > 0, got -1.0"),
+        (["--noise-std", "1e300"], "--noise-std must be at most 1e+14 (the pairs are float32"),  # was an OverflowError
+        (["--gain-std", "1e300"], "--gain-std must be at most 1e+14 (the pairs are float32 images"),  # inf pixels
+        (["--offset-std", "inf"], "--offset-std must be a finite number >= 0, got inf"),
     ],
 )
 def test_mistakes_name_the_flag_typed(tmp_path, capsys, arguments, message):

@@ -119,3 +119,13 @@ def test_a_malformed_camera_config_ends_in_one_line_naming_the_flag_and_file(tmp
     arguments = ["--trials=8", _points(tmp_path), f"--output-dir={tmp_path / 'out'}", f"--camera-config={camera}"]
     error = _one_line_error(capsys, arguments)
     assert f"--camera-config: camera config file '{camera}'" in error and message in error
+
+
+@pytest.mark.parametrize("spelling", ["separate", "equals"])
+def test_a_binary_config_ends_in_one_line_naming_the_flag_and_file(tmp_path, capsys, spelling):
+    config = tmp_path / "config.yaml"
+    config.write_bytes(bytes(range(128, 256)))
+    given = ["--config", str(config)] if spelling == "separate" else [f"--config={config}"]
+    error = _one_line_error(capsys, [*given, f"--output-dir={tmp_path / 'out'}"])
+    assert f"--config '{config}' is not UTF-8 text (a binary file?)" in error and "codec" not in error
+    assert not (tmp_path / "out").exists()

@@ -78,6 +78,12 @@ def test_images_are_read_lazily(folder):
             r"meta\.json' is not readable JSON: it nests too",
         ),
         (lambda root: (root / "meta.json").write_text('{"format": "x"}'), r"meta\.json must be a JSON object"),
+        (
+            lambda root: (root / "meta.json").write_text(
+                json.dumps({"format": "enmi_torch.pairs", "version": 1, "shape": 5})
+            ),
+            r"meta\.json shape must be \(H, W\), two positive ints, got 5",
+        ),
         (lambda root: [path.unlink() for path in (root / "local").iterdir()], "holds no .npy or .png"),
     ],
 )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -119,7 +120,7 @@ def test_registration_refuses_what_it_cannot_fit(generator):
         register(captured, reference, pose=start, score=NMI())
     with pytest.raises(ValueError, match="variance is not used by score 'ncc'"):
         register(captured, reference, 1.0, pose=start, score="ncc")
-    with pytest.raises(ValueError, match=r"pose must be finite \(B, 3\) with B = 1"):
+    with pytest.raises(ValueError, match=r"pose must have shape \(1, 3\), rows \(x, y, yaw\), got \(2, 3\)"):
         register(captured, reference, 1.0, pose=torch.zeros(2, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="blur must be a non-empty sequence"):
         register(captured, reference, 1.0, pose=start, blur=())
@@ -173,3 +174,283 @@ def test_the_margin_bounds_the_move(generator):
     for margin in (0.0, -1.0):
         with pytest.raises(ValueError, match=r"margin must be a finite number > 0 \(the largest move, in cells\)"):
             register(captured, reference, 1.0, pose=truth.round(), margin=margin)
+
+
+# Inputs by name, the memory budget, and the thin places: the guard against ending below the start, the yaw Jacobian,
+# the map's right and bottom borders.
+
+
+def _inputs(generator):
+    reference = _map(generator, (64, 64))
+    pose = torch.tensor([[32.0, 32.0, 0.0]], dtype=torch.float64)
+    captured = warp_reference(reference, pose, (16, 16))[0] + torch.randn(1, 1, 16, 16, generator=generator)
+    return captured, reference, pose
+
+
+BAD_REGISTRATION_INPUTS = [
+    ({"pose": lambda pose: pose[0]}, ValueError, r"pose must have shape \(1, 3\), rows \(x, y, yaw\), got \(3,\)"),
+    (
+        {"pose": lambda pose: pose[:, :2]},
+        ValueError,
+        r"pose must have shape \(1, 3\), rows \(x, y, yaw\), got \(1, 2\)",
+    ),
+    ({"pose": lambda pose: pose.long()}, TypeError, "pose must be a floating-point tensor, got dtype torch.int64"),
+    ({"pose": lambda pose: pose.fill_(float("nan"))}, ValueError, "pose must be finite, got NaN or inf"),
+    ({"pose": lambda pose: pose.to("meta")}, ValueError, "pose must hold data, got a meta tensor"),
+    ({"captured": lambda captured: captured.to("meta")}, ValueError, "captured must hold data, got a meta tensor"),
+    (
+        {"captured": lambda captured: captured[0, 0]},
+        ValueError,
+        r"captured must have shape \(B, 1, h, w\), got \(16, 16\)",
+    ),
+    ({"reference": lambda reference: reference[0, 0]}, ValueError, r"reference must have shape \(1, 1, Hm, Wm\) with"),
+    ({"reference": lambda reference: reference.to(torch.complex128)}, TypeError, "reference must be a floating-point"),
+    ({"reference": lambda reference: reference.to("meta")}, ValueError, "reference must hold data, got a meta tensor"),
+    (
+        {"variance": lambda _: torch.ones(1, 1, 8, 8, dtype=torch.float64)},
+        ValueError,
+        r"variance must have the spatial shape of captured \(16, 16\)",
+    ),
+    ({"variance": lambda _: -1.0}, ValueError, "variance must be finite and > 0"),
+    (
+        {"captured_mask": lambda _: torch.ones(1, 1, 8, 8, dtype=torch.bool)},
+        ValueError,
+        r"captured_mask must be as large as captured, \(1, 1, 16, 16\) or \(16, 16\), got \(1, 1, 8, 8\)",
+    ),
+    ({"captured_mask": lambda _: torch.ones(1, 1, 16, 16)}, TypeError, "captured_mask must be a bool tensor"),
+    (
+        {"reference_mask": lambda _: torch.ones(1, 1, 32, 32, dtype=torch.bool)},
+        ValueError,
+        r"reference_mask must be as large as reference, \(1, 1, 64, 64\) or \(64, 64\), got \(1, 1, 32, 32\)",
+    ),
+    ({"margin": lambda _: -5.0}, ValueError, r"margin must be a finite number"),
+    ({"margin": lambda _: float("nan")}, ValueError, r"margin must be a finite number"),
+    ({"margin": lambda _: True}, TypeError, r"margin must be a finite number"),
+]
+
+
+@pytest.mark.parametrize("function", ["register", "registration_score"])
+@pytest.mark.parametrize(("change", "error", "match"), BAD_REGISTRATION_INPUTS)
+def test_bad_inputs_are_refused_naming_the_argument(generator, function, change, error, match):
+    captured, reference, pose = _inputs(generator)
+    arguments = {"captured": captured, "reference": reference, "pose": pose, "variance": 1.0}
+    options = {"score": ECR(bins=16)}
+    for name, make in change.items():
+        if name in arguments:
+            arguments[name] = make(arguments[name].clone() if isinstance(arguments[name], torch.Tensor) else None)
+        else:
+            options[name] = make(None)
+    if function == "register" and options.get("margin") == -5.0:
+        match = r"margin must be a finite number > 0 \(the largest move, in cells\)"
+    with pytest.raises(error, match=match):
+        if function == "register":
+            register(
+                arguments["captured"], arguments["reference"], arguments["variance"], pose=arguments["pose"], **options
+            )
+        else:
+            registration_score(
+                arguments["captured"], arguments["reference"], arguments["pose"], arguments["variance"], **options
+            )
+
+
+@pytest.mark.parametrize(
+    ("pose", "mask", "match"),
+    [
+        ([[500.0, 500.0, 0.0]], None, r"no captured pixel counts at pose \[500.0, 500.0, 0.0\] \(sample\(s\) \[0\]\)"),
+        ([[32.0, 32.0, 0.0]], False, r"no captured pixel counts .* or are masked out by captured_mask"),
+    ],
+)
+def test_a_pose_where_no_pixel_counts_is_named_not_a_valid_mask(generator, pose, mask, match):
+    captured, reference, _ = _inputs(generator)
+    pose = torch.tensor(pose, dtype=torch.float64)
+    captured_mask = None if mask is None else torch.zeros(1, 1, 16, 16, dtype=torch.bool)
+    for call in (
+        lambda: register(captured, reference, 1.0, pose=pose, captured_mask=captured_mask),
+        lambda: registration_score(captured, reference, pose, 1.0, captured_mask=captured_mask),
+    ):
+        with pytest.raises(ValueError, match=match) as error:
+            call()
+        assert "valid_mask" not in str(error.value)
+
+
+def test_the_registration_score_counts_no_sample_off_the_map_with_a_margin_of_zero(generator):
+    # Before, margin=-5 counted 48 zero-padded samples off the map; margin=0 keeps every counted sample on it.
+    captured, reference, _ = _inputs(generator)
+    pose = torch.tensor([[4.0, 32.0, 0.0]], dtype=torch.float64)
+    _, valid = warp_reference(reference, pose, (16, 16), margin=0.0)
+    assert int((~valid).sum()) == 4 * 16  # columns -4 .. -1 of the map
+    masked = registration_score(captured, reference, pose, 1.0, captured_mask=valid, score=ECR(bins=16))
+    assert float(registration_score(captured, reference, pose, 1.0, score=ECR(bins=16))) == float(masked)
+
+
+def test_warp_reference_takes_integer_sizes_only_and_refuses_a_small_mask(generator):
+    reference = _map(generator, (64, 64))
+    pose = torch.tensor([[32.0, 32.0, 0.0]], dtype=torch.float64)
+    for shape in ((4.5, 4), (0, 4), (4,), "44"):
+        with pytest.raises(ValueError, match=r"shape must be \(H, W\), two positive ints"):
+            warp_reference(reference, pose, shape)
+    with pytest.raises(ValueError, match="reference_mask must be as large as reference"):
+        warp_reference(reference, pose, (4, 4), torch.ones(1, 1, 32, 32, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"margin must be a finite number >= 0"):
+        warp_reference(reference, pose, (4, 4), margin=-3.0)
+    with pytest.raises(ValueError, match=r"margin must be a finite number >= 0"):
+        warp_reference(reference, pose, (4, 4), margin=float("nan"))
+    with pytest.raises(TypeError, match=r"reference must be a floating-point tensor, got dtype torch\.complex128"):
+        warp_reference(reference.to(torch.complex128), pose, (4, 4))  # its imaginary part was dropped
+
+
+def test_nan_map_cells_count_as_unobserved_like_a_mask_says(generator):
+    reference = _map(generator, (64, 64))
+    holed = reference.clone()
+    holed[..., 30:34, 28:31] = float("nan")
+    observed = torch.isfinite(holed)
+    pose = torch.tensor([[32.3, 31.6, 7.0]], dtype=torch.float64)
+    warped, valid = warp_reference(holed, pose, (16, 12))
+    masked_warped, masked_valid = warp_reference(torch.where(observed, holed, 0.0), pose, (16, 12), observed)
+    assert not bool(valid.all()) and torch.equal(valid, masked_valid)
+    assert bool(torch.isfinite(warped).all())
+    torch.testing.assert_close(warped[valid], masked_warped[masked_valid])
+    truth = torch.tensor([[32.3, 31.6, 2.0]], dtype=torch.float64)
+    captured = warp_reference(reference, truth, (20, 28))[0]
+    found = register(captured, holed, 1.0, pose=truth.round(), score=ECR(bins=16), blur=(1.0, 0.0))
+    assert found.pose[0, :2].tolist() == pytest.approx(truth[0, :2].tolist(), abs=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda c, r, p: register(c, r, 1.0, pose=p, score=ECR(bins=100000)), r"bins=100000 needs about .* GiB"),
+        (lambda c, r, p: registration_score(c, r, p, 1.0, score=ECR(bins=100000)), r"bins=100000 needs about"),
+        (lambda c, r, p: register(c, r, 1.0, pose=p, blur=(1e6, 0.0)), r"blur=\(1000000.0, 0.0\) needs about"),
+        (lambda c, r, p: warp_reference(r, p, (100000, 100000)), r"shape=\(100000, 100000\) needs about"),
+    ],
+)
+def test_what_would_not_fit_the_memory_budget_is_refused_before_allocating(generator, call, match):
+    from enmi_torch import MemoryBudgetError
+
+    captured, reference, pose = _inputs(generator)
+    with pytest.raises(MemoryBudgetError, match=match):
+        call(captured, reference, pose)
+
+
+def test_a_result_scoring_below_its_start_is_replaced_by_the_start(generator, monkeypatch):
+    from enmi_torch.registration import refine
+
+    reference = _map(generator)
+    truth = torch.tensor([[44.37, 33.81, 2.63], [40.9, 36.2, -3.4]], dtype=torch.float64)
+    captured = warp_reference(reference, truth, SHAPE)[0]
+    # The blurred stage "leads astray": it ends 0.6 cells off for the first image, on the truth for the second.
+    led = truth + torch.tensor([[0.6, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    monkeypatch.setattr(
+        refine._Stage,
+        "run",
+        lambda self, pose, iterations, tolerance: (
+            led,
+            torch.ones(2, dtype=torch.int64),
+            torch.ones(2, dtype=torch.bool),
+        ),
+    )
+    start = truth + torch.tensor([[0.0, 0.0, 0.0], [0.4, -0.3, 0.5]], dtype=torch.float64)
+    start[0] = truth[0]  # the first starts on the truth: the stage's result scores below it
+    found = register(captured, reference, 1.0, pose=start, score=ECR(bins=16), blur=(0.0,))
+    torch.testing.assert_close(found.pose[0], truth[0], atol=0, rtol=0)  # the start, exactly
+    torch.testing.assert_close(found.pose[1], truth[1], atol=0, rtol=0)  # a better result is kept
+    assert found.converged.tolist() == [False, True]
+
+
+def test_the_pose_jacobian_is_the_derivative_of_the_samples_at_a_non_zero_yaw(generator):
+    from enmi_torch.registration.refine import _sample, _Stage, sample_positions
+
+    reference = _map(generator)
+    pose = torch.tensor([[44.37, 33.81, 31.0], [40.9, 36.2, -57.0]], dtype=torch.float64)
+    captured = warp_reference(reference, pose + 0.3, SHAPE)[0]
+    noise = torch.tensor(1.0, dtype=torch.float64)
+    stage = _Stage(captured, reference, noise, None, None, ECR(response="linear", model_variance=1.0), 0.0, 2.0)
+    fit = stage._setup(pose)
+    _, jacobian, _ = stage._residuals(fit, pose)
+    warped = _sample(stage.reference, sample_positions(pose, SHAPE))
+    slope = fit.solve(stage.values.flatten(1), warped.flatten(1))[1]
+    for sample in range(2):
+        per_pose = torch.autograd.functional.jacobian(
+            lambda at: _sample(stage.reference, sample_positions(at[None], SHAPE)).flatten(), pose[sample]
+        )  # (N, 3) d sample / d (x, y, yaw)
+        expected = -(fit.weights[sample].sqrt() * slope[sample])[:, None] * per_pose
+        torch.testing.assert_close(jacobian[sample], expected, atol=1e-9, rtol=1e-7)
+    assert float(jacobian[..., 2].abs().max()) > 0
+
+
+@pytest.mark.parametrize("margin", [0.0, 1.5])
+def test_warp_reference_counts_samples_up_to_the_right_and_bottom_borders(margin):
+    height, width = 6, 9  # non-square: a swapped axis fails
+    reference = torch.arange(height * width, dtype=torch.float64).reshape(1, 1, height, width)
+    steps = torch.arange(-1.0, max(height, width) + 0.5, 0.25, dtype=torch.float64)
+    x, y = torch.meshgrid(steps, steps, indexing="xy")
+    pose = torch.stack([x.flatten(), y.flatten(), torch.zeros(x.numel(), dtype=torch.float64)], 1)
+    _, valid = warp_reference(reference, pose, (1, 1), margin=margin)  # one pixel at (x, y) each
+    expected = (
+        (pose[:, 0] >= margin)
+        & (pose[:, 0] <= width - 1 - margin)
+        & (pose[:, 1] >= margin)
+        & (pose[:, 1] <= height - 1 - margin)
+    )
+    assert valid.flatten().tolist() == expected.tolist()
+    corner = torch.tensor([[width - 1.0, height - 1.0, 0.0]], dtype=torch.float64)  # the bottom-right cell itself
+    corner_value, corner_valid = warp_reference(reference, corner, (1, 1))
+    assert float(corner_value) == height * width - 1 and bool(corner_valid)
+
+
+def test_the_binned_response_is_the_weighted_least_squares_fit_of_hat_functions_at_the_bin_centres(generator):
+    # An independent fit: numpy least squares on hat functions with knots at the bin centres (values beyond the first
+    # and last knot held at them), each pixel weighed by 1 / (sigma^2 + tau^2).
+    reference = _map(generator)
+    pose = torch.tensor([[44.4, 33.8, 3.0]], dtype=torch.float64)
+    captured = warp_reference(reference, pose + 0.4, SHAPE)[0] + torch.randn(1, 1, *SHAPE, generator=generator)
+    variance = 1 + torch.rand(1, 1, *SHAPE, generator=generator, dtype=torch.float64) * 9
+    bins, value_range, tau2 = 5, (0.0, 256.0), 3.0
+    value = registration_score(captured, reference, pose, variance, score=ECR(bins=bins, model_variance=tau2))
+    warped = warp_reference(reference, pose, SHAPE)[0].flatten().numpy()
+    step = (value_range[1] - value_range[0]) / bins
+    knots = value_range[0] + step * (np.arange(bins) + 0.5)
+    position = np.clip((warped - knots[0]) / step, 0, bins - 1)
+    design = np.maximum(0.0, 1 - np.abs(position[:, None] - np.arange(bins)[None, :]))  # hat functions
+    weights = 1 / (variance.flatten().numpy() + tau2)
+    values = captured.flatten().numpy()
+    root = np.sqrt(weights)
+    coefficients = np.linalg.lstsq(design * root[:, None], values * root, rcond=None)[0]
+    residual = (weights * (values - design @ coefficients) ** 2).sum()
+    mean = (weights * values).sum() / weights.sum()
+    expected = 0.5 * ((weights * (values - mean) ** 2).sum() - residual) / values.size
+    assert float(value) == pytest.approx(expected, rel=1e-9)
+
+
+def test_the_blur_is_normalised_over_the_pixels_that_count():
+    from enmi_torch.registration.refine import _gaussian
+
+    generator = torch.Generator().manual_seed(5)
+    images = torch.rand(1, 1, 5, 7, generator=generator, dtype=torch.float64) * 255
+    weight = (torch.rand(1, 1, 5, 7, generator=generator) > 0.3).double()
+    blurred, mass = _gaussian(images, 1.0, weight)
+    taps = np.exp(-0.5 * np.arange(-3, 4) ** 2)
+    taps /= taps.sum()
+    image, counted = images[0, 0].numpy(), weight[0, 0].numpy()
+    for row in range(5):
+        for col in range(7):
+            total = held = 0.0
+            for dy in range(-3, 4):
+                for dx in range(-3, 4):
+                    if 0 <= row + dy < 5 and 0 <= col + dx < 7:  # zero padding beyond the border
+                        tap = taps[dy + 3] * taps[dx + 3] * counted[row + dy, col + dx]
+                        total, held = total + tap * image[row + dy, col + dx], held + tap
+            assert float(mass[0, 0, row, col]) == pytest.approx(held, rel=1e-12)
+            assert float(blurred[0, 0, row, col]) == pytest.approx(total / held, rel=1e-12)
+
+
+def test_the_blur_budget_counts_the_taps_and_the_padded_map(generator):
+    from enmi_torch import MemoryBudgetError, memory_budget
+    from enmi_torch._budget import format_bytes
+
+    captured, reference, pose = _inputs(generator)  # a 64 x 64 map, 16 x 16 captured
+    radius = 300  # sigma 100: 3 sigma, the padded map a sixth of the total
+    expected = 8 * (64 * 64 * (2 * radius + 1) + (64 + 2 * radius) * (64 + 2 * radius))
+    with memory_budget(100_000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):
+        register(captured, reference, 1.0, pose=pose, blur=(100.0, 0.0))

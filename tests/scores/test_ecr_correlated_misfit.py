@@ -161,8 +161,8 @@ def test_bad_misfits_are_refused():
     with pytest.raises(ValueError, match="misfit must be one of"):
         ecr(torch.ones(1, 4, 4), torch.ones(1, 4, 4), 1.0, misfit="blocks")
     flat = torch.rand(2, 16, generator=torch.Generator().manual_seed(0)) * 256
-    with pytest.raises(ValueError, match=r"misfit='correlated' .* captured must be images .* got \(2, 16\)"):
-        ecr(flat, flat, 1.0, misfit="correlated")
+    with pytest.raises(ValueError, match=r"captured must have shape \(B, 1, H, W\) or \(B, H, W\), got the 2-D"):
+        ecr(flat, flat, 1.0, misfit="correlated")  # flat samples are (B, 1, N): one row of pixels each
 
 
 def test_the_quantisation_floor_stays_per_pixel_and_only_the_excess_is_multiplied(generator):

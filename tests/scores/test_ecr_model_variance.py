@@ -47,6 +47,11 @@ def _reml_reference(values, reference, noise, bins, response) -> float:
     return max(floor, math.exp(best.x))
 
 
+def _flat(*tensors):
+    """``(..., B, N)`` flat samples as ``(..., B, 1, N)``, the layout the scores take them in."""
+    return tuple(tensor[..., None, :] for tensor in tensors)
+
+
 def _misfit_pairs(tau2, generator, *, batch=6, pixels=3000, bins=64, response="binned"):
     """Aligned pairs whose captured values are the model's means plus noise of ``s_n + tau^2``, exactly."""
     reference = torch.rand(batch, pixels, generator=generator, dtype=torch.float64) * 256
@@ -63,7 +68,7 @@ def _misfit_pairs(tau2, generator, *, batch=6, pixels=3000, bins=64, response="b
 @pytest.mark.parametrize("response", ["binned", "linear"])
 @pytest.mark.parametrize("tau2", [50.0, 400.0, 3000.0])
 def test_the_estimate_recovers_a_known_misfit_variance(tau2, response, generator):
-    captured, reference, noise = _misfit_pairs(tau2, generator, response=response)
+    captured, reference, noise = _flat(*_misfit_pairs(tau2, generator, response=response))
     estimate = ecr_model_variance(captured, reference, noise, bins=64, response=response)
     assert estimate.shape == (6,) and estimate.dtype == torch.float64
     assert abs(float(estimate.mean()) - tau2) < 0.1 * tau2
@@ -73,7 +78,7 @@ def test_the_estimate_recovers_a_known_misfit_variance(tau2, response, generator
 def test_the_estimate_is_the_restricted_likelihood_maximum(response, generator):
     captured, reference, noise = _misfit_pairs(300.0, generator, batch=3, pixels=500, bins=16, response=response)
     noise[1, :250] = noise[1, :250] / 50  # some pixels far quieter than the rest
-    estimate = ecr_model_variance(captured, reference, noise, bins=16, response=response)
+    estimate = ecr_model_variance(*_flat(captured, reference, noise), bins=16, response=response)
     expected = [_reml_reference(captured[b], reference[b], noise[b], 16, response) for b in range(3)]
     torch.testing.assert_close(estimate, torch.tensor(expected, dtype=torch.float64), rtol=1e-6, atol=0)
 
@@ -94,7 +99,9 @@ def test_without_misfit_beyond_the_noise_the_estimate_is_the_quantisation_floor(
 
 
 def test_a_given_model_variance_is_used_as_it_is(generator, dtype):
-    captured, reference, noise = (part.to(dtype) for part in _misfit_pairs(400.0, generator, batch=2, pixels=300))
+    captured, reference, noise = (
+        part.to(dtype) for part in _flat(*_misfit_pairs(400.0, generator, batch=2, pixels=300))
+    )
     for given, expected in ((12.5, 12.5), (None, default_model_variance(32, RANGE)), (0, 0.0)):
         assert torch.equal(
             ecr_model_variance(captured, reference, noise, model_variance=given),
@@ -204,8 +211,10 @@ def test_batched_equals_one_by_one(dtype, generator):
 
 
 def test_values_use_each_pairs_own_estimate_and_reduce_to_fixed_ecr(dtype, generator):
-    captured, reference, noise = (part.to(dtype) for part in _misfit_pairs(400.0, generator, batch=2, pixels=900))
-    candidates = torch.stack([reference, reference.roll(1, 0), reference.flip(-1)])  # (C, B, N)
+    captured, reference, noise = (
+        part.to(dtype) for part in _flat(*_misfit_pairs(400.0, generator, batch=2, pixels=900))
+    )
+    candidates = torch.stack([reference, reference.roll(1, 0), reference.flip(-1)])  # (C, B, 1, N)
     tau2 = ecr_model_variance(captured, candidates, noise, bins=64)
     assert tau2.shape == (3, 2) and bool((tau2[1:] > 4 * tau2[0]).all())  # misaligned: a larger misfit
     values = ecr(captured, candidates, noise, bins=64, model_variance="estimate")
@@ -222,8 +231,8 @@ def test_values_use_each_pairs_own_estimate_and_reduce_to_fixed_ecr(dtype, gener
 
 
 def test_gradients_hold_the_estimate_fixed_and_are_finite(generator):
-    captured, reference, noise = _misfit_pairs(400.0, generator, batch=2, pixels=400, bins=16)
-    mask = torch.rand(2, 400, generator=generator) > 0.1
+    captured, reference, noise = _flat(*_misfit_pairs(400.0, generator, batch=2, pixels=400, bins=16))
+    mask = torch.rand(2, 1, 400, generator=generator) > 0.1
     tau2 = ecr_model_variance(captured, reference, noise, bins=16, valid_mask=mask)
     grads = []
     for model_variance in ("estimate", tau2[:, None]):
@@ -343,4 +352,4 @@ def test_bad_model_variances_are_refused(value, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         ECR(model_variance=value)
     with pytest.raises(ValueError, match="model_variance must be"):
-        ecr_model_variance(torch.ones(1, 4), torch.ones(1, 4), 1.0, model_variance=value)
+        ecr_model_variance(torch.ones(1, 1, 4), torch.ones(1, 1, 4), 1.0, model_variance=value)

@@ -288,6 +288,8 @@ def test_pickled_objects_are_never_executed(tmp_path):
     ("content", "suffix", "match"),
     [
         (b"not a zip file at all", "pt", "refused"),
+        (b"a\n", "pt", r"refused: it is not a plain tensor file .*IndexError"),  # the unpickler's own IndexError
+        (b"hello\nworld\n", "pt", r"refused: it is not a plain tensor file .*KeyError"),
         (None, "pt-truncated", "refused"),
         (np.ones((2, 3, 3), dtype=np.float32), "npy", "floating"),
         (np.array([[1.0, -2.0], [3.0, np.nan]]), "npy", "> 0 where valid"),
