@@ -339,10 +339,10 @@ def _prepare(captured, reference, variance, captured_mask, reference_mask, score
         variance = variance_map("variance", variance, captured, captured.dtype, valid).view_as(captured)
     elif variance is not None:
         raise ValueError(f"variance is not used by score {score.name!r}; pass None")
-    size = score.bins if isinstance(score, ECR) and score.response == "binned" else 2
+    size = score.bins if isinstance(score, ECR) and score.response != "linear" else 2
     check_cells_memory(
         f"bins={size}" if size > 2 else "score",
-        (3 * batch + 1) * size * size,
+        (4 * batch + 3) * size * size,  # the normal equations; the shrunk response's pull toward a line
         8,
         f"the normal equations ({batch}, {size}, {size}) of the fitted response in float64",
         "lower the score's bins",

@@ -407,7 +407,8 @@ def test_the_binned_response_is_the_weighted_least_squares_fit_of_hat_functions_
     captured = warp_reference(reference, pose + 0.4, SHAPE)[0] + torch.randn(1, 1, *SHAPE, generator=generator)
     variance = 1 + torch.rand(1, 1, *SHAPE, generator=generator, dtype=torch.float64) * 9
     bins, value_range, tau2 = 5, (0.0, 256.0), 3.0
-    value = registration_score(captured, reference, pose, variance, score=ECR(bins=bins, model_variance=tau2))
+    score = ECR(bins=bins, model_variance=tau2, response="binned")
+    value = registration_score(captured, reference, pose, variance, score=score)
     warped = warp_reference(reference, pose, SHAPE)[0].flatten().numpy()
     step = (value_range[1] - value_range[0]) / bins
     knots = value_range[0] + step * (np.arange(bins) + 0.5)

@@ -130,8 +130,8 @@ def test_a_falling_response_is_not_a_line():
     positions = bin_positions(8, torch.float64)
     flat = shrunk_llr_terms(sums.weight[0].T, sums.weighted_value[0].T, positions, 0.0)
     torch.testing.assert_close(flat, torch.zeros_like(flat), rtol=0, atol=1e-9)
-    rising = ecr(reference, reference, 4.0, bins=8, model_variance=0.0)
-    falling = ecr(inverted, reference, 4.0, bins=8, model_variance=0.0)
+    rising = ecr(reference[:, None], reference[:, None], 4.0, bins=8, model_variance=0.0)  # flat samples (B, 1, N)
+    falling = ecr(inverted[:, None], reference[:, None], 4.0, bins=8, model_variance=0.0)
     assert bool((falling > 0).all()) and bool((falling < rising).all())  # the Occam factor of leaving the line
 
 
