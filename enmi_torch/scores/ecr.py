@@ -177,21 +177,38 @@ def check_model_variance(model_variance, bins: int, value_range: tuple[float, fl
     return float(model_variance)
 
 
-def _per_bin(values: Tensor, cells: Tensor, bins: int) -> Tensor:
-    """Sums of ``values`` ``(S, N)`` over the bins ``cells`` ``(S, N)`` of each row: ``(S, bins)``."""
-    return values.new_zeros(values.shape[0], bins).scatter_add_(1, cells, values)
+class _OccupiedBins:
+    """The bins that rows ``(S, N)`` of bin indices occupy, labelled once: sums per bin cost ``O(N)``, not ``O(bins)``.
+
+    ``label`` ``(S, N)`` numbers each row's occupied bins apart from every other row's, ``row`` ``(L,)`` is the row of
+    each label and ``bin`` ``(L,)`` its bin.
+    """
+
+    def __init__(self, cells: Tensor, bins: int) -> None:
+        rows = torch.arange(cells.shape[0], device=cells.device)[:, None]
+        labels, label = torch.unique(cells + bins * rows, return_inverse=True)
+        self.label, self.row, self.bin, self.rows = label, labels // bins, labels % bins, cells.shape[0]
+
+    def sums(self, values: Tensor) -> Tensor:
+        """Sums of ``values`` ``(S, N)`` per label, ``(L,)``."""
+        return values.new_zeros(self.row.shape[0]).index_add_(0, self.label.flatten(), values.flatten())
+
+    def per_row(self, values: Tensor) -> Tensor:
+        """Sums of per-label ``values`` ``(L,)`` over each row's labels, ``(S,)``."""
+        return values.new_zeros(self.rows).index_add_(0, self.row, values)
 
 
 def _binned_fit(cells: Tensor, bins: int):
     """The weighted fit of one mean per reference bin ``cells`` ``(S, N)``, for :func:`_reml_model_variance`."""
+    occupied_bins = _OccupiedBins(cells, bins)
 
     def fit(values: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        weight_sums = _per_bin(weight, cells, bins)
+        weight_sums = occupied_bins.sums(weight)
         occupied = weight_sums > 0
         safe = torch.where(occupied, weight_sums, 1.0)
-        residual = values - (_per_bin(weight * values, cells, bins) / safe).gather(1, cells)
-        trace = torch.where(occupied, _per_bin(weight.square(), cells, bins) / safe, 0.0).sum(1)
-        return residual, trace, occupied.sum(1)
+        residual = values - (occupied_bins.sums(weight * values) / safe)[occupied_bins.label]
+        trace = occupied_bins.per_row(torch.where(occupied, occupied_bins.sums(weight.square()) / safe, 0.0))
+        return residual, trace, occupied_bins.per_row(occupied.long())
 
     return fit
 
@@ -420,10 +437,18 @@ def _estimated_response_variance(
         cells = hard_bin_index(torch.where(valid, reference.detach(), value_range[0]), bins, value_range)
         weight = valid / (noise + tau2.to(torch.float64)[:, None])
         centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(1e-300)
-        weight_sums = _per_bin(weight, cells, bins)
-        value_sums = _per_bin(weight * (values - centre), cells, bins)
-        positions = bin_positions(bins, torch.float64, values.device)[:, None]
-        return shrunk_llr(weight_sums.T, value_sums.T, positions, value_range)[1]
+        # Each row's occupied bins, numbered 0, 1, ... in its column of a (most occupied, S) layout: O(N), any bins.
+        occupied = _OccupiedBins(cells, bins)
+        counts = torch.bincount(occupied.row, minlength=occupied.rows)
+        rank = torch.arange(occupied.row.shape[0], device=values.device) - (counts.cumsum(0) - counts)[occupied.row]
+        layout = (int(counts.max()), occupied.rows)
+        place = (rank, occupied.row)
+        weight_sums = values.new_zeros(layout).index_put_(place, occupied.sums(weight))
+        value_sums = values.new_zeros(layout).index_put_(place, occupied.sums(weight * (values - centre)))
+        positions = values.new_zeros(layout).index_put_(
+            place, bin_positions(bins, torch.float64, values.device)[occupied.bin]
+        )
+        return shrunk_llr(weight_sums, value_sums, positions, value_range)[1]
 
 
 def _aligned_response_variance(inputs, tau2) -> Tensor:

@@ -72,13 +72,16 @@ def bin_positions(bins: int, dtype: torch.dtype, device: torch.device | None = N
 
 
 class _ShrunkTerms:
-    """The LLR of :func:`shrunk_llr_terms` for one set of per-bin sums ``(K, M)``, at any ``delta^2``."""
+    """The LLR of :func:`shrunk_llr_terms` for one set of per-bin sums ``(K, M)``, at any ``delta^2``.
+
+    ``positions``: ``(K,)``, shared by the ``M`` sets (a matrix product sums over the bins), or ``(K, M)``.
+    """
 
     def __init__(self, weight: Tensor, weighted_value: Tensor, positions: Tensor) -> None:
         occupied = weight > 0
         self.weight = torch.where(occupied, weight, 0.0)
         self.value = torch.where(occupied, weighted_value, 0.0)
-        self.powers = torch.stack([torch.ones_like(positions), positions, positions.square()])  # (3, K)
+        self.powers = torch.stack([torch.ones_like(positions), positions, positions.square()])  # (3, K[, M])
         self.tiny = torch.finfo(weight.dtype).tiny
         self.eps = 64 * torch.finfo(weight.dtype).eps
         self.level = self.value.sum(0).square() / self.weight.sum(0).clamp_min(self.tiny)
@@ -87,9 +90,9 @@ class _ShrunkTerms:
         scaled = self.weight * response_variance
         shrink = (scaled + 1).reciprocal()
         occam = scaled.log1p().sum(0)
-        total, first, second = self.powers @ (shrink * self.weight)  # sums of s W, s W u, s W u^2 over the bins
+        total, first, second = self._moments(shrink * self.weight, 3)  # sums of s W, s W u, s W u^2 over the bins
         trend_value = shrink * self.value
-        value, covariance = self.powers[:2] @ trend_value
+        value, covariance = self._moments(trend_value, 2)
         deviations = response_variance * torch.linalg.vecdot(trend_value, self.value, dim=0)
         total = total.clamp_min(self.tiny)
         covariance = covariance - first * value / total
@@ -98,11 +101,20 @@ class _ShrunkTerms:
         slope_term = torch.where(sloped, covariance.square() / torch.where(sloped, spread, 1.0), 0.0)
         return 0.5 * (deviations + value.square() / total - self.level + slope_term - occam)
 
+    def _moments(self, values: Tensor, count: int) -> Tensor:
+        """``sum_j values_j u_j^p`` for ``p < count``, ``(count, M)``."""
+        if self.powers.dim() == 2:
+            return self.powers[:count] @ values
+        return (self.powers[:count] * values).sum(1)
+
 
 def _flat(weight: Tensor, weighted_value: Tensor, positions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The sums as ``(K, M)`` and the positions as ``(K,)``."""
+    """The sums as ``(K, M)`` and the positions as ``(K,)`` (shared by every set) or ``(K, M)``."""
     bins = weight.shape[0]
-    positions = positions.reshape(bins, -1)[:, 0]
+    if positions.numel() == bins:
+        positions = positions.reshape(bins)
+    else:
+        positions = positions.expand(weight.shape).reshape(bins, -1)
     return weight.reshape(bins, -1), weighted_value.reshape(bins, -1), positions
 
 
@@ -112,8 +124,8 @@ def shrunk_llr_terms(
     """``LLR(delta^2)`` of the shrunk response for per-bin sums with the bins first, ``(K, ...)`` -> ``(...)``.
 
     ``weight`` is ``W_j`` (0 for an empty bin), ``weighted_value`` ``S_j`` (values centred on any constant),
-    ``positions`` ``u_j`` ``(K,)`` or ``(K, 1, ...)``, ``response_variance`` ``delta^2`` (a number, or one per set of
-    sums, broadcastable to ``(...)``). Differentiable in the sums.
+    ``positions`` ``u_j`` ``(K,)``, ``(K, 1, ...)`` or one per set of sums ``(K, ...)``, ``response_variance``
+    ``delta^2`` (a number, or one per set of sums, broadcastable to ``(...)``). Differentiable in the sums.
     """
     if isinstance(response_variance, Tensor):
         response_variance = response_variance.to(weight.dtype).expand(weight.shape[1:]).reshape(-1)
