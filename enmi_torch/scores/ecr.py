@@ -599,14 +599,8 @@ def _aligned_inputs(captured, reference, variance, bins, value_range, model_vari
     tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
     check_option("response", response, RESPONSES)
     check_option("misfit", misfit, MISFITS)
-    image_shape = None
-    if misfit == "correlated":
-        if captured.ndim < 3:
-            raise ValueError(
-                "misfit='correlated' reads the residuals' spatial correlation: captured must be images (B, 1, H, W) "
-                f"or (B, H, W), got {tuple(captured.shape)}"
-            )
-        image_shape = tuple(captured.shape[-2:])
+    # Flat samples (B, 1, N) are images of one row; a 2-D captured was refused above.
+    image_shape = tuple(captured.shape[-2:]) if misfit == "correlated" else None
     return inputs, tau2, image_shape
 
 
@@ -644,7 +638,7 @@ def ecr(
     """Enhanced correlation ratio: the noise-aware Gaussian log-likelihood ratio per valid pixel, in nats, ``(B,)``.
 
     Args:
-        captured: noisy image ``(B, 1, H, W)``, ``(B, H, W)`` or ``(B, N)``, floating point.
+        captured: noisy image ``(B, 1, H, W)`` or ``(B, H, W)``, or flat samples ``(B, 1, N)``, floating point.
         reference: noiseless map section, same shape; or ``(C, *captured.shape)``, ``C`` candidates per image.
         variance: per-pixel noise variance of ``captured`` (> 0 where valid): a number, ``(H, W)``,
             ``(1, 1, H, W)`` or ``(B, 1, H, W)``.
