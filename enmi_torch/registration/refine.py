@@ -55,9 +55,8 @@ from enmi_torch._checks import (
     check_variance_given,
 )
 from enmi_torch._layout import variance_map
-from enmi_torch.binning import hard_bin_index
 from enmi_torch.scores import ECR, NCC, Score, as_score
-from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
+from enmi_torch.scores.shrunk_response import bin_positions
 from enmi_torch.variance.base import VarianceModel
 
 
@@ -275,29 +274,18 @@ def _weights(score: Score, captured, warped, variance, valid) -> Tensor:
     return torch.where(mask > 0, mask / total.clamp_min(torch.finfo(captured.dtype).tiny), 0.0)
 
 
-def _penalty(score: Score, values: Tensor, warped: Tensor, weights: Tensor) -> Tensor | None:
-    """``1 / delta^2`` ``(B,)`` of the shrunk response: the fixed one, or its estimate at the given pose.
+def _penalty(score: Score, captured, warped, variance, valid) -> Tensor | None:
+    """``1 / delta^2`` ``(B,)`` of the shrunk response at the given pose: :meth:`~enmi_torch.ECR.response_variance_of`.
 
     ``None`` for any other score. A ``delta^2`` of 0 (the line) is taken as ``10^-6`` bin widths squared: a pull
     that leaves a spline on the line within round-off.
     """
     if not (isinstance(score, ECR) and score.response == "shrunk"):
         return None
-    batch, bins = values.shape[0], score.bins
-    floor = 1e-6 * ((score.value_range[1] - score.value_range[0]) / bins) ** 2
-    if score.response_variance != "estimate":
-        return torch.full((batch,), 1 / max(score.response_variance, floor), dtype=values.dtype, device=values.device)
-    with torch.no_grad():
-        flat_weights, flat_values = weights.reshape(batch, -1), values.reshape(batch, -1)
-        cells = hard_bin_index(warped.reshape(batch, -1), bins, score.value_range)
-        mean = (flat_weights * flat_values).sum(1, keepdim=True) / flat_weights.sum(1, keepdim=True).clamp_min(1e-300)
-        sums = [
-            flat_values.new_zeros(batch, bins).scatter_add_(1, cells, part)
-            for part in (flat_weights, flat_weights * (flat_values - mean))
-        ]
-        positions = bin_positions(bins, flat_values.dtype, flat_values.device)
-        _, response_variance = shrunk_llr(sums[0].T, sums[1].T, positions, score.value_range)
-        return response_variance.clamp_min(floor).reciprocal()
+    noise = torch.as_tensor(variance, dtype=captured.dtype, device=captured.device).expand_as(captured)
+    response_variance = score.response_variance_of(captured, warped.detach(), noise, valid_mask=valid)
+    floor = 1e-6 * ((score.value_range[1] - score.value_range[0]) / score.bins) ** 2
+    return response_variance.to(captured.dtype).clamp_min(floor).reciprocal()
 
 
 class _Inputs(NamedTuple):
@@ -407,7 +395,7 @@ def registration_score(
     _check_counting(valid, pose, reference.shape[-2:], margin, captured_mask is not None)
     values = captured.to(pose.dtype)
     weights = _weights(score, values, warped, variance, valid)
-    fit = _Fit(score, weights, _penalty(score, values, warped.detach(), weights))
+    fit = _Fit(score, weights, _penalty(score, values, warped, variance, valid))
     batch = captured.shape[0]
     return fit.solve(values.reshape(batch, -1), warped.reshape(batch, -1))[2]
 
@@ -573,7 +561,7 @@ class _Stage:
         if self.sigma > 0:  # pixels off the map must not bleed into the blurred image
             self.values, _ = _gaussian(self.captured, self.sigma, self.valid.to(self.captured.dtype))
         weights = _weights(self.score_, self.values, warped, self.noise, self.valid)
-        return _Fit(self.score_, weights, _penalty(self.score_, self.values, warped, weights))
+        return _Fit(self.score_, weights, _penalty(self.score_, self.values, warped, self.noise, self.valid))
 
     def score(self, pose: Tensor) -> Tensor:
         """The score at ``pose``, with the pixels and weights of ``pose``."""

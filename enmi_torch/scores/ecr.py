@@ -350,14 +350,18 @@ def _aligned_model_variance(inputs, response: str, image_shape: tuple[int, int] 
 
     ``image_shape``: the captured images' ``(H, W)`` for a correlated misfit, ``None`` for an independent one.
     """
+    tau2 = _estimated_model_variance(*_flat_pairs(inputs), inputs.bins, inputs.value_range, response, image_shape)
+    return tau2.view(inputs.reference.shape[:-1])
+
+
+def _flat_pairs(inputs) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`ecr`'s checked inputs as ``C B`` rows of ``N`` pixels: captured, reference, variance and bool valid."""
     shape = inputs.reference.shape
     valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
     if inputs.valid is not None:
         valid = valid & inputs.valid
-    flat = (part.expand(shape).reshape(-1, shape[-1]) for part in (inputs.captured, inputs.reference, inputs.variance))
-    flat_valid = valid.reshape(-1, shape[-1])
-    tau2 = _estimated_model_variance(*flat, flat_valid, inputs.bins, inputs.value_range, response, image_shape)
-    return tau2.view(shape[:-1])
+    parts = (inputs.captured, inputs.reference, inputs.variance, valid)
+    return tuple(part.expand(shape).reshape(-1, shape[-1]) for part in parts)
 
 
 def _first_pass(inputs: SurfaceInputs) -> Tensor:
@@ -453,14 +457,10 @@ def _estimated_response_variance(
 
 def _aligned_response_variance(inputs, tau2) -> Tensor:
     """The shrunk response's estimated ``delta^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, ``tau2`` ``(C, B)``."""
-    shape = inputs.reference.shape
-    valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
-    if inputs.valid is not None:
-        valid = valid & inputs.valid
-    flat = (part.expand(shape).reshape(-1, shape[-1]) for part in (inputs.captured, inputs.reference, inputs.variance))
-    tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape[:-1]).reshape(-1)
-    delta2 = _estimated_response_variance(*flat, valid.reshape(-1, shape[-1]), tau2, inputs.bins, inputs.value_range)
-    return delta2.view(shape[:-1])
+    shape = inputs.reference.shape[:-1]
+    tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape).reshape(-1)
+    delta2 = _estimated_response_variance(*_flat_pairs(inputs), tau2, inputs.bins, inputs.value_range)
+    return delta2.view(shape)
 
 
 def _surface_model_variance(
