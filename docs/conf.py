@@ -48,7 +48,7 @@ TOPICS = [
     ("Tracking", ("enmi_torch.tracking",)),
     ("Road camera and rectification", ("enmi_torch.geometry",)),
     ("Histograms, bins and information", ("enmi_torch.histogram", "enmi_torch.binning", "enmi_torch.information")),
-    ("Memory budget and input checks", ("enmi_torch._budget", "enmi_torch._checks")),
+    ("Memory budget and input checks", ("enmi_torch.utils.budget", "enmi_torch.utils.checks")),
 ]
 # Public subpackages and modules: the names each adds to the top level's.
 SUBPACKAGES = {

@@ -8,11 +8,11 @@ import importlib
 
 # Where each public name lives.
 _SOURCES = {
-    "MemoryBudgetError": "enmi_torch._budget",
-    "get_memory_budget": "enmi_torch._budget",
-    "memory_budget": "enmi_torch._budget",
-    "set_memory_budget": "enmi_torch._budget",
-    "value_checks": "enmi_torch._checks",
+    "MemoryBudgetError": "enmi_torch.utils.budget",
+    "get_memory_budget": "enmi_torch.utils.budget",
+    "memory_budget": "enmi_torch.utils.budget",
+    "set_memory_budget": "enmi_torch.utils.budget",
+    "value_checks": "enmi_torch.utils.checks",
     "bin_centers": "enmi_torch.binning",
     "bin_edges": "enmi_torch.binning",
     "gaussian_log_prior": "enmi_torch.binning",

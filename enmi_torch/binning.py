@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import (
+from enmi_torch.utils.checks import (
     check_bins,
     check_finite_where,
     check_floating,

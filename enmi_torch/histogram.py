@@ -11,20 +11,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._budget import check_histogram_memory
-from enmi_torch._checks import (
-    check_bins,
-    check_finite_where,
-    check_floating,
-    check_log_prior,
-    check_option,
-    check_resolved_by_bins,
-    check_same_device,
-    check_tensor,
-    check_value_range,
-    check_variance_weighs,
-)
-from enmi_torch._layout import flatten_image, mask_map, scalar_or_map, variance_map
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
@@ -36,6 +22,20 @@ from enmi_torch.binning import (
     likelihood_weights_vjp,
     min_variance,
 )
+from enmi_torch.utils.budget import check_histogram_memory
+from enmi_torch.utils.checks import (
+    check_bins,
+    check_finite_where,
+    check_floating,
+    check_log_prior,
+    check_option,
+    check_resolved_by_bins,
+    check_same_device,
+    check_tensor,
+    check_value_range,
+    check_variance_weighs,
+)
+from enmi_torch.utils.layout import flatten_image, mask_map, scalar_or_map, variance_map
 
 CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
 

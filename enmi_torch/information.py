@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_counts, check_floating
+from enmi_torch.utils.checks import check_counts, check_floating
 
 
 def entropies(counts: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -13,8 +13,8 @@ from typing import Any, ClassVar
 
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_option
 from enmi_torch.scores import ECR, ENMI, NMI, REDUCTIONS, Mixture, Score, as_score
+from enmi_torch.utils.checks import check_option
 from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
 

@@ -26,13 +26,19 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_bins, check_option, check_positive_int, check_positive_number, check_value_range
 from enmi_torch.binning import gaussian_log_prior, hard_bin_index
 from enmi_torch.geometry.camera import RoadCamera, projected_area
 from enmi_torch.histogram import _likelihood_counts, _mean_surprisal
 from enmi_torch.information import _nmi_from_entropies, entropies
 from enmi_torch.scores.enmi import enmi
 from enmi_torch.scores.nmi import nmi
+from enmi_torch.utils.checks import (
+    check_bins,
+    check_option,
+    check_positive_int,
+    check_positive_number,
+    check_value_range,
+)
 
 __all__ = [
     "PAPER_ROW_COUNTS",

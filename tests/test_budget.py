@@ -10,7 +10,6 @@ from enmi_torch import (
     ENMILoss,
     MemoryBudgetError,
     NMILoss,
-    _budget,
     enmi,
     enmi_surface,
     get_memory_budget,
@@ -25,6 +24,7 @@ from enmi_torch import (
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.localization.search import Localizer, localize
+from enmi_torch.utils import budget as _budget
 
 GENERATOR = torch.Generator().manual_seed(15)
 CAPTURED = torch.rand(1, 1, 16, 16, generator=GENERATOR) * 256

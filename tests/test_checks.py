@@ -167,7 +167,7 @@ def test_a_variance_that_takes_a_gradient_is_refused_where_its_gradient_would_ov
     ],
 )
 def test_a_pose_is_refused_by_name(value, error, match):
-    from enmi_torch._checks import check_pose
+    from enmi_torch.utils.checks import check_pose
 
     batch = 1 if value is not None and getattr(value, "shape", (0,))[0] == 2 else None
     with pytest.raises(error, match=match):
@@ -175,7 +175,7 @@ def test_a_pose_is_refused_by_name(value, error, match):
 
 
 def test_a_margin_and_a_mask_are_refused_by_name():
-    from enmi_torch._checks import check_margin, check_mask_of
+    from enmi_torch.utils.checks import check_margin, check_mask_of
 
     assert check_margin("margin", 0) == 0.0 and check_margin("margin", 1.5, positive=True) == 1.5
     for value, error in ((-1.0, ValueError), (float("nan"), ValueError), (float("inf"), ValueError), ("1", TypeError)):
@@ -235,7 +235,7 @@ def test_flat_samples_are_one_row_of_pixels_each_and_take_their_maps_flat():
 
 
 def test_the_far_outside_range_rule_counts_valid_pixels_only_and_strictly_beyond_eight_widths():
-    from enmi_torch._checks import check_resolved_by_bins
+    from enmi_torch.utils.checks import check_resolved_by_bins
 
     value_range = (0.0, 2.0)  # eight widths below 0 is -16
     inside = torch.linspace(0.0, 2.0, 10, dtype=torch.float64).repeat(1, 10)  # (1, 100)
@@ -260,7 +260,7 @@ def test_the_far_outside_range_rule_counts_valid_pixels_only_and_strictly_beyond
 
 
 def test_the_number_checks_hold_at_their_edges():
-    from enmi_torch._checks import (
+    from enmi_torch.utils.checks import (
         check_bins,
         check_captured_in_reference,
         check_counts,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from enmi_torch import LearnedVariance, MemoryBudgetError, memory_budget
-from enmi_torch._files import read_npy
 from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
 from enmi_torch.localization.cli import main
+from enmi_torch.utils.files import read_npy
 
 TRUNCATED = (
     r"is truncated or its header is wrong: the header states a \(100000, 100000\) float64 array of 74\.5 GiB, "
@@ -150,7 +150,7 @@ def test_a_text_file_named_npy_is_reported_as_not_a_npy_file(tmp_path):
 def test_sixteen_bit_png_keeps_its_values_for_the_pairs_and_the_command(tmp_path, capsys):
     from PIL import Image
 
-    from enmi_torch._files import read_image
+    from enmi_torch.utils.files import read_image
 
     values = np.random.default_rng(3).integers(0, 65536, (16, 16)).astype(np.uint16)  # beyond 8 bits
     Image.fromarray(values).save(tmp_path / "deep.png")

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import enmi_torch
-from enmi_torch._resources import config_dir, config_file
+from enmi_torch.utils.resources import config_dir, config_file
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -125,7 +125,7 @@ def test_the_installed_wheel_runs_its_commands_from_another_folder(wheel, tmp_pa
     environment = {**os.environ, "PYTHONPATH": str(target), "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}
     script = (
         "import sys, enmi_torch\n"
-        "from enmi_torch._resources import config_dir\n"
+        "from enmi_torch.utils.resources import config_dir\n"
         "from enmi_torch.cli.reproduce_paper import main\n"
         "print(enmi_torch.__file__, config_dir())\n"
         "main(['--scores', '[nmi]', '--trials', '20', '--output-dir', 'paper'])\n"

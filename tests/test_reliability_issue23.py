@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from enmi_torch import ECR, Localization, NoCandidateError, ecr, enmi, localize, ncc, nmi, nmi_from_joint_histogram
-from enmi_torch._files import read_image
 from enmi_torch.localization.cli import main as localize_main
+from enmi_torch.utils.files import read_image
 
 
 def _scene():

@@ -1103,7 +1103,7 @@ def test_a_flat_beliefs_covariance_is_its_second_moment_plus_a_bin_spread_unifor
 
 def test_the_belief_budget_counts_every_cell_of_the_window():
     from enmi_torch import memory_budget
-    from enmi_torch._budget import format_bytes
+    from enmi_torch.utils.budget import format_bytes
 
     expected = 8 * 8 * 4 * 3 * (2 * 300 + 1) * (2 * 200 + 1)  # 8 float64 copies of (4, 3, 601, 401)
     with memory_budget(1000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):

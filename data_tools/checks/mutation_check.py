@@ -64,7 +64,7 @@ MODULES = {
     "tracking/calibration": ["tests/test_track.py"],
     "tracking/tracker": ["tests/test_track.py"],
     "tracking/belief": ["tests/test_track.py"],
-    "_checks": ["tests/test_checks.py", "tests/registration/test_register.py", "tests/test_budget.py"],
+    "utils/checks": ["tests/test_checks.py", "tests/registration/test_register.py", "tests/test_budget.py"],
 }
 
 # Where a module's code lived in older checkouts, newest first, for --root: before the scores package (337d306 and

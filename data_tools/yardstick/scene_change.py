@@ -66,9 +66,9 @@ import numpy as np
 import torch
 
 from enmi_torch import ECR, ENMI, NCC, NMI
-from enmi_torch._files import read_npy
 from enmi_torch.data.scene_change import CHANGES, scene_change
 from enmi_torch.scores.ecr import default_model_variance
+from enmi_torch.utils.files import read_npy
 
 
 def _noise_only_yardstick():

@@ -25,9 +25,9 @@ from jsonargparse.typing import Path_fr
 from tqdm import tqdm
 
 from enmi_torch import RoadCamera
-from enmi_torch._resources import config_file
 from enmi_torch.cli._command import check_text_files, dashed_aliases, parser_error, run_command
 from enmi_torch.simulation import SCORES, ErrorRates, error_rates, road_tiles
+from enmi_torch.utils.resources import config_file
 
 PROG = "enmi-reproduce-paper"
 DESCRIPTION = f"""\

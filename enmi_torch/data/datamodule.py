@@ -8,11 +8,11 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Subset
 
-from enmi_torch._checks import check_non_negative_int, check_option, check_positive_int, check_positive_number
 from enmi_torch.data.pairs import PairDataset
 from enmi_torch.data.resumable import ResumableLoader, ResumableSampler
 from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs, gravel_texture
 from enmi_torch.data.truth import FLAVOURS, VarianceTruth, make_truth
+from enmi_torch.utils.checks import check_non_negative_int, check_option, check_positive_int, check_positive_number
 
 
 class ShardSampler(DistributedSampler):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_bool_mask, check_floating, check_not_empty
+from enmi_torch.utils.checks import check_bool_mask, check_floating, check_not_empty
 
 
 def match_intensity(captured: Tensor, reference: Tensor, valid_mask: Tensor | None = None) -> Tensor:

@@ -25,9 +25,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from enmi_torch._checks import check_image_shape, check_option
-from enmi_torch._files import read_image, read_json
 from enmi_torch.data.truth import VarianceTruth
+from enmi_torch.utils.checks import check_image_shape, check_option
+from enmi_torch.utils.files import read_image, read_json
 
 PAIR_FORMAT = "enmi_torch.pairs"
 PAIR_VERSION = 1

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional
 
-from enmi_torch._checks import check_floating, check_option, check_value_range
+from enmi_torch.utils.checks import check_floating, check_option, check_value_range
 
 SOURCES = ("chelsea", "clock", "coins", "grass", "moon", "cell")
 

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from enmi_torch._checks import check_non_negative_int, check_positive_int
 from enmi_torch.data.truth import VarianceTruth, check_std
+from enmi_torch.utils.checks import check_non_negative_int, check_positive_int
 
 
 @functools.cache

@@ -17,15 +17,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import (
+from enmi_torch.geometry.camera import RoadCamera
+from enmi_torch.geometry.rectify import GroundGrid, visible_cells
+from enmi_torch.utils.checks import (
     FLOAT32_MAGNITUDE,
     check_image_shape,
     check_option,
     check_positive_number,
     check_value_range,
 )
-from enmi_torch.geometry.camera import RoadCamera
-from enmi_torch.geometry.rectify import GroundGrid, visible_cells
 from enmi_torch.variance.perspective import perspective_variance
 
 FLAVOURS = ("lidar", "camera")

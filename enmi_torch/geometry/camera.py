@@ -26,8 +26,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_image_shape, check_positive_number
-from enmi_torch._config import check_config_keys, load_yaml_section
+from enmi_torch.utils.checks import check_image_shape, check_positive_number
+from enmi_torch.utils.config import check_config_keys, load_yaml_section
 
 
 @dataclass(frozen=True)

@@ -30,16 +30,6 @@ import torch.nn.functional as F
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor
 
-from enmi_torch._budget import check_cells_memory
-from enmi_torch._checks import (
-    check_floating,
-    check_image_shape,
-    check_option,
-    check_positive_int,
-    check_positive_number,
-    check_value_range,
-)
-from enmi_torch._config import check_config_keys, load_yaml_section
 from enmi_torch.geometry.camera import (
     RoadCamera,
     depth_from_focal_plane_y,
@@ -49,6 +39,16 @@ from enmi_torch.geometry.camera import (
     pixel_to_ground,
     project_ground,
 )
+from enmi_torch.utils.budget import check_cells_memory
+from enmi_torch.utils.checks import (
+    check_floating,
+    check_image_shape,
+    check_option,
+    check_positive_int,
+    check_positive_number,
+    check_value_range,
+)
+from enmi_torch.utils.config import check_config_keys, load_yaml_section
 
 INTERPOLATIONS = ("bilinear", "nearest")
 

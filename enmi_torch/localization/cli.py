@@ -21,7 +21,7 @@ from enmi_torch.scores import Score, as_score, score_names
 
 def _read_array(path: str, name: str):
     """The image of ``--name``: a ``.npy`` array or a grey PNG (16 bits kept), read like the pair folders."""
-    from enmi_torch._files import read_image
+    from enmi_torch.utils.files import read_image
 
     if not Path(path).is_file() and Path(path).suffix.lower() in (".npy", ".png"):
         raise FileNotFoundError(f"--{name}: no such file {path!r}")

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_image_shape
+from enmi_torch.utils.checks import check_image_shape
 
 
 class Localization(NamedTuple):

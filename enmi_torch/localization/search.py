@@ -29,8 +29,13 @@ import torch
 from kornia.geometry.transform import rotate
 from torch import Tensor, nn
 
-from enmi_torch._budget import check_search_memory
-from enmi_torch._checks import (
+from enmi_torch.localization.peak import Localization, NoCandidateError, _read_peak, _separated_peaks
+from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.registration.refine import register
+from enmi_torch.scores import ECR, Score, as_score
+from enmi_torch.scores.ecr import cheap_value_range
+from enmi_torch.utils.budget import check_search_memory
+from enmi_torch.utils.checks import (
     check_bins,
     check_bool,
     check_captured_in_reference,
@@ -42,12 +47,7 @@ from enmi_torch._checks import (
     check_same_device,
     check_shifts,
 )
-from enmi_torch._layout import mask_map, variance_map
-from enmi_torch.localization.peak import Localization, NoCandidateError, _read_peak, _separated_peaks
-from enmi_torch.placement.peaks import rescore_peaks
-from enmi_torch.registration.refine import register
-from enmi_torch.scores import ECR, Score, as_score
-from enmi_torch.scores.ecr import cheap_value_range
+from enmi_torch.utils.layout import mask_map, variance_map
 from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
 # A rotated mask pixel is valid when its bilinear value is 1 up to round-off: all four neighbours were valid.
@@ -365,7 +365,7 @@ def _check_center(center, batch: int, map_shape: tuple[int, int], device: torch.
 
 
 def _captured_valid(captured: Tensor, captured_mask: Tensor | None, variance) -> Tensor:
-    """``(B, 1, h, w)`` bool: the given mask and the variance model's, each as :func:`~enmi_torch._layout.mask_map`."""
+    """``(B, 1, h, w)`` bool: the given mask and the variance model's, each read by ``utils.layout.mask_map``."""
     valid = torch.ones_like(captured, dtype=torch.bool)
     masks = [("captured_mask", captured_mask)]
     if isinstance(variance, VarianceModel):

@@ -11,8 +11,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import value_checks
 from enmi_torch.placement.inputs import Surface, SurfaceInputs
+from enmi_torch.utils.checks import value_checks
 
 # (sample, captured, section, variance or None, valid): the aligned pair at one placement, (1, 1, h, w) each.
 PairScore = Callable[[int, Tensor, Tensor, "Tensor | None", Tensor], "Tensor | float"]

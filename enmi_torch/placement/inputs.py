@@ -14,13 +14,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import (
+from enmi_torch.utils.checks import (
     check_captured_in_reference,
     check_finite_where,
     check_magnitude,
     check_resolved_by_bins,
 )
-from enmi_torch._layout import mask_map, variance_map
+from enmi_torch.utils.layout import mask_map, variance_map
 
 
 class Surface(NamedTuple):

@@ -40,8 +40,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from enmi_torch._budget import check_cells_memory
-from enmi_torch._checks import (
+from enmi_torch.scores import ECR, NCC, Score, as_score
+from enmi_torch.scores.shrunk_response import bin_positions
+from enmi_torch.utils.budget import check_cells_memory
+from enmi_torch.utils.checks import (
     check_floating,
     check_image_shape,
     check_map,
@@ -54,9 +56,7 @@ from enmi_torch._checks import (
     check_real_data,
     check_variance_given,
 )
-from enmi_torch._layout import variance_map
-from enmi_torch.scores import ECR, NCC, Score, as_score
-from enmi_torch.scores.shrunk_response import bin_positions
+from enmi_torch.utils.layout import variance_map
 from enmi_torch.variance.base import VarianceModel
 
 

@@ -15,9 +15,9 @@ from typing import Any, ClassVar
 
 from torch import Tensor
 
-from enmi_torch._checks import check_option
 from enmi_torch.placement.direct import PairScore, direct_placements
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
+from enmi_torch.utils.checks import check_option
 
 REDUCTIONS = ("none", "mean", "sum")
 # Each family registers itself here under its name (see Score.__init_subclass__), for as_score.

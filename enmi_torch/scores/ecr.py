@@ -73,15 +73,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._budget import check_surface_memory
-from enmi_torch._checks import (
-    check_bins,
-    check_floating,
-    check_option,
-    check_value_range,
-    check_variance_given,
-    fitted_to,
-)
 from enmi_torch.binning import bin_width, hard_bin_index
 from enmi_torch.histogram import _prepare
 from enmi_torch.placement.fft import Correlator
@@ -89,6 +80,15 @@ from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import moment_blocks, per_sample_reference_planes
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
 from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr, shrunk_llr_terms
+from enmi_torch.utils.budget import check_surface_memory
+from enmi_torch.utils.checks import (
+    check_bins,
+    check_floating,
+    check_option,
+    check_value_range,
+    check_variance_given,
+    fitted_to,
+)
 
 
 class BinSums(NamedTuple):

@@ -13,8 +13,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._budget import check_surface_memory
-from enmi_torch._checks import (
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS, _likelihood_weights, reliability_weights
+from enmi_torch.histogram import _joint_histogram, _prepare, joint_histogram
+from enmi_torch.information import nmi_from_joint_histogram
+from enmi_torch.placement.information import information_surface
+from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
+from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.utils.budget import check_surface_memory
+from enmi_torch.utils.checks import (
     check_bins,
     check_log_prior,
     check_log_prior_allows_a_bin,
@@ -23,12 +29,6 @@ from enmi_torch._checks import (
     check_value_range,
     check_variance_given,
 )
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS, _likelihood_weights, reliability_weights
-from enmi_torch.histogram import _joint_histogram, _prepare, joint_histogram
-from enmi_torch.information import nmi_from_joint_histogram
-from enmi_torch.placement.information import information_surface
-from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
-from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
 
 
 def enmi(

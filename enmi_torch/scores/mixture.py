@@ -38,8 +38,14 @@ import functools
 import torch
 from torch import Tensor
 
-from enmi_torch._budget import check_histogram_memory, check_surface_memory
-from enmi_torch._checks import (
+from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
+from enmi_torch.histogram import _prepare
+from enmi_torch.placement.inputs import Surface, check_inputs
+from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.ecr import _ecr_surface, default_model_variance
+from enmi_torch.utils.budget import check_histogram_memory, check_surface_memory
+from enmi_torch.utils.checks import (
     check_bins,
     check_floating,
     check_non_negative_int,
@@ -48,12 +54,6 @@ from enmi_torch._checks import (
     check_value_range,
     check_variance_given,
 )
-from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
-from enmi_torch.histogram import _prepare
-from enmi_torch.placement.inputs import Surface, check_inputs
-from enmi_torch.placement.peaks import rescore_peaks
-from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
-from enmi_torch.scores.ecr import _ecr_surface, default_model_variance
 
 # Candidates per chunk are chosen so one chunk's (C, B, N, bins) per-pixel tensors stay near this many elements.
 _CHUNK_ELEMENTS = 1 << 21

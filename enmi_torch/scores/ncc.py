@@ -10,12 +10,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._budget import check_surface_memory
-from enmi_torch._checks import check_option
 from enmi_torch.histogram import _prepare
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import masked_mean, moment_blocks
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.utils.budget import check_surface_memory
+from enmi_torch.utils.checks import check_option
 
 
 def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None) -> Tensor:

@@ -11,14 +11,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch._budget import check_surface_memory
-from enmi_torch._checks import check_bins, check_option, check_same_device, check_value_range
 from enmi_torch.binning import PARZEN_KERNELS, hard_bin_index
 from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
 from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
 from enmi_torch.placement.information import information_surface
 from enmi_torch.placement.inputs import Surface, check_inputs
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.utils.budget import check_surface_memory
+from enmi_torch.utils.checks import check_bins, check_option, check_same_device, check_value_range
 
 
 def nmi(

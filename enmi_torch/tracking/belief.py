@@ -31,8 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from enmi_torch._budget import check_cells_memory
-from enmi_torch._checks import check_floating, check_pose, check_positive_int, check_positive_number, check_shifts
+from enmi_torch.utils.budget import check_cells_memory
+from enmi_torch.utils.checks import check_floating, check_pose, check_positive_int, check_positive_number, check_shifts
 
 # Chi-square quantile with 2 degrees of freedom at 95 %: the (x, y) ellipse radius squared.
 CHI2_95_2D = 5.991464547107979

@@ -19,10 +19,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import check_floating, check_positive_number
-from enmi_torch._files import describe_json, read_json
 from enmi_torch.scores import score_names
 from enmi_torch.tracking.belief import finite_floor
+from enmi_torch.utils.checks import check_floating, check_positive_number
+from enmi_torch.utils.files import describe_json, read_json
 
 
 def grid_temperature(log_likelihood: Tensor) -> Tensor:

@@ -33,18 +33,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from enmi_torch._checks import (
-    check_bool,
-    check_floating,
-    check_mask_of,
-    check_non_negative_int,
-    check_option,
-    check_positive_int,
-    check_positive_number,
-    check_real_data,
-    check_same_device,
-    check_shifts,
-)
 from enmi_torch.localization.peak import NoCandidateError
 from enmi_torch.localization.search import localize
 from enmi_torch.registration.refine import check_registration_score, register
@@ -70,6 +58,18 @@ from enmi_torch.tracking.health import (
     next_health,
     peak_z_score,
     prediction_surprise,
+)
+from enmi_torch.utils.checks import (
+    check_bool,
+    check_floating,
+    check_mask_of,
+    check_non_negative_int,
+    check_option,
+    check_positive_int,
+    check_positive_number,
+    check_real_data,
+    check_same_device,
+    check_shifts,
 )
 from enmi_torch.variance.base import VarianceModel, call_variance
 

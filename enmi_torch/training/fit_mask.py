@@ -27,8 +27,6 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch.utils.data import Subset
 
-from enmi_torch._files import load_plain_torch
-from enmi_torch._resources import config_file
 from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
 from enmi_torch.data.pairs import PairDataset
@@ -36,6 +34,8 @@ from enmi_torch.training.localization_figure import ANSWER_METHODS, METHOD_MEANI
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
+from enmi_torch.utils.files import load_plain_torch
+from enmi_torch.utils.resources import config_file
 
 PROG = "enmi-fit-mask"
 # A learned mask farther than this from the paper's empirical mask has not converged yet.
@@ -364,7 +364,7 @@ def check_pairs(datamodule: PairDataModule, bins: int, value_range: Sequence[flo
     pairs that ``--model.value_range`` does not resolve (images in [0, 1] against the default [0, 256], 16-bit images)
     are refused with the range to pass, spelt as on the command line.
     """
-    from enmi_torch._checks import check_resolved_by_bins
+    from enmi_torch.utils.checks import check_resolved_by_bins
 
     start = time.perf_counter()
     low, high = float("inf"), float("-inf")  # of the prior images (the maps, noise-free) where there are any

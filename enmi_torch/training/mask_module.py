@@ -34,14 +34,14 @@ import torch
 from lightning.pytorch import LightningModule
 from torch import Tensor
 
-from enmi_torch._checks import check_option
-from enmi_torch._files import read_npy
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
 from enmi_torch.training.localization_figure import ANSWER_METHODS, OTHER_METHODS, held_out_order, localization_figure
 from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
+from enmi_torch.utils.checks import check_option
+from enmi_torch.utils.files import read_npy
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
 from enmi_torch.variance.learned import FORMS
 

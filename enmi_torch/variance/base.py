@@ -7,7 +7,7 @@ import abc
 import torch
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_floating, check_positive_number
+from enmi_torch.utils.checks import check_floating, check_positive_number
 
 
 class VarianceModel(nn.Module, abc.ABC):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from enmi_torch._checks import (
+from enmi_torch.utils.checks import (
     check_finite_where,
     check_floating,
     check_image_shape,
@@ -20,7 +20,7 @@ from enmi_torch._checks import (
     check_non_negative_int,
     check_not_empty,
 )
-from enmi_torch._layout import mask_map, spatial_shape
+from enmi_torch.utils.layout import mask_map, spatial_shape
 
 
 def empirical_variance(

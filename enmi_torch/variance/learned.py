@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from enmi_torch._budget import MemoryBudgetError, budget_error, check_cells_memory, within_budget
-from enmi_torch._checks import (
+from enmi_torch.utils.budget import MemoryBudgetError, budget_error, check_cells_memory, within_budget
+from enmi_torch.utils.checks import (
     check_finite_where,
     check_floating,
     check_image_shape,
@@ -34,8 +34,8 @@ from enmi_torch._checks import (
     check_some_pixel,
     check_tensor,
 )
-from enmi_torch._files import load_plain_torch, read_npy
-from enmi_torch._layout import broadcast_map, mask_map
+from enmi_torch.utils.files import load_plain_torch, read_npy
+from enmi_torch.utils.layout import broadcast_map, mask_map
 from enmi_torch.variance.base import VarianceModel
 
 FORMS = ("pixel", "radial", "perspective")

@@ -21,9 +21,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from enmi_torch._checks import check_floating, check_positive_number
 from enmi_torch.geometry.camera import RoadCamera, projected_area, visible_projected_area
 from enmi_torch.geometry.rectify import GroundGrid, projected_cell_areas, visible_cells
+from enmi_torch.utils.checks import check_floating, check_positive_number
 from enmi_torch.variance.base import VarianceModel
 
 

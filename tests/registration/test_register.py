@@ -448,7 +448,7 @@ def test_the_blur_is_normalised_over_the_pixels_that_count():
 
 def test_the_blur_budget_counts_the_taps_and_the_padded_map(generator):
     from enmi_torch import MemoryBudgetError, memory_budget
-    from enmi_torch._budget import format_bytes
+    from enmi_torch.utils.budget import format_bytes
 
     captured, reference, pose = _inputs(generator)  # a 64 x 64 map, 16 x 16 captured
     radius = 300  # sigma 100: 3 sigma, the padded map a sixth of the total

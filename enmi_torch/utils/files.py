@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from enmi_torch._budget import budget_error, format_bytes, within_budget
+from enmi_torch.utils.budget import budget_error, format_bytes, within_budget
 
 _MAGIC = np.lib.format.MAGIC_PREFIX
 _HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}

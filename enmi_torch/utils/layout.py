@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from enmi_torch._checks import (
+from enmi_torch.utils.checks import (
     check_bool_mask,
     check_floating,
     check_mask_not_empty,

@@ -11,11 +11,12 @@ def load_yaml_section(path: str | Path, key: str, source: str = "config file") -
     """The mapping under top-level ``key`` of the YAML file at ``path``.
 
     A file that is not plain YAML (a syntax error, a ``!!python`` tag, binary, too deeply nested) raises one
-    ``ValueError`` naming ``source`` and the file (:func:`~enmi_torch._files.yaml_error_message`); nothing in it runs.
+    ``ValueError`` naming ``source`` and the file (:func:`~enmi_torch.utils.files.yaml_error_message`); nothing in
+    it runs.
     """
     import yaml
 
-    from enmi_torch._files import yaml_error_message
+    from enmi_torch.utils.files import yaml_error_message
 
     path = Path(path)
     if not path.is_file():
