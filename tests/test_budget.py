@@ -24,6 +24,7 @@ from enmi_torch import (
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.localization.search import Localizer, localize
+from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.utils import budget as _budget
 
 GENERATOR = torch.Generator().manual_seed(15)
@@ -90,7 +91,7 @@ def test_localize_refuses_a_huge_search_window():
     ):
         localize(local, prior_map, 25.0, shifts=10**4)
     with pytest.raises(MemoryBudgetError, match=r"^shifts=\(10000, 10000\) with coarse_factor=2 needs about .* GiB"):
-        Localizer(score="ncc", shifts=10**4, coarse_factor=2)(local, prior_map)
+        Localizer(score="ncc", shifts=10**4, search=SearchStrategy(coarse_factor=2))(local, prior_map)
 
 
 def test_surfaces_refuse_a_huge_window():

@@ -127,12 +127,15 @@ def test_a_switch_takes_a_bool_only_so_a_truthy_string_does_not_switch_it_on():
 
 def test_cheap_bins_are_checked_under_their_own_name():
     from enmi_torch import ECR, Localizer
+    from enmi_torch.localization import SearchStrategy
 
     for cheap_bins, error in ((1, ValueError), (2.5, TypeError), (2**25, ValueError)):
         with pytest.raises(error, match="cheap_bins must be"):
-            Localizer(score=ECR(bins=16), search="two_stage", cheap_bins=cheap_bins)
+            SearchStrategy("two_stage", cheap_bins=cheap_bins)
     with pytest.raises(ValueError, match=r"cheap_bins must be at most bins \(16\), got 32"):
-        Localizer(score=ECR(bins=16), search="two_stage", cheap_bins=32)
+        Localizer(score=ECR(bins=16), search=SearchStrategy("two_stage", cheap_bins=32))
+    with pytest.raises(TypeError, match=r"Localizer.__init__\(\) takes cheap_bins in search=SearchStrategy"):
+        Localizer(score=ECR(bins=16), search="two_stage", cheap_bins=8)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

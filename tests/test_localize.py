@@ -13,9 +13,11 @@ from kornia.geometry.transform import rotate
 from skimage import data
 
 from enmi_torch import ECR, ENMI, NCC, Mixture, NoCandidateError, as_score, direct_surface, ecr_surface
+from enmi_torch.localization.candidates import rotate_captured
 from enmi_torch.localization.cli import _command, main
 from enmi_torch.localization.peak import Localization, _quadratic_peak
-from enmi_torch.localization.search import Localizer, _rotated, localize
+from enmi_torch.localization.search import Localizer, localize
+from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
@@ -188,7 +190,7 @@ def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map, model_variance):
     score = ECR(bins=16, model_variance=model_variance, response_variance=response_variance)
     options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": score}
     exhaustive = localize(local, gravel_map, 9.0, **options)
-    coarse = localize(local, gravel_map, 9.0, coarse_factor=4, **options)
+    coarse = localize(local, gravel_map, 9.0, search=SearchStrategy(coarse_factor=4), **options)
     assert coarse.pose[0].round().tolist() == exhaustive.pose[0].round().tolist() == [-14.0, 11.0, 3.0]
     evaluated = torch.isfinite(coarse.surface)
     assert 0 < evaluated.sum() < evaluated.numel() / 3
@@ -330,33 +332,47 @@ def _invalid_localize_cases(gravel_map):
         ({"center": torch.tensor([[80.0, 80.0]])}, ValueError, "center must be"),
         ({"min_overlap": 0.0}, ValueError, r"min_overlap must be a fraction in \(0, 1\]"),
         ({"exclusion_radius": -2}, ValueError, "exclusion_radius must be an int >= 0"),
-        ({"coarse_factor": 0}, ValueError, "coarse_factor must be an int >= 1"),
-        ({"coarse_factor": 64}, ValueError, "coarse_factor must not exceed the captured image size"),
+        ({"search": lambda: SearchStrategy(coarse_factor=0)}, ValueError, "coarse_factor must be an int >= 1"),
+        (
+            {"search": SearchStrategy(coarse_factor=64)},
+            ValueError,
+            "coarse_factor must not exceed the captured image size",
+        ),
         ({"score": lambda: ECR(bins=1)}, ValueError, "bins must be an int >= 2"),
         ({"score": lambda: ENMI(kernel="gauss")}, ValueError, "kernel must be one of"),
         ({"resample": "bicubic"}, ValueError, "resample must be one of"),
         ({"search": "greedy"}, ValueError, "search must be one of"),
-        ({"search": "two_stage", "score": "enmi"}, ValueError, "search='two_stage' needs an ECR score"),
+        ({"search": "two_stage", "score": "enmi"}, ValueError, "search='two_stage' needs a score that supports it"),
         (
             {"search": "two_stage", "score": lambda: ECR(response="linear")},
             ValueError,
-            "search='two_stage' needs an ECR score with response='shrunk' or 'binned'",
+            r"search='two_stage' needs a score that supports it \(ECR with response='shrunk' or 'binned'\)",
         ),
-        ({"search": "two_stage", "coarse_factor": 2}, ValueError, "search='two_stage' needs an ECR score"),
-        ({"search": "two_stage", "cheap_bins": 64}, ValueError, r"cheap_bins must be at most bins \(32\)"),
-        ({"search": "two_stage", "cheap_bins": 1}, ValueError, "bins must be an int >= 2"),
+        (
+            {"search": lambda: SearchStrategy("two_stage", coarse_factor=2)},
+            ValueError,
+            "search='two_stage' needs coarse_factor=1",
+        ),
+        (
+            {"search": SearchStrategy("two_stage", cheap_bins=64)},
+            ValueError,
+            r"cheap_bins must be at most bins \(32\)",
+        ),
+        ({"search": lambda: SearchStrategy("two_stage", cheap_bins=1)}, ValueError, "cheap_bins must be an int >= 2"),
+        ({"cheap_bins": 8}, TypeError, r"localize\(\) takes cheap_bins in search=SearchStrategy\(\.\.\.\)"),
     ], local
 
 
-@pytest.mark.parametrize("index", range(36))
+@pytest.mark.parametrize("index", range(37))
 def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     cases, local = _invalid_localize_cases(gravel_map)
     change, error, message = cases[index]
     arguments = {"captured": local, "reference": gravel_map, "variance": 9.0, "shifts": 4}
     arguments.update(change)
     with pytest.raises(error, match=message):
-        if callable(arguments.get("score")):  # a score whose options are wrong fails as it is built
-            arguments["score"] = arguments["score"]()
+        for name in ("score", "search"):  # a score or strategy whose options are wrong fails as it is built
+            if callable(arguments.get(name)):
+                arguments[name] = arguments[name]()
         localize(**arguments)
 
 
@@ -365,7 +381,7 @@ def test_nearest_rotation_keeps_each_pixel_and_its_variance():
     local = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 256
     variance = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 50 + 1
     valid = torch.ones(1, 1, 20, 20, dtype=torch.bool)
-    turned, turned_variance, turned_valid = _rotated(local, variance, valid, [0.0, 17.0, -40.0], "nearest")
+    turned, turned_variance, turned_valid = rotate_captured(local, variance, valid, [0.0, 17.0, -40.0], "nearest")
     assert torch.equal(turned[0], local[0]) and torch.equal(turned_variance[0], variance[0])
     pairs = {(value, noise) for value, noise in zip(local.flatten().tolist(), variance.flatten().tolist(), strict=True)}
     for yaw in (1, 2):
@@ -379,7 +395,7 @@ def test_bilinear_rotation_propagates_the_noise_variance():
     generator = torch.Generator().manual_seed(4)
     sigma2 = torch.full((1, 1, 16, 16), 9.0, dtype=torch.float64)
     valid = torch.ones(1, 1, 16, 16, dtype=torch.bool)
-    _, predicted, kept = _rotated(torch.zeros_like(sigma2), sigma2, valid, [23.0], "bilinear")
+    _, predicted, kept = rotate_captured(torch.zeros_like(sigma2), sigma2, valid, [23.0], "bilinear")
     noise = 3.0 * torch.randn(4000, 1, 16, 16, generator=generator, dtype=torch.float64)
     empirical = rotate(noise, torch.full((4000,), -23.0, dtype=torch.float64)).var(0)
     ratio = empirical[kept[0]] / predicted[0][kept[0]]
@@ -545,7 +561,7 @@ def test_two_stage_search_equals_the_exhaustive_search_where_it_rescored_and_fin
     # ones (tests/scores/test_ecr_model_variance.py checks the estimates at the default min_overlap).
     options["score"] = options["score"].replace(model_variance=None, response_variance=40.0)
     exhaustive = localize(local, gravel_map, variance, **options)
-    two_stage = localize(local, gravel_map, variance, search="two_stage", cheap_bins=4, **options)
+    two_stage = localize(local, gravel_map, variance, search=SearchStrategy("two_stage", cheap_bins=4), **options)
     rescored = torch.isfinite(two_stage.surface)
     assert two_stage.surface.shape == exhaustive.surface.shape == (2, 5, 9, 11)
     for sample in range(2):
@@ -569,7 +585,7 @@ def test_localizer_module_runs_the_two_stage_search_like_the_function(gravel_map
     local, variance, options = _two_stage_case(gravel_map, 1)
     center = options.pop("center")
     masks = {name: options.pop(name) for name in ("captured_mask", "reference_mask")}
-    options.update(search="two_stage", cheap_bins=8)
+    options.update(search=SearchStrategy("two_stage", cheap_bins=8))
     result = Localizer(**options)(local, gravel_map, variance, center=center, **masks)
     expected = localize(local, gravel_map, variance, center=center, **options, **masks)
     assert torch.equal(result.surface, expected.surface)
@@ -618,7 +634,7 @@ def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_mas
     window = gravel_map[..., 60:100, 50:90]
     reference_mask = options["reference_mask"][60:100, 50:90] if reference_masked else None
     masks = {"captured_mask": options["captured_mask"], "reference_mask": reference_mask}
-    cheap = ECR(bins=6, value_range=(40.0, 200.0))._rough_surface(local, window, variance, *masks.values())
+    cheap = ECR(bins=6, value_range=(40.0, 200.0)).rough_surface(local, window, variance, **masks)
     expected = ecr_surface(local, window, variance, bins=6, value_range=(40.0, 200.0), response="binned", **masks)
     torch.testing.assert_close(cheap.score, expected.score, rtol=0, atol=1e-9)
     torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)
@@ -635,25 +651,25 @@ def test_parabola_offset_is_clamped_on_both_sides_and_zero_without_curvature():
 
 
 def test_separated_peaks_exclude_the_same_reach_on_every_side():
-    from enmi_torch.localization.peak import _separated_peaks
+    from enmi_torch.localization.peak import separated_peaks
 
     surface = torch.zeros(1, 9, 11, dtype=torch.float64)
     surface[0, 4, 5] = 10.0
     # Each just outside a radius of 2 around the best one: left, right, up, down.
     for (row, col), value in {(4, 2): 6.0, (4, 8): 7.0, (1, 5): 8.0, (7, 5): 9.0}.items():
         surface[0, row, col] = value
-    peaks = _separated_peaks(surface, 5, 2)
+    peaks = separated_peaks(surface, 5, 2)
     assert peaks == [(0, 4, 5), (0, 7, 5), (0, 1, 5), (0, 4, 8), (0, 4, 2)]
 
 
 @pytest.mark.parametrize(("row", "col"), [(4, 8), (4, 2), (1, 5), (7, 5)])
 def test_margin_looks_just_outside_the_exclusion_radius_on_every_side(row, col):
-    from enmi_torch.localization.peak import _read_peak
+    from enmi_torch.localization.peak import read_peak
 
     rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
     surface = (-((rows - 4) ** 2) - (cols - 5) ** 2).double()[None, None] * 0.1 + 10.0  # one smooth peak
     surface[0, 0, row, col] = 9.9  # the runner-up, 3 cells away along one axis
-    result = _read_peak(surface, torch.zeros(1, dtype=torch.float64), (4, 5), exclusion_radius=2)
+    result = read_peak(surface, torch.zeros(1, dtype=torch.float64), (4, 5), exclusion_radius=2)
     assert result.margin.item() == pytest.approx(0.1)
 
 

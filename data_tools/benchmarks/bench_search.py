@@ -37,7 +37,9 @@ from skimage import data
 from torch import Tensor
 
 from enmi_torch.binning import hard_bin_index
-from enmi_torch.localization.search import _rotated, localize
+from enmi_torch.localization.candidates import rotate_captured
+from enmi_torch.localization.search import localize
+from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.scores import ECR
 
 LOCAL, RADIUS, BINS, VALUE_RANGE = 128, 50, 32, (0.0, 256.0)
@@ -117,7 +119,7 @@ def _miss_case(texture: str, response: str, noise: float, generator: torch.Gener
     yaw = MISS_YAWS[int(torch.randint(len(MISS_YAWS), (1,), generator=generator))]
     top, left = center[0] + dy - size, center[1] + dx - size
     section = image[..., top : top + 2 * size, left : left + 2 * size]
-    turned = _rotated(section, None, torch.ones_like(section, dtype=torch.bool), [yaw], "bilinear")[0]
+    turned = rotate_captured(section, None, torch.ones_like(section, dtype=torch.bool), [yaw], "bilinear")[0]
     local = MISS_RESPONSES[response](turned[..., size // 2 : size // 2 + size, size // 2 : size // 2 + size])
     rows = torch.arange(size, dtype=torch.float64)
     profile = 1 + 15 * ((size - 1 - rows) / (size - 1)) ** 3
@@ -139,7 +141,9 @@ def miss_rate(trials: int, cheap_bins: int) -> None:
             reference, captured, variance, center, radius, truth = _miss_case(texture, response, noise, generator)
             options = {"shifts": radius, "center": center, "yaws": MISS_YAWS, "score": ECR(bins=BINS)}
             exhaustive = localize(captured, reference, variance, **options)
-            two_stage = localize(captured, reference, variance, search="two_stage", cheap_bins=cheap_bins, **options)
+            two_stage = localize(
+                captured, reference, variance, search=SearchStrategy("two_stage", cheap_bins=cheap_bins), **options
+            )
             misses += int(exhaustive.surface.flatten().argmax()) != int(two_stage.surface.flatten().argmax())
             rescored += int(torch.isfinite(two_stage.surface).sum())
             error = (exhaustive.pose[0] - torch.tensor(truth)).abs()
@@ -184,7 +188,12 @@ def main(argv=None) -> None:
         "localize, ECR, 1 yaw": lambda: localize(captured, reference, variance, **options),
         "localize, ECR, 36 yaws": lambda: localize(captured, reference, variance, yaws=YAWS, **options),
         "localize, ECR, 36 yaws, two-stage": lambda: localize(
-            captured, reference, variance, yaws=YAWS, search="two_stage", cheap_bins=args.cheap_bins, **options
+            captured,
+            reference,
+            variance,
+            yaws=YAWS,
+            search=SearchStrategy("two_stage", cheap_bins=args.cheap_bins),
+            **options,
         ),
     }
     results = {name: function() for name, function in methods.items()}  # warm-up

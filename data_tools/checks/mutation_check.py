@@ -26,6 +26,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 SURFACE_TESTS = ["tests/test_score_surface.py", "tests/scores/test_score_objects.py"]
+ECR_TESTS = [
+    "tests/test_correlation_ratio.py",
+    "tests/scores/test_ecr_model_variance.py",
+    "tests/scores/test_ecr_correlated_misfit.py",
+    "tests/scores/test_ecr_shrunk_response.py",
+    *SURFACE_TESTS,
+    "tests/test_losses.py",
+    "tests/test_localize.py",
+]
 # Each module's tests: those of the code it holds (the functional losses live with their scores, ECR's two-stage
 # pieces with ECR, NMI's choice between its two exact paths with NMI).
 MODULES = {
@@ -37,15 +46,10 @@ MODULES = {
     "placement/planes": SURFACE_TESTS,
     "placement/information": SURFACE_TESTS,
     "scores/base": ["tests/scores/test_score_objects.py"],
-    "scores/ecr": [
-        "tests/test_correlation_ratio.py",
-        "tests/scores/test_ecr_model_variance.py",
-        "tests/scores/test_ecr_correlated_misfit.py",
-        "tests/scores/test_ecr_shrunk_response.py",
-        *SURFACE_TESTS,
-        "tests/test_losses.py",
-        "tests/test_localize.py",
-    ],
+    "scores/ecr": ECR_TESTS,
+    "scores/ecr_statistics": ECR_TESTS,
+    "scores/ecr_model_variance": ECR_TESTS,
+    "scores/ecr_placements": [*ECR_TESTS, "tests/test_mixture.py"],
     "scores/shrunk_response": ["tests/scores/test_ecr_shrunk_response.py", "tests/test_correlation_ratio.py"],
     "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_budget.py"],
     "scores/nmi": [
@@ -57,10 +61,13 @@ MODULES = {
     ],
     "scores/ncc": SURFACE_TESTS,
     "localization/search": ["tests/test_localize.py"],
+    "localization/strategy": ["tests/test_localize.py", "tests/test_checks.py"],
+    "localization/candidates": ["tests/test_localize.py"],
     "localization/peak": ["tests/test_localize.py"],
     "variance/empirical": ["tests/variance/test_empirical.py"],
     "variance/perspective": ["tests/variance/test_perspective.py"],
     "registration/refine": ["tests/registration/test_register.py"],
+    "registration/response_fit": ["tests/registration/test_register.py"],
     "tracking/calibration": ["tests/test_track.py"],
     "tracking/tracker": ["tests/test_track.py"],
     "tracking/belief": ["tests/test_track.py"],
@@ -75,11 +82,17 @@ LEGACY_FILES = {
     "placement/planes": ["localization/surface", "score_surface"],
     "placement/information": ["localization/surface", "score_surface"],
     "scores/ecr": ["correlation_ratio"],
+    "scores/ecr_statistics": ["scores/ecr", "correlation_ratio"],
+    "scores/ecr_model_variance": ["scores/ecr", "correlation_ratio"],
+    "scores/ecr_placements": ["scores/ecr", "correlation_ratio"],
     "scores/enmi": ["information"],
     "scores/nmi": ["information"],
     "scores/ncc": ["localization/surface", "score_surface"],
     "localization/search": ["localize"],
+    "localization/strategy": ["localization/search", "localize"],
+    "localization/candidates": ["localization/search", "localize"],
     "localization/peak": ["localize"],
+    "registration/response_fit": ["registration/refine"],
 }
 
 

@@ -2,12 +2,15 @@
 
 Data flow, each module importing only the ones before it: the score surfaces (:mod:`enmi_torch.scores`, every
 placement at once by FFT) → :mod:`~enmi_torch.localization.peak` (the :class:`Localization` result: sub-cell peak,
-covariance, margin) → :mod:`~enmi_torch.localization.search` (shifts x yaws, coarse-to-fine: :func:`localize`,
-:class:`Localizer`) → :mod:`~enmi_torch.localization.cli` (``enmi-localize``). A drive (the histogram filter
-:class:`~enmi_torch.Tracker`) builds on :func:`localize` in :mod:`enmi_torch.tracking`.
+covariance, margin) → :mod:`~enmi_torch.localization.strategy` (:class:`SearchStrategy`: how the candidates are
+visited) → :mod:`~enmi_torch.localization.candidates` (windows, rotations, surfaces) →
+:mod:`~enmi_torch.localization.search` (shifts x yaws: :func:`localize`, :class:`Localizer`) →
+:mod:`~enmi_torch.localization.cli` (``enmi-localize``). A drive (the histogram filter :class:`~enmi_torch.Tracker`)
+builds on :func:`localize` in :mod:`enmi_torch.tracking`.
 """
 
 from enmi_torch.localization.peak import Localization, NoCandidateError
 from enmi_torch.localization.search import Localizer, localize
+from enmi_torch.localization.strategy import SearchStrategy
 
-__all__ = ["Localization", "Localizer", "NoCandidateError", "localize"]
+__all__ = ["Localization", "Localizer", "NoCandidateError", "SearchStrategy", "localize"]

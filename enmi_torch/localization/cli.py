@@ -16,6 +16,7 @@ from torch import Tensor
 
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import RESAMPLING, localize
+from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.scores import Score, as_score, score_names
 
 
@@ -217,7 +218,7 @@ def _command(argv: Sequence[str]) -> dict:
             score=_score(args),
             min_overlap=args.min_overlap,
             exclusion_radius=args.exclusion_radius,
-            coarse_factor=args.coarse_factor,
+            search=SearchStrategy(coarse_factor=args.coarse_factor),
             resample=args.resample,
             **masks,
         )

@@ -109,7 +109,7 @@ class NoCandidateError(ValueError):
     """
 
 
-def _separated_peaks(surface: Tensor, count: int, radius: int) -> list[tuple[int, int, int]]:
+def separated_peaks(surface: Tensor, count: int, radius: int) -> list[tuple[int, int, int]]:
     """Up to ``count`` ``(yaw, row, col)`` maxima of a ``(Y, Sy, Sx)`` surface, each ``radius`` cells from the rest."""
     best_over_yaws, best_yaw = surface.max(0)
     remaining = best_over_yaws.clone()
@@ -140,7 +140,7 @@ _DESIGN = torch.stack(
 _FIT = torch.linalg.pinv(_DESIGN)
 
 
-def _read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int) -> Localization:
+def read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int) -> Localization:
     """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces."""
     device, surface = surface.device, surface.cpu()
     batch, yaw_count, rows, cols = surface.shape

@@ -40,8 +40,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from enmi_torch.scores import ECR, NCC, Score, as_score
-from enmi_torch.scores.shrunk_response import bin_positions
+from enmi_torch.registration.response_fit import ResponseFit
+from enmi_torch.scores import Score, as_score
 from enmi_torch.utils.budget import check_cells_memory
 from enmi_torch.utils.checks import (
     check_floating,
@@ -176,116 +176,11 @@ def _sample(reference: Tensor, positions: Tensor, mode: str = "bilinear") -> Ten
     return F.grid_sample(expanded, positions / scale * 2 - 1, mode=mode, padding_mode="zeros", align_corners=True)
 
 
-class _Fit:
-    """The score's weighted least-squares model of the captured values by the map's, each pixel with its weight.
-
-    Every pixel's predictor is two basis functions: ``(i, 1 - f), (i + 1, f)`` (the hat functions of the knots around
-    its map value: the piecewise-linear response) or ``(0, 1), (1, m)`` (the affine response). The normal equations
-    are assembled with index sums, ``O(N)`` per image whatever the number of knots.
-    """
-
-    def __init__(self, score: Score, weights: Tensor, penalty: Tensor | None = None) -> None:
-        self.weights = weights  # (B, N), zero on pixels that do not count
-        self.spline = isinstance(score, ECR) and score.response != "linear"
-        self.penalty = None  # (B, size, size): the shrunk response's pull of the knots toward a line
-        if self.spline:
-            low, high = score.value_range
-            self.step = (high - low) / score.bins
-            self.first = low + 0.5 * self.step  # the first knot: the first bin's centre
-            self.size = score.bins
-            if penalty is not None:
-                lines = torch.stack([torch.ones(self.size), bin_positions(self.size, torch.float64)], 1)
-                projection = lines @ torch.linalg.pinv(lines)
-                away = (torch.eye(self.size, dtype=torch.float64) - projection).to(weights)
-                self.penalty = penalty.to(weights)[:, None, None] * away
-        else:
-            self.size = 2
-
-    def _pairs(self, values: Tensor):
-        """Per pixel: the two basis indices, their values, and their derivatives in the map's value."""
-        if not self.spline:
-            zero, one = torch.zeros_like(values, dtype=torch.long), torch.ones_like(values, dtype=torch.long)
-            return (zero, one), (torch.ones_like(values), values), (torch.zeros_like(values), torch.ones_like(values))
-        unclamped = (values - self.first) / self.step
-        position = unclamped.clamp(0, self.size - 1)
-        index = position.detach().floor().clamp(max=self.size - 2).long()
-        fraction = position - index
-        rate = ((unclamped > 0) & (unclamped < self.size - 1)).to(values.dtype) / self.step
-        return (index, index + 1), (1 - fraction, fraction), (-rate, rate)
-
-    def solve(self, captured: Tensor, values: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Residuals ``(B, N)`` (weighted by the square root of the weights), response slopes ``(B, N)``, scores."""
-        batch, size = values.shape[0], self.size
-        indices, parts, slopes = self._pairs(values)
-        offset = (torch.arange(batch, device=values.device) * size)[:, None]
-        normal = values.new_zeros(batch * size * size)
-        right = values.new_zeros(batch * size)
-        for first, first_part in zip(indices, parts, strict=True):
-            right = right.index_add(0, (offset + first).flatten(), (self.weights * first_part * captured).flatten())
-            for second, second_part in zip(indices, parts, strict=True):
-                cell = (offset * size + first * size + second).flatten()
-                normal = normal.index_add(0, cell, (self.weights * first_part * second_part).flatten())
-        normal = normal.view(batch, size, size)
-        if self.penalty is not None:
-            normal = normal + self.penalty
-        ridge = 1e-9 * normal.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
-        normal = normal + ridge[:, None, None] * torch.eye(size, dtype=normal.dtype, device=normal.device)
-        coefficients = torch.linalg.solve(normal, right.view(batch, size))
-        at = [coefficients.gather(1, index) for index in indices]
-        fitted = parts[0] * at[0] + parts[1] * at[1]
-        slope = slopes[0] * at[0] + slopes[1] * at[1]
-        residual = self.weights.sqrt() * (captured - fitted)
-        total = self.weights.sum(1).clamp_min(1e-300)
-        mean = (self.weights * captured).sum(1) / total
-        null = (self.weights * (captured - mean[:, None]).square()).sum(1)
-        count = (self.weights > 0).sum(1).clamp_min(1).to(captured.dtype)
-        misfit = residual.square().sum(1)
-        if self.penalty is not None:
-            misfit = misfit + (coefficients[:, None, :] @ self.penalty @ coefficients[:, :, None]).flatten()
-        score = 0.5 * (null - misfit) / count
-        return residual, slope, score
-
-
 def check_registration_score(score: Score | str) -> Score:
     """``score`` as a :class:`~enmi_torch.Score` that :func:`register` can fit (ECR or NCC), else ``ValueError``."""
     score = as_score(score)
-    if not isinstance(score, (ECR, NCC)):
-        raise ValueError(
-            f"score must be ECR or NCC for register (a weighted least-squares fit, smooth in the pose), got "
-            f"{score.name!r}: register with ECR, then compare with {score.name!r} at the registered pose"
-        )
+    score.response_basis()  # refuses a score that is not a least-squares fit, by name
     return score
-
-
-def _weights(score: Score, captured, warped, variance, valid) -> Tensor:
-    """Per-pixel weights ``(B, N)``: ``1 / (sigma^2 + tau^2)`` for ECR (``tau^2`` at the given pose), 1 for NCC."""
-    batch = captured.shape[0]
-    mask = valid.reshape(batch, -1).to(captured.dtype)
-    if isinstance(score, NCC):
-        return mask
-    noise = torch.as_tensor(variance, dtype=captured.dtype, device=captured.device).expand_as(captured)
-    if score.model_variance == "estimate":
-        tau2 = score.model_variance_of(captured, warped.detach(), noise, valid_mask=valid)
-    else:
-        tau2 = torch.full((batch,), score.model_variance, dtype=torch.float64, device=captured.device)
-        if score.model_variance is None:
-            tau2 = tau2.fill_((score.value_range[1] - score.value_range[0]) ** 2 / score.bins**2 / 12)
-    total = noise.reshape(batch, -1) + tau2.to(captured.dtype)[:, None]
-    return torch.where(mask > 0, mask / total.clamp_min(torch.finfo(captured.dtype).tiny), 0.0)
-
-
-def _penalty(score: Score, captured, warped, variance, valid) -> Tensor | None:
-    """``1 / delta^2`` ``(B,)`` of the shrunk response at the given pose: :meth:`~enmi_torch.ECR.response_variance_of`.
-
-    ``None`` for any other score. A ``delta^2`` of 0 (the line) is taken as ``10^-6`` bin widths squared: a pull
-    that leaves a spline on the line within round-off.
-    """
-    if not (isinstance(score, ECR) and score.response == "shrunk"):
-        return None
-    noise = torch.as_tensor(variance, dtype=captured.dtype, device=captured.device).expand_as(captured)
-    response_variance = score.response_variance_of(captured, warped.detach(), noise, valid_mask=valid)
-    floor = 1e-6 * ((score.value_range[1] - score.value_range[0]) / score.bins) ** 2
-    return response_variance.to(captured.dtype).clamp_min(floor).reciprocal()
 
 
 class _Inputs(NamedTuple):
@@ -327,7 +222,7 @@ def _prepare(captured, reference, variance, captured_mask, reference_mask, score
         variance = variance_map("variance", variance, captured, captured.dtype, valid).view_as(captured)
     elif variance is not None:
         raise ValueError(f"variance is not used by score {score.name!r}; pass None")
-    size = score.bins if isinstance(score, ECR) and score.response != "linear" else 2
+    size = score.response_basis().size
     check_cells_memory(
         f"bins={size}" if size > 2 else "score",
         (4 * batch + 3) * size * size,  # the normal equations; the shrunk response's pull toward a line
@@ -377,6 +272,7 @@ def registration_score(
     response is refitted. Arguments as :func:`register`'s.
 
     Example:
+        >>> from enmi_torch import ECR
         >>> reference = torch.rand(1, 1, 40, 40, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 255
         >>> truth = torch.tensor([[20.3, 19.6, 4.0]], dtype=torch.float64)
         >>> captured = warp_reference(reference, truth, (16, 16))[0]
@@ -394,8 +290,7 @@ def registration_score(
         valid = valid & captured_mask.expand_as(valid)
     _check_counting(valid, pose, reference.shape[-2:], margin, captured_mask is not None)
     values = captured.to(pose.dtype)
-    weights = _weights(score, values, warped, variance, valid)
-    fit = _Fit(score, weights, _penalty(score, values, warped, variance, valid))
+    fit = ResponseFit.of(score, values, warped, variance, valid)
     batch = captured.shape[0]
     return fit.solve(values.reshape(batch, -1), warped.reshape(batch, -1))[2]
 
@@ -443,6 +338,7 @@ def register(
             memory budget, before anything is allocated.
 
     Example:
+        >>> from enmi_torch import ECR
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = F.avg_pool2d(torch.rand(1, 1, 80, 80, generator=generator, dtype=torch.float64), 3, 1) * 255
         >>> truth = torch.tensor([[39.3, 40.6, 2.5]], dtype=torch.float64)
@@ -552,7 +448,7 @@ class _Stage:
             self.reference, _ = _gaussian(self.reference, sigma, observed)
         self.shape = captured.shape[-2:]
 
-    def _setup(self, pose: Tensor) -> _Fit:
+    def _setup(self, pose: Tensor) -> ResponseFit:
         """The pixels that count at ``pose`` (the captured image blurred over them alone) and their weights."""
         warped, valid = _warp(self.reference, pose, self.shape, self.reference_mask, self.margin)
         self.valid = valid & self.captured_valid
@@ -560,19 +456,18 @@ class _Stage:
         self.values = self.captured
         if self.sigma > 0:  # pixels off the map must not bleed into the blurred image
             self.values, _ = _gaussian(self.captured, self.sigma, self.valid.to(self.captured.dtype))
-        weights = _weights(self.score_, self.values, warped, self.noise, self.valid)
-        return _Fit(self.score_, weights, _penalty(self.score_, self.values, warped, self.noise, self.valid))
+        return ResponseFit.of(self.score_, self.values, warped, self.noise, self.valid)
 
     def score(self, pose: Tensor) -> Tensor:
         """The score at ``pose``, with the pixels and weights of ``pose``."""
         return self.score_with(self._setup(pose), pose)
 
-    def score_with(self, fit: _Fit, pose: Tensor) -> Tensor:
+    def score_with(self, fit: ResponseFit, pose: Tensor) -> Tensor:
         """The score at ``pose`` with the pixels and weights of ``fit``."""
         warped, _ = _warp(self.reference, pose, self.shape, None, 0.0)
         return fit.solve(self.values.flatten(1), warped.flatten(1))[2]
 
-    def _residuals(self, fit: _Fit, pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _residuals(self, fit: ResponseFit, pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Residuals ``(B, N)``, their Jacobian ``(B, N, 3)`` in the pose, and the scores."""
         with torch.enable_grad():
             positions = sample_positions(pose.detach(), self.shape).requires_grad_(True)

@@ -11,7 +11,7 @@ command line) takes the object, or its name for the default options.
 from __future__ import annotations
 
 import inspect
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 from torch import Tensor
 
@@ -32,6 +32,37 @@ def reduce_loss(loss: Tensor, reduction: str) -> Tensor:
     if reduction == "sum":
         return loss.sum()
     return loss
+
+
+class ResponseBasis(NamedTuple):
+    """The response of the map's values that a least-squares score fits the captured values by.
+
+    Attributes:
+        knots: ``K >= 2`` for a piecewise-linear response with a knot on the centre of each of ``K`` equal bins over
+            ``value_range``; 0 for the affine response ``a + b m``.
+        value_range: ``(low, high)`` of the knots' bins; ``None`` for the affine response.
+    """
+
+    knots: int = 0
+    value_range: tuple[float, float] | None = None
+
+    @property
+    def size(self) -> int:
+        """The number of the response's coefficients: the knots, or 2 (``a`` and ``b``)."""
+        return self.knots or 2
+
+
+class LeastSquaresFit(NamedTuple):
+    """A least-squares score's terms at one alignment: how it weighs each pixel and pulls its response.
+
+    Attributes:
+        weights: ``(B, N)`` per-pixel weights, 0 where a pixel does not count.
+        line_penalty: ``(B,)`` the pull ``1 / delta^2`` of a piecewise-linear response's knots toward a line, or
+            ``None`` for a response fitted freely.
+    """
+
+    weights: Tensor
+    line_penalty: Tensor | None = None
 
 
 class Score:
@@ -169,6 +200,73 @@ class Score:
     def per_sample(self, batch: int) -> list[Score]:
         """The score for each sample of a batch: options given per sample (ENMI's ``(B, bins)`` prior) cut to one."""
         return [self] * batch
+
+    @property
+    def supports_two_stage(self) -> bool:
+        """Whether a search can rank placements by :meth:`rough_surface` and rescore a few by :meth:`placement_scores`.
+
+        The default, ``False``: the score has no cheap form.
+        """
+        return False
+
+    def rough_score(self, bins: int, window: Tensor, window_mask: Tensor | None = None) -> Score:
+        """The two-stage search's first-stage score for a map ``window`` ``(1, 1, Hw, Ww)``: ``bins`` bins over it.
+
+        Raises ``ValueError`` naming the score unless it :attr:`supports_two_stage`.
+        """
+        raise self._refusal("first stage for a two-stage search")
+
+    def rough_surface(
+        self,
+        captured: Tensor,
+        reference: Tensor,
+        variance: Tensor | float | None = None,
+        *,
+        captured_mask: Tensor | None = None,
+        reference_mask: Tensor | None = None,
+    ) -> Surface:
+        """A cheap :meth:`surface` that ranks the placements for a two-stage search; arguments as :meth:`surface`'s.
+
+        Raises ``ValueError`` naming the score unless it :attr:`supports_two_stage`.
+        """
+        raise self._refusal("rough surface for a two-stage search")
+
+    def placement_scores(
+        self, placements: Tensor, *, rotations: tuple, window: tuple, min_overlap: float, rough: Tensor
+    ) -> Tensor:
+        """The exact scores ``(P,)`` of rotated captured images at placements ``(P, 3)`` (yaw index, row, column).
+
+        ``rotations``: the captured images, variances and masks ``(Y, 1, h, w)``; ``window``: the reference window and
+        its mask ``(1, 1, Hw, Ww)``; ``min_overlap``: a placement scores ``-inf`` unless this fraction of the rotation's
+        valid pixels lands on valid cells; ``rough``: the :meth:`rough_surface` of the rotations ``(Y, Sy, Sx)``.
+        Raises ``ValueError`` naming the score unless it :attr:`supports_two_stage`.
+        """
+        raise self._refusal("exact rescoring for a two-stage search")
+
+    def response_basis(self) -> ResponseBasis:
+        """The response this score fits by weighted least squares, as :func:`~enmi_torch.register` fits it.
+
+        Raises ``ValueError`` naming the score if it is not a least-squares fit (a histogram score).
+        """
+        raise ValueError(
+            f"score must be ECR or NCC for register (a weighted least-squares fit, smooth in the pose), got "
+            f"{self.name!r}: register with ECR, then compare with {self.name!r} at the registered pose"
+        )
+
+    def least_squares_fit(
+        self, captured: Tensor, reference: Tensor, variance: Tensor | None, valid: Tensor
+    ) -> LeastSquaresFit:
+        """The weights and the response's pull of this least-squares score at one alignment.
+
+        ``captured``, ``reference`` (the map under the captured pixels) and ``valid`` (bool) are ``(B, 1, h, w)``;
+        ``variance`` the captured pixels' noise variance for a score that uses one, else ``None``. Raises
+        ``ValueError`` naming the score if it is not a least-squares fit (see :meth:`response_basis`).
+        """
+        self.response_basis()
+        raise NotImplementedError
+
+    def _refusal(self, what: str) -> ValueError:
+        return ValueError(f"score {self!r} has no {what}; ECR with response='shrunk' or 'binned' has one")
 
     def _pair_scorer(self, inputs: SurfaceInputs) -> PairScore:
         """:func:`direct_surface`'s score of one aligned pair: the score itself, with each sample's options."""

@@ -43,7 +43,8 @@ from enmi_torch.histogram import _prepare
 from enmi_torch.placement.inputs import Surface, check_inputs
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
-from enmi_torch.scores.ecr import _ecr_surface, default_model_variance
+from enmi_torch.scores.ecr_model_variance import default_model_variance
+from enmi_torch.scores.ecr_placements import ecr_surface_from_inputs
 from enmi_torch.utils.budget import check_histogram_memory, check_surface_memory
 from enmi_torch.utils.checks import (
     check_bins,
@@ -259,7 +260,7 @@ def mixture_surface(
         inputs.captured.flatten(1), bins, None, captured_planes=True, reference_planes=False, scored=True
     )
     with torch.no_grad():
-        cheap = _ecr_surface(inputs, default_model_variance(bins, value_range), bins, value_range)
+        cheap = ecr_surface_from_inputs(inputs, default_model_variance(bins, value_range), bins, value_range)
         batch, height, width = inputs.captured.shape
         weights = truncated_likelihood_weights(
             inputs.captured.reshape(batch, -1), inputs.variance.reshape(batch, -1), bins, value_range

@@ -13,7 +13,7 @@ from torch import Tensor
 from enmi_torch.histogram import _prepare
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import masked_mean, moment_blocks
-from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.base import REDUCTIONS, LeastSquaresFit, ResponseBasis, Score, reduce_loss
 from enmi_torch.utils.budget import check_surface_memory
 from enmi_torch.utils.checks import check_option
 
@@ -167,3 +167,13 @@ class NCC(Score):
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
         return ncc_loss(captured, reference, valid_mask=valid_mask, reduction=reduction)
+
+    def response_basis(self) -> ResponseBasis:
+        """The affine response ``a + b m``: NCC squared is the share of the variance it explains."""
+        return ResponseBasis()
+
+    def least_squares_fit(
+        self, captured: Tensor, reference: Tensor, variance: Tensor | None, valid: Tensor
+    ) -> LeastSquaresFit:
+        """Every valid pixel weighs alike (1), the response is fitted freely."""
+        return LeastSquaresFit(valid.reshape(captured.shape[0], -1).to(captured.dtype))

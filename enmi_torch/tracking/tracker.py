@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from enmi_torch.localization.peak import NoCandidateError
 from enmi_torch.localization.search import localize
+from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.registration.refine import check_registration_score, register
 from enmi_torch.scores import ECR, Score, as_score
 from enmi_torch.tracking.belief import (
@@ -553,7 +554,12 @@ class _Searcher:
             return None
         try:
             found = self._localize(
-                vehicle, belief.center[vehicle], yaws, shifts, coarse_factor=coarse_factor, min_overlap=0.5
+                vehicle,
+                belief.center[vehicle],
+                yaws,
+                shifts,
+                search=SearchStrategy(coarse_factor=coarse_factor),
+                min_overlap=0.5,
             )
         except NoCandidateError:
             return None

@@ -284,9 +284,9 @@ def test_the_two_stage_search_scores_as_the_exhaustive_one(generator):
 
 def test_each_yaw_has_its_own_estimate(generator):
     captured, references, variance, _ = _images(torch.float64, generator, batch=1)
-    from enmi_torch.localization.search import _rotated
+    from enmi_torch.localization.candidates import rotate_captured
 
-    rotated, rotated_variance, rotated_valid = _rotated(
+    rotated, rotated_variance, rotated_valid = rotate_captured(
         captured, variance, torch.ones_like(captured, dtype=torch.bool), [0.0, 20.0], "nearest"
     )
     tau2 = ECR(bins=12, model_variance="estimate").surface_model_variance(

@@ -1,0 +1,317 @@
+"""ECR's model variance ``tau^2`` and its shrunk response's ``delta^2``, estimated from the data.
+
+The model variance ``tau^2`` is what a bin of the map leaves unexplained: the quantisation, ``bin_width^2 / 12``, where
+the map explains the captured image up to the sensor noise; far more where the scene changed (shadows, cars, another
+date, another modality). Too small a ``tau^2`` trusts the quiet pixels far more than the misfit allows.
+``model_variance="estimate"`` estimates it from the data, one ``tau^2`` per captured image, by restricted maximum
+likelihood (REML: the likelihood of the residuals about the fitted bin means, which does not take the ``K_occ`` fitted
+means for evidence against ``tau^2``), at least ``bin_width^2 / 12``:
+
+* on aligned pairs (:func:`~enmi_torch.scores.ecr.ecr`, :func:`~enmi_torch.scores.ecr.ecr_loss`): at the given
+  alignment (each candidate reference its own), without gradient; the score is ECR with that ``tau^2``;
+* over every placement (:func:`~enmi_torch.scores.ecr.ecr_surface`): at the best placement of a cheap first pass
+  (:mod:`~enmi_torch.scores.ecr_placements`); the surface is ECR with that ``tau^2`` at every placement;
+* in the two-stage search: at the best placement of its cheap stage, per yaw.
+
+REML by Fisher scoring: with ``w_n = 1 / (sigma_n^2 + tau^2)``, ``r_n`` the residuals about the weighted bin means and
+``W_j`` the bins' weight sums, the score ``U = (sum w^2 r^2 - sum w + sum_j sum_{n in j} w_n^2 / W_j) / 2`` over the
+information ``I = sum w^2 / 2`` moves ``tau^2`` from the moment estimate (the residual variance about the plain bin
+means less the mean noise variance) until it settles. With ``response="linear"`` the fitted means are ``a + b r``.
+
+A changed scene's misfit is spatially correlated: a new building, a shadow or a parked car covers many neighbouring
+pixels, and the per-pixel model counts each quiet pixel of such a patch as independent evidence. ``misfit="correlated"``
+takes the misfit beyond the bins' quantisation as one value per block of ``m`` pixels: a pixel's weight becomes
+``1 / (sigma_n^2 + m tau^2)``, so a block of ``m`` pixels of noise ``sigma^2`` weighs ``1 / (tau^2 + sigma^2 / m)``,
+the generalised-least-squares weight of its mean. ``m``, the pixels per independent misfit (:func:`misfit_extent`), is
+read from the residuals' autocovariance where ``tau^2`` is estimated (the sensor noise is white and adds to lag 0
+only). The model variance is then ``q + m (tau^2 - q)``, ``q = bin_width^2 / 12`` the quantisation floor, which stays
+per pixel as in the independent model (a smooth map's within-bin variation is correlated too, but it is the bins'
+resolution, not a change of the scene). Where the misfit outweighs the noise the weights are nearly uniform, and the
+log-likelihood ratio is about ``m`` times smaller: evidence counted per independent patch instead of per pixel.
+
+The shrunk response's ``delta^2`` (:mod:`~enmi_torch.scores.shrunk_response`) is estimated where its profile
+likelihood is largest, with the pair's ``tau^2`` (:func:`estimated_response_variance`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from enmi_torch.binning import bin_width, hard_bin_index
+from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
+
+MISFITS = ("independent", "correlated")
+MODEL_VARIANCE_ESTIMATE = "estimate"
+RESPONSE_VARIANCE_ESTIMATE = "estimate"
+# misfit="correlated" sums the residuals' autocovariance over lags up to this fraction of the image's smaller side.
+MISFIT_REACH = 1 / 8
+# Fisher scoring stops when tau^2 moves by less than this fraction, or after this many steps (it takes a few).
+_FISHER_TOLERANCE, _FISHER_STEPS = 1e-10, 32
+
+
+def default_model_variance(bins: int, value_range: tuple[float, float]) -> float:
+    """``bin_width^2 / 12``: the variance of an amplitude uniform in one reference bin.
+
+    Example:
+        >>> default_model_variance(32, (0.0, 256.0))
+        5.333333333333333
+    """
+    return bin_width(bins, value_range) ** 2 / 12
+
+
+def check_model_variance(model_variance, bins: int, value_range: tuple[float, float]) -> float | str:
+    """``model_variance`` checked: ``"estimate"``, a number >= 0 as a float, ``None`` as its default_model_variance."""
+    if model_variance is None:
+        return default_model_variance(bins, value_range)
+    if model_variance == MODEL_VARIANCE_ESTIMATE:
+        return MODEL_VARIANCE_ESTIMATE
+    if isinstance(model_variance, bool) or not isinstance(model_variance, (int, float)) or not model_variance >= 0:
+        raise ValueError(f"model_variance must be 'estimate', a number >= 0 or None, got {model_variance!r}")
+    if model_variance == float("inf"):
+        raise ValueError("model_variance must be finite, got inf")
+    return float(model_variance)
+
+
+def check_response_variance(response_variance) -> float | str:
+    """``response_variance`` checked: ``"estimate"``, or a finite number >= 0 as a float."""
+    if response_variance == RESPONSE_VARIANCE_ESTIMATE:
+        return RESPONSE_VARIANCE_ESTIMATE
+    if (
+        isinstance(response_variance, bool)
+        or not isinstance(response_variance, (int, float))
+        or not 0 <= response_variance < math.inf
+    ):
+        raise ValueError(f"response_variance must be 'estimate' or a finite number >= 0, got {response_variance!r}")
+    return float(response_variance)
+
+
+class _OccupiedBins:
+    """The bins that rows ``(S, N)`` of bin indices occupy, labelled once: sums per bin cost ``O(N)``, not ``O(bins)``.
+
+    ``label`` ``(S, N)`` numbers each row's occupied bins apart from every other row's, ``row`` ``(L,)`` is the row of
+    each label and ``bin`` ``(L,)`` its bin.
+    """
+
+    def __init__(self, cells: Tensor, bins: int) -> None:
+        rows = torch.arange(cells.shape[0], device=cells.device)[:, None]
+        labels, label = torch.unique(cells + bins * rows, return_inverse=True)
+        self.label, self.row, self.bin, self.rows = label, labels // bins, labels % bins, cells.shape[0]
+
+    def sums(self, values: Tensor) -> Tensor:
+        """Sums of ``values`` ``(S, N)`` per label, ``(L,)``."""
+        return values.new_zeros(self.row.shape[0]).index_add_(0, self.label.flatten(), values.flatten())
+
+    def per_row(self, values: Tensor) -> Tensor:
+        """Sums of per-label ``values`` ``(L,)`` over each row's labels, ``(S,)``."""
+        return values.new_zeros(self.rows).index_add_(0, self.row, values)
+
+
+def _binned_fit(cells: Tensor, bins: int):
+    """The weighted fit of one mean per reference bin ``cells`` ``(S, N)``, for :func:`_reml_model_variance`."""
+    occupied_bins = _OccupiedBins(cells, bins)
+
+    def fit(values: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        weight_sums = occupied_bins.sums(weight)
+        occupied = weight_sums > 0
+        safe = torch.where(occupied, weight_sums, 1.0)
+        residual = values - (occupied_bins.sums(weight * values) / safe)[occupied_bins.label]
+        trace = occupied_bins.per_row(torch.where(occupied, occupied_bins.sums(weight.square()) / safe, 0.0))
+        return residual, trace, occupied_bins.per_row(occupied.long())
+
+    return fit
+
+
+def _affine_fit(reference: Tensor):
+    """The weighted fit of ``a + b r`` on the reference values ``r`` ``(S, N)``, for :func:`_reml_model_variance`."""
+
+    def fit(values: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        total = weight.sum(1, keepdim=True).clamp_min(torch.finfo(weight.dtype).tiny)
+        # Centred on its weighted mean the reference is orthogonal to the constant: X'WX is diagonal.
+        centred = reference - (weight * reference).sum(1, keepdim=True) / total
+        spread = (weight * centred.square()).sum(1, keepdim=True)
+        sloped = spread > 64 * torch.finfo(weight.dtype).eps * (weight * reference.square()).sum(1, keepdim=True)
+        safe = torch.where(sloped, spread, 1.0)
+        slope = torch.where(sloped, (weight * centred * values).sum(1, keepdim=True) / safe, 0.0)
+        residual = values - (weight * values).sum(1, keepdim=True) / total - slope * centred
+        squared = weight.square()
+        trace = (
+            squared.sum(1) / total[:, 0]
+            + torch.where(sloped, (squared * centred.square()).sum(1, keepdim=True) / safe, 0.0)[:, 0]
+        )
+        return residual, trace, 1 + sloped[:, 0].long()
+
+    return fit
+
+
+def _reml_model_variance(values: Tensor, noise: Tensor, valid: Tensor, fit, floor: float) -> Tensor:
+    """REML ``tau^2`` ``(S,)`` of ``S`` rows of ``N`` pixels (float64): Fisher scoring, at least ``floor``.
+
+    ``values``, ``noise`` (``sigma_n^2``) and ``valid`` (bool) are ``(S, N)``; ``fit(values, weight)`` gives the
+    residuals about the weighted fit, ``tr((X' W X)^-1 X' W^2 X)`` and the number of fitted parameters, ``(S,)``
+    each. A row with no more valid pixels than fitted parameters gives ``floor``.
+    """
+    mask = valid.to(values.dtype)
+    count = mask.sum(1)
+    residual, _, fitted = fit(values, mask)
+    moment = (mask * residual.square()).sum(1) / (count - fitted).clamp_min(1)
+    tau2 = (moment - (mask * noise).sum(1) / count.clamp_min(1)).clamp_min(floor)
+    for _ in range(_FISHER_STEPS):
+        weight = mask / (noise + tau2[:, None])
+        residual, trace, _ = fit(values, weight)
+        squared = weight.square()
+        score = 0.5 * ((squared * residual.square()).sum(1) - weight.sum(1) + trace)
+        information = 0.5 * squared.sum(1).clamp_min(torch.finfo(values.dtype).tiny)
+        updated = (tau2 + score / information).clamp_min(floor)
+        settled = bool(((updated - tau2).abs() <= _FISHER_TOLERANCE * updated).all())
+        tau2 = updated
+        if settled:
+            break
+    return torch.where(count > fitted, tau2, floor)
+
+
+def misfit_extent(residual: Tensor, valid: Tensor, misfit_variance: Tensor) -> Tensor:
+    """Pixels per independent misfit ``(S,)``: ``1 + sum_{h != 0} taper(h) C(h) / tau^2``, at least 1.
+
+    ``residual`` ``(S, H, W)`` are the captured values less their fitted means, ``valid`` ``(S, H, W)`` bool, and
+    ``misfit_variance`` ``(S,)`` the misfit's per-pixel variance ``tau^2``. ``C(h)`` is the residuals' autocovariance
+    at lag ``h`` (over the valid pairs at that lag), summed over lags up to ``R = max(1, round(MISFIT_REACH * min(H,
+    W)))`` on each axis with the Bartlett taper ``(1 - |dy| / (R + 1)) (1 - |dx| / (R + 1))``. The sensor noise is
+    white, so it adds to ``C(0)`` only: the sum is the misfit's. An independent misfit gives about 1; one that is one
+    value over blocks of ``b x b`` pixels (``b <= R``) gives ``(1 + 2 sum_{d=1}^{b-1} (1 - d / b) (1 - d / (R + 1)))^2``
+    of the block's ``b^2`` (the taper's share: 11.9 of 16 for ``b = 4``, ``R = 8``). At most the valid pixels.
+
+    Example:
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> blocks = torch.randn(1, 16, 16, generator=generator, dtype=torch.float64)
+        >>> misfit = blocks.repeat_interleave(4, 1).repeat_interleave(4, 2)  # one value per 4 x 4 block
+        >>> valid = torch.ones(1, 64, 64, dtype=torch.bool)
+        >>> noise = 0.5 * torch.randn(1, 64, 64, generator=generator, dtype=torch.float64)
+        >>> independent = torch.randn(1, 64, 64, generator=generator, dtype=torch.float64)
+        >>> tau2 = torch.ones(1, dtype=torch.float64)
+        >>> misfit_extent(misfit + noise, valid, tau2).round(), misfit_extent(independent, valid, tau2).round()
+        (tensor([12.], dtype=torch.float64), tensor([1.], dtype=torch.float64))
+    """
+    _, height, width = residual.shape
+    reach = max(1, round(MISFIT_REACH * min(height, width)))
+    reach_y, reach_x = min(reach, height - 1), min(reach, width - 1)
+    mask = valid.to(residual.dtype)
+    count = mask.sum((1, 2))
+    residual = torch.where(valid, residual, 0.0)  # an invalid pixel may hold NaN
+    centred = torch.where(valid, residual - residual.sum((1, 2), keepdim=True) / count.clamp_min(1)[:, None, None], 0.0)
+    size = (2 * height, 2 * width)  # zero padding: no wrap-around
+
+    def lagged_sums(values: Tensor) -> Tensor:
+        spectrum = torch.fft.rfft2(values, s=size)
+        return torch.fft.irfft2(spectrum * spectrum.conj(), s=size)
+
+    products, pairs = lagged_sums(centred), lagged_sums(mask).round()
+    rows = torch.arange(-reach_y, reach_y + 1, device=residual.device)
+    cols = torch.arange(-reach_x, reach_x + 1, device=residual.device)
+    index = (rows % size[0])[:, None], (cols % size[1])[None, :]
+    products, pairs = products[:, index[0], index[1]], pairs[:, index[0], index[1]]
+    covariance = torch.where(pairs > 0, products / pairs.clamp_min(1), 0.0)
+    taper_y = 1 - rows.to(residual.dtype).abs() / (reach + 1)
+    taper = taper_y[:, None] * (1 - cols.to(residual.dtype).abs() / (reach + 1))
+    taper[reach_y, reach_x] = 0.0  # lag 0 holds the noise
+    summed = (covariance * taper).sum((1, 2))
+    tiny = torch.finfo(residual.dtype).tiny
+    extent = 1 + summed / misfit_variance.clamp_min(tiny)
+    return torch.minimum(extent.clamp_min(1.0), count.clamp_min(1))
+
+
+def estimated_model_variance(
+    captured: Tensor,
+    reference: Tensor,
+    noise: Tensor,
+    valid: Tensor,
+    bins: int,
+    value_range: tuple[float, float],
+    response: str,
+    image_shape: tuple[int, int] | None = None,
+) -> Tensor:
+    """REML ``tau^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: values, reference, ``sigma^2``, bool valid.
+
+    ``image_shape``: ``(H, W)`` of the ``N = H W`` pixels for ``misfit="correlated"`` (the floor ``bin_width^2 / 12``
+    plus the estimate's excess over it times :func:`misfit_extent` of the residuals); ``None`` for an independent
+    misfit.
+    """
+    with torch.no_grad():
+        values, reference, noise = (part.detach().to(torch.float64) for part in (captured, reference, noise))
+        # Centred values keep the sums of squares free of cancellation; the residuals do not depend on it.
+        values = values - (values * valid).sum(1, keepdim=True) / valid.sum(1, keepdim=True).clamp_min(1)
+        if response == "linear":
+            fit = _affine_fit(torch.where(valid, reference, 0.0))
+        else:
+            fit = _binned_fit(hard_bin_index(reference, bins, value_range), bins)
+        floor = default_model_variance(bins, value_range)
+        tau2 = _reml_model_variance(values, noise, valid, fit, floor)
+        if image_shape is None:
+            return tau2
+        residual, _, _ = fit(values, valid / (noise + tau2[:, None]))
+        shape = (-1, *image_shape)
+        # The quantisation floor stays per pixel, as in the independent model; the misfit beyond it is correlated.
+        return floor + (tau2 - floor) * misfit_extent(residual.view(shape), valid.view(shape), tau2)
+
+
+def aligned_model_variance(inputs, response: str, image_shape: tuple[int, int] | None = None) -> Tensor:
+    """The estimated ``tau^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, one per candidate and sample.
+
+    ``image_shape``: the captured images' ``(H, W)`` for a correlated misfit, ``None`` for an independent one.
+    """
+    tau2 = estimated_model_variance(*_flat_pairs(inputs), inputs.bins, inputs.value_range, response, image_shape)
+    return tau2.view(inputs.reference.shape[:-1])
+
+
+def _flat_pairs(inputs) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`ecr`'s checked inputs as ``C B`` rows of ``N`` pixels: captured, reference, variance and bool valid."""
+    shape = inputs.reference.shape
+    valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
+    if inputs.valid is not None:
+        valid = valid & inputs.valid
+    parts = (inputs.captured, inputs.reference, inputs.variance, valid)
+    return tuple(part.expand(shape).reshape(-1, shape[-1]) for part in parts)
+
+
+def estimated_response_variance(
+    captured: Tensor,
+    reference: Tensor,
+    noise: Tensor,
+    valid: Tensor,
+    tau2: Tensor,
+    bins: int,
+    value_range: tuple[float, float],
+) -> Tensor:
+    """The shrunk response's ``delta^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: its profile's maximum.
+
+    ``noise`` is ``sigma^2``, ``valid`` bool, ``tau2`` ``(S,)`` the score's model variance. A pair without a valid
+    pixel gets 0.
+    """
+    with torch.no_grad():
+        values = torch.where(valid, captured.detach().to(torch.float64), 0.0)  # an invalid pixel may hold NaN
+        noise = torch.where(valid, noise.detach().to(torch.float64), 1.0)
+        cells = hard_bin_index(torch.where(valid, reference.detach(), value_range[0]), bins, value_range)
+        weight = valid / (noise + tau2.to(torch.float64)[:, None])
+        centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(1e-300)
+        # Each row's occupied bins, numbered 0, 1, ... in its column of a (most occupied, S) layout: O(N), any bins.
+        occupied = _OccupiedBins(cells, bins)
+        counts = torch.bincount(occupied.row, minlength=occupied.rows)
+        rank = torch.arange(occupied.row.shape[0], device=values.device) - (counts.cumsum(0) - counts)[occupied.row]
+        layout = (int(counts.max()), occupied.rows)
+        place = (rank, occupied.row)
+        weight_sums = values.new_zeros(layout).index_put_(place, occupied.sums(weight))
+        value_sums = values.new_zeros(layout).index_put_(place, occupied.sums(weight * (values - centre)))
+        positions = values.new_zeros(layout).index_put_(
+            place, bin_positions(bins, torch.float64, values.device)[occupied.bin]
+        )
+        return shrunk_llr(weight_sums, value_sums, positions, value_range)[1]
+
+
+def aligned_response_variance(inputs, tau2) -> Tensor:
+    """The shrunk response's estimated ``delta^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, ``tau2`` ``(C, B)``."""
+    shape = inputs.reference.shape[:-1]
+    tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape).reshape(-1)
+    delta2 = estimated_response_variance(*_flat_pairs(inputs), tau2, inputs.bins, inputs.value_range)
+    return delta2.view(shape)
