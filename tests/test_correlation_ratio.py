@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from enmi_torch import ECR, BinSums, ECRLoss, ecr, ecr_from_bin_sums, ecr_surface, localize
-from enmi_torch.scores.ecr import default_model_variance, ecr_surface_model_variance
+from enmi_torch.scores.ecr import ecr_surface_model_variance
+from enmi_torch.scores.ecr_model_variance import default_model_variance
 from enmi_torch.variance import ConstantVariance
 
 
@@ -133,7 +134,7 @@ def test_ecr_gradcheck_in_captured_and_variance():
 
 def test_ecr_from_bin_sums_streams():
     captured, reference, variance, _ = _case(torch.float64, shape=(1, 1, 8, 8))
-    from enmi_torch.scores.ecr import bin_sums
+    from enmi_torch.scores.ecr_statistics import bin_sums
 
     # Sums over two halves add up to the sums of the whole: the score can be accumulated across batches.
     tau2 = 5.0

@@ -8,12 +8,8 @@ import torch
 
 from enmi_torch import ECR, ecr, localize
 from enmi_torch.binning import hard_bin_index
-from enmi_torch.scores.ecr import (
-    MISFIT_REACH,
-    ecr_model_variance,
-    ecr_surface_model_variance,
-    misfit_extent,
-)
+from enmi_torch.scores.ecr import ecr_model_variance, ecr_surface_model_variance
+from enmi_torch.scores.ecr_model_variance import MISFIT_REACH, misfit_extent
 
 RANGE = (0.0, 256.0)
 

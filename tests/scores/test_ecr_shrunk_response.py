@@ -10,7 +10,7 @@ import torch
 from enmi_torch import ECR, ecr, ecr_from_bin_sums, ecr_surface, register
 from enmi_torch.registration import warp_reference
 from enmi_torch.scores.base import direct_surface
-from enmi_torch.scores.ecr import bin_sums
+from enmi_torch.scores.ecr_statistics import bin_sums
 from enmi_torch.scores.shrunk_response import bin_positions, response_variance_grid, shrunk_llr, shrunk_llr_terms
 
 
