@@ -70,7 +70,7 @@ class Score:
 
     Subclasses (the families) take keyword-only options, check them and pass them to ``Score.__init__``; they define
     ``_value``, ``_surface`` and ``_loss`` by calling their family's functions. A score is a plain Python object:
-    compared by options, hashable, picklable (the yardstick sends scores to worker processes).
+    compared by options, hashable, picklable (so that it can be sent to worker processes).
 
     Attributes:
         name: the family's name, as :func:`as_score` takes it (``"ecr"``, ``"enmi"``, ``"nmi"``, ``"ncc"``,

@@ -26,10 +26,9 @@ response's.
 are aligned and held at every placement (as ECR's model variance ``tau^2``): an aligned pair takes the maximum of
 its own profile (:func:`shrunk_llr`), a surface the ``delta^2`` of the best placement of a cheap first pass. Taken
 per placement instead, the profile lets a wrong placement buy back the free bin means: there the bin means of a
-photograph scatter by its own structure (spatially correlated pixels, far more than independent pixels would), the
-profile leaves the line to fit it, and on real pairs of two dates the surface located no more often than the binned
-response's. On the yardstick's real photographs (``data_tools/yardstick/scene_change.py``) the shrunk response
-finds what the line finds where the sensor is near-linear and what the bins find where it is not.
+photograph scatter by its own structure (spatially correlated pixels, far more than independent pixels would), and
+the profile leaves the line to fit it. Held fixed, the shrunk response scores as the line where the sensor is
+near-linear and as the bins where it is not.
 """
 
 from __future__ import annotations
