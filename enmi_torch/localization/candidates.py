@@ -47,9 +47,10 @@ def _captured_valid(captured: Tensor, captured_mask: Tensor | None, variance) ->
 
 
 def _check_something_to_match(captured: Tensor, valid: Tensor) -> None:
-    """Raise :class:`NoCandidateError` if a sample's valid pixels hold one value (one pixel, a flat image).
+    """Raise :class:`~enmi_torch.localization.peak.NoCandidateError` if a sample's valid pixels hold one value.
 
-    Every placement of such an image scores alike: the surface is flat and its "peak" would be the window's corner.
+    One pixel or a flat image: every placement of such an image scores alike, the surface is flat and its "peak"
+    would be the window's corner.
     """
     values = captured.flatten(1)
     keep = valid.flatten(1)
@@ -131,7 +132,8 @@ def _pooled(images: Tensor, factor: int) -> Tensor:
 class CandidateSurfaces:
     """The map windows around the prior poses of a search, and the surfaces of its candidates over them.
 
-    Build it with :meth:`prepare`; :meth:`run` gives the surface of a :class:`SearchStrategy`.
+    Build it with :meth:`prepare`; :meth:`run` gives the surface of a
+    :class:`~enmi_torch.localization.strategy.SearchStrategy`.
     """
 
     def __init__(

@@ -141,8 +141,9 @@ def ecr(
             of freedom; ``bins`` only check that the reference is resolved).
         misfit: how an estimated ``tau^2`` treats the misfit's spatial correlation: ``"independent"`` (the
             default: pixel by pixel) or ``"correlated"`` (its excess over ``bin_width^2 / 12`` times the pixels per
-            independent misfit, :func:`misfit_extent` of the residuals: see the module docstring; captured must be
-            images). A fixed ``model_variance`` is used as it is.
+            independent misfit, :func:`~enmi_torch.scores.ecr_model_variance.misfit_extent` of the residuals: see
+            :mod:`~enmi_torch.scores.ecr_model_variance`; captured must be images). A fixed ``model_variance`` is used
+            as it is.
         response_variance: the shrunk response's ``delta^2``, how far the bin means may leave the line:
             ``"estimate"`` (the default: each pair its own, where its profile likelihood is largest, held fixed in
             the gradient; see :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the
@@ -265,7 +266,7 @@ def ecr_surface(
             ``tau^2``, held at every placement.
 
     Returns:
-        :class:`Surface`; ``score[b, u, v]`` equals
+        :class:`~enmi_torch.placement.Surface`; ``score[b, u, v]`` equals
         ``ecr(captured[b], reference[b, :, u:u + h, v:v + w], variance,
         valid_mask=captured_mask & reference_mask[...], model_variance=tau2[b])``, ``tau2`` the fixed number or
         :func:`ecr_surface_model_variance`'s estimate (one for every placement of an image); 0 where nothing
@@ -375,7 +376,8 @@ class ECR(Score):
         response: ``"shrunk"`` (the default: bin means shrunk toward an increasing line as far as the data allow),
             ``"binned"`` (one free mean per reference bin, any response) or ``"linear"`` (increasing affine).
         misfit: ``"independent"`` (the default) or ``"correlated"``: an estimated ``tau^2``'s excess over the
-            quantisation floor times the pixels per independent misfit (:func:`misfit_extent`; see :func:`ecr`).
+            quantisation floor times the pixels per independent misfit
+            (:func:`~enmi_torch.scores.ecr_model_variance.misfit_extent`; see :func:`ecr`).
         response_variance: the shrunk response's ``delta^2``: ``"estimate"`` (the default: per aligned pair; per
             captured image for a surface, at the first pass's best placement) or a number >= 0 (see :func:`ecr`).
 

@@ -257,16 +257,17 @@ def estimated_model_variance(
 
 
 def aligned_model_variance(inputs, response: str, image_shape: tuple[int, int] | None = None) -> Tensor:
-    """The estimated ``tau^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, one per candidate and sample.
+    """The estimated ``tau^2`` ``(C, B)`` of ECR's checked inputs on aligned pairs, one per candidate and sample.
 
-    ``image_shape``: the captured images' ``(H, W)`` for a correlated misfit, ``None`` for an independent one.
+    ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them. ``image_shape``: the captured images' ``(H, W)``
+    for a correlated misfit, ``None`` for an independent one.
     """
     tau2 = estimated_model_variance(*_flat_pairs(inputs), inputs.bins, inputs.value_range, response, image_shape)
     return tau2.view(inputs.reference.shape[:-1])
 
 
 def _flat_pairs(inputs) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`ecr`'s checked inputs as ``C B`` rows of ``N`` pixels: captured, reference, variance and bool valid."""
+    """ECR's checked inputs on aligned pairs as ``C B`` rows of ``N`` pixels: captured, reference, variance, valid."""
     shape = inputs.reference.shape
     valid = torch.ones(shape, dtype=torch.bool, device=inputs.captured.device)
     if inputs.valid is not None:
@@ -310,7 +311,10 @@ def estimated_response_variance(
 
 
 def aligned_response_variance(inputs, tau2) -> Tensor:
-    """The shrunk response's estimated ``delta^2`` ``(C, B)`` of :func:`ecr`'s checked inputs, ``tau2`` ``(C, B)``."""
+    """The shrunk response's estimated ``delta^2`` ``(C, B)`` of ECR's checked inputs on aligned pairs.
+
+    ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them; ``tau2``: ``(C, B)`` or a number.
+    """
     shape = inputs.reference.shape[:-1]
     tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape).reshape(-1)
     delta2 = estimated_response_variance(*_flat_pairs(inputs), tau2, inputs.bins, inputs.value_range)

@@ -111,7 +111,8 @@ def variances_at_peaks(
 
     ``tau^2``: the estimate there (``model_variance="estimate"``) or the fixed number; a captured image without a
     finite score gets the floor, ``bin_width^2 / 12``, with either misfit. ``delta^2``: the shrunk response's
-    (:func:`estimated_response_variance`) with that ``tau^2``; 0 without a finite score.
+    (:func:`~enmi_torch.scores.ecr_model_variance.estimated_response_variance`) with that ``tau^2``; 0 without a
+    finite score.
     """
     batch, height, width = inputs.captured.shape
     device = inputs.captured.device

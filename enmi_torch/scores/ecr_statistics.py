@@ -123,10 +123,11 @@ def ecr_from_bin_sums(
     """ECR from per-bin sums ``(..., bins)`` (summed over batches or processes if need be), ``(...)``.
 
     Bins with no valid pixel are left out (``0 / 0``); a placement without any valid pixel scores 0. ``response``:
-    ``"shrunk"`` (the default, as :func:`ecr`'s) or ``"binned"``; ``value_range``: the bins' range (the scale of the
-    shrunk response's ``delta^2`` grid; the binned response does not use it); ``response_variance``: the shrunk
-    response's ``delta^2``, ``"estimate"`` (each set of sums its own, where its profile is largest, held fixed in the
-    gradient; the pixels taken as independent) or a number (or a tensor broadcastable to ``(...)``).
+    ``"shrunk"`` (the default, as :func:`~enmi_torch.scores.ecr.ecr`'s) or ``"binned"``; ``value_range``: the bins'
+    range (the scale of the shrunk response's ``delta^2`` grid; the binned response does not use it);
+    ``response_variance``: the shrunk response's ``delta^2``, ``"estimate"`` (each set of sums its own, where its
+    profile is largest, held fixed in the gradient; the pixels taken as independent) or a number (or a tensor
+    broadcastable to ``(...)``).
 
     Example:
         >>> sums = BinSums(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0]]), torch.tensor([[-4.0, 4.0]]))
