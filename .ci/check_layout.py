@@ -17,10 +17,17 @@ MAX_PARAMETERS = 15
 MAX_TOP_LEVEL_NAMES = 25
 MAX_README_LINES = 150
 # A score family's class is named (isinstance) only in its own file.
-FAMILIES = {"ECR": "scores/ecr", "ENMI": "scores/enmi", "NMI": "scores/nmi", "NCC": "scores/ncc", "Mixture": "scores/mixture"}
+FAMILIES = {
+    "ECR": "scores/ecr",
+    "ENMI": "scores/enmi",
+    "NMI": "scores/nmi",
+    "NCC": "scores/ncc",
+    "Mixture": "scores/mixture",
+}
 
 
 def module_name(path: Path) -> str:
+    """The dotted module a file of the package holds."""
     parts = path.relative_to(ROOT).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
@@ -83,6 +90,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def count_parameters(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """A signature's parameters, ``self``/``cls`` not counted, ``*args`` and ``**kwargs`` one each."""
     arguments = function.args
     names = [*arguments.posonlyargs, *arguments.args, *arguments.kwonlyargs]
     names = [argument for argument in names if argument.arg not in ("self", "cls")]
@@ -90,6 +98,7 @@ def count_parameters(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
 
 
 def main() -> int:
+    """Print every finding; 1 if there is any."""
     findings = []
     graph: dict[str, set[str]] = {}
     for path in sorted(PACKAGE.rglob("*.py")):
@@ -110,9 +119,8 @@ def main() -> int:
                     for alias in node.names:
                         private = alias.name.startswith("_") and not alias.name.startswith("__")
                         if private and target != module:
-                            findings.append(
-                                f"{path.relative_to(ROOT)}:{node.lineno}: private name {alias.name} imported from {target}"
-                            )
+                            where = f"{path.relative_to(ROOT)}:{node.lineno}"
+                            findings.append(f"{where}: private name {alias.name} imported from {target}")
             elif isinstance(node, ast.Import) and node.lineno not in annotation_only:
                 for alias in node.names:
                     if alias.name.startswith("enmi_torch") and room(alias.name) != room(module):
