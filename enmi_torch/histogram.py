@@ -98,7 +98,7 @@ def joint_histogram(
     Raises:
         MemoryBudgetError: before allocating, when the ``(C, B, bins, bins)`` counts (and the dense bin weights of
             the Parzen kernels) would exceed the memory budget, 4 GiB unless raised with
-            :func:`~enmi_torch.set_memory_budget` or :func:`~enmi_torch.memory_budget`.
+            :func:`~enmi_torch.utils.budget.set_memory_budget` or :func:`~enmi_torch.utils.budget.memory_budget`.
 
     Convention:
         Gradients flow to ``captured`` and ``variance`` for the differentiable kernels and to
@@ -199,7 +199,7 @@ def hard_entropies(
     the mean surprisal of the pixels, ``H = sum_pixels log(n / c(pixel)) / n`` with ``c(pixel)`` the count of the
     pixel's cell and ``n`` the number of valid pixels: ``O(pixels)`` logarithms per sample instead of ``O(bins^2)``.
     That pays for small images and many samples (fewer pixels than ``bins^2 / 4``, e.g. the paper's 66 road tiles
-    and 32 bins), where :func:`~enmi_torch.nmi` uses it.
+    and 32 bins), where :func:`~enmi_torch.functional.nmi` uses it.
 
     Args:
         captured: ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.

@@ -7,7 +7,7 @@ score makes an error when ``score(V, u) >= score(V, a)``; the error rate is esti
 
 Convention:
     Trials are ``(T, K)`` tensors, one row per trial, so the scores run batched over trials with the library's
-    own :func:`~enmi_torch.nmi` and :func:`~enmi_torch.enmi`, the truth and the candidate
+    own :func:`~enmi_torch.functional.nmi` and :func:`~enmi_torch.functional.enmi`, the truth and the candidate
     scored as two references of one call (``(2, T, K)``: the captured weights are computed once).
     :func:`error_rates` checks its trials once and runs the steps of those functions after their checks, with the
     same scores bit for bit as :func:`count_errors`. Every noise
@@ -223,7 +223,7 @@ def count_errors(
 class _TrustedScorer:
     """:func:`count_errors` for trials that :func:`error_rates` drew and checked: the same scores, bit for bit.
 
-    It calls the steps :func:`~enmi_torch.nmi` and :func:`~enmi_torch.enmi` take after
+    It calls the steps :func:`~enmi_torch.functional.nmi` and :func:`~enmi_torch.functional.enmi` take after
     their checks, and computes once what does not depend on the noise power: the references' bins and hard
     entropies. A test checks every decision against :func:`count_errors`.
     """

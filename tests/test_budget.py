@@ -31,7 +31,7 @@ CAPTURED = torch.rand(1, 1, 16, 16, generator=GENERATOR) * 256
 REFERENCE = torch.rand(1, 1, 16, 16, generator=GENERATOR) * 256
 DEFAULT = _budget.DEFAULT_MEMORY_BUDGET
 HUGE_BINS = r"bins=100000 needs about \d+\.\d GiB for the joint histograms \(1, 100000, 100000\) in float32"
-RAISE_IT = r"raise the budget with enmi_torch\.set_memory_budget\(bytes\)"
+RAISE_IT = r"raise the budget with enmi_torch\.utils\.budget\.set_memory_budget\(bytes\)"
 
 
 @pytest.fixture(autouse=True)

@@ -247,7 +247,7 @@ class _Fit:
 
 
 def check_registration_score(score: Score | str) -> Score:
-    """``score`` as a :class:`~enmi_torch.Score` that :func:`register` can fit (ECR or NCC), else ``ValueError``."""
+    """``score`` as a :class:`~enmi_torch.scores.Score` that :func:`register` can fit (ECR or NCC), else ValueError."""
     score = as_score(score)
     if not isinstance(score, (ECR, NCC)):
         raise ValueError(

@@ -7,8 +7,9 @@
 placements by ECR's). Each family's file owns the value on aligned pairs, the surface over every placement (built on
 :mod:`enmi_torch.placement`), the loss and the class; a new option of a family is added in its file only.
 
-The functions live in the family modules (``enmi_torch.scores.ecr.ecr``, ...; all of them at the top level,
-``enmi_torch.ecr``): the package re-exports the objects only, so that ``enmi_torch.scores.ecr`` stays the module.
+The functions live in the family modules (``enmi_torch.scores.ecr.ecr``, ...; all of them in
+:mod:`enmi_torch.functional`): the package re-exports the objects only, so that ``enmi_torch.scores.ecr`` stays the
+module.
 """
 
 from enmi_torch.scores.base import REDUCTIONS, Score, as_score, direct_surface, score_names
