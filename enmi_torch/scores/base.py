@@ -268,7 +268,7 @@ def direct_surface(
     Example:
         >>> from enmi_torch import NMI
         >>> reference = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
-        >>> direct_surface(NMI(bins=64), reference[..., 2:6, 1:5], reference).score[0, 2, 1]
+        >>> direct_surface(NMI(bins=64, kernel="hard"), reference[..., 2:6, 1:5], reference).score[0, 2, 1]
         tensor(2.)
     """
     score = as_score(score)
