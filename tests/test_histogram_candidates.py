@@ -5,7 +5,7 @@ import torch
 from torch.autograd import gradcheck
 
 import enmi_torch.histogram as histogram_module
-from enmi_torch import enmi, entropies, gaussian_log_prior, joint_histogram, nmi, nmi_from_joint_histogram
+from enmi_torch.functional import enmi, entropies, gaussian_log_prior, joint_histogram, nmi, nmi_from_joint_histogram
 from enmi_torch.histogram import hard_entropies
 
 RANGE = (0.0, 16.0)

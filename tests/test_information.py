@@ -7,7 +7,8 @@ from kornia.losses import normalized_mutual_information_loss_2d
 from skimage.metrics import normalized_mutual_information
 from torch.autograd import gradcheck
 
-from enmi_torch import enmi, entropies, joint_histogram, nmi, nmi_from_joint_histogram, value_checks
+from enmi_torch.functional import enmi, entropies, joint_histogram, nmi, nmi_from_joint_histogram
+from enmi_torch.utils.checks import value_checks
 
 EDGES = np.linspace(0, 256, 33)
 

@@ -8,7 +8,8 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from enmi_torch import as_score, ecr, enmi, ncc, nmi
+from enmi_torch.functional import ecr, enmi, ncc, nmi
+from enmi_torch.scores import as_score
 
 # The same 25 examples a property on every run (CI included), no example database.
 PROPERTY = settings(

@@ -7,7 +7,7 @@ import pytest
 import torch
 from _data_tools import load_data_tool
 
-from enmi_torch import enmi, gaussian_log_prior, nmi
+from enmi_torch.functional import enmi, gaussian_log_prior, nmi
 from enmi_torch.geometry.camera import RoadCamera
 from enmi_torch.simulation import (
     PAPER_ROW_COUNTS,
