@@ -49,9 +49,9 @@ def test_hard_nmi_with_huge_bins_counts_the_pixels_instead():
     """Hard NMI reads cell counts at the pixels: sorting them needs no bins^2 table, so it is exact and cheap."""
     captured = torch.arange(256.0).reshape(1, 1, 16, 16) + 0.5
     reference = (captured / 2).floor() * 2 + 0.5  # pairs of captured values share a reference value
-    score = nmi(captured, reference, bins=100000)
+    score = nmi(captured, reference, bins=100000, kernel="hard")
     assert score.item() == pytest.approx(1 + math.log(128) / math.log(256), abs=1e-6)
-    assert nmi(CAPTURED, REFERENCE, bins=100000).shape == (1,)
+    assert nmi(CAPTURED, REFERENCE, bins=100000, kernel="hard").shape == (1,)
     with pytest.raises(ValueError, match=r"^bins must be at most 16777216 \(2\*\*24\), got 33554432"):
         nmi(CAPTURED, REFERENCE, bins=2**25)
 
@@ -67,7 +67,9 @@ def test_sorted_cell_counts_equal_the_table(monkeypatch):
     for table, sort in zip(tabled, sorted_, strict=True):
         assert torch.equal(table, sort)
     counts = joint_histogram(captured, candidates, bins=48, valid_mask=valid)
-    torch.testing.assert_close(nmi(captured, candidates, bins=48, valid_mask=valid), nmi_from_joint_histogram(counts))
+    torch.testing.assert_close(
+        nmi(captured, candidates, bins=48, valid_mask=valid, kernel="hard"), nmi_from_joint_histogram(counts)
+    )
 
 
 def test_localize_refuses_a_huge_search_window():
@@ -86,10 +88,10 @@ def test_surfaces_refuse_a_huge_window():
         with pytest.raises(MemoryBudgetError, match=r"^a 64 x 64 window with bins=32 needs about .* MiB for the FFT"):
             enmi_surface(local, window, 4.0)
         with pytest.raises(MemoryBudgetError, match="a 64 x 64 window with bins=32 needs"):
-            nmi_surface(local, window)
+            nmi_surface(local, window, kernel="hard")
     with memory_budget(100_000), pytest.raises(MemoryBudgetError, match=r"window needs .*: pass a smaller window, or"):
         ncc_surface(local, window)
-    assert nmi_surface(local, window).score.shape == (1, 57, 57)
+    assert nmi_surface(local, window, kernel="hard").score.shape == (1, 57, 57)
 
 
 def test_the_budget_can_be_raised_lowered_and_turned_off():
