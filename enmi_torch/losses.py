@@ -19,6 +19,8 @@ from enmi_torch.scores import ECR, ENMI, NMI, REDUCTIONS, Mixture, Score, as_sco
 from enmi_torch.utils.checks import check_option
 from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
+__all__ = ["ECRLoss", "ENMILoss", "MixtureLoss", "NMILoss", "ScoreLoss"]
+
 
 class ScoreLoss(nn.Module):
     """A score's loss as a module: the score, the reduction and an optional variance model stored.
