@@ -47,12 +47,14 @@ TOPICS = [
     ("Registration", ("enmi_torch.registration",)),
     ("Tracking", ("enmi_torch.tracking",)),
     ("Road camera and rectification", ("enmi_torch.geometry",)),
-    ("Histograms, bins and information", ("enmi_torch.histogram", "enmi_torch.binning", "enmi_torch.information")),
-    ("Memory budget and input checks", ("enmi_torch.utils.budget", "enmi_torch.utils.checks")),
 ]
 # Public subpackages and modules: the names each adds to the top level's.
 SUBPACKAGES = {
+    "enmi_torch.functional": "The functions behind the scores and losses: values, surfaces, histograms, bin weights.",
     "enmi_torch.scores": "Score families beyond the top level.",
+    "enmi_torch.losses": "Loss modules beyond the top level.",
+    "enmi_torch.localization": "The search beyond the top level.",
+    "enmi_torch.registration": "Registration beyond the top level.",
     "enmi_torch.variance": "Variance bases and the perspective variance.",
     "enmi_torch.tracking": "The filter's steps: belief, health, calibration.",
     "enmi_torch.placement": "The FFT machinery the score surfaces share.",

@@ -95,11 +95,19 @@ def parzen_weights(values: Tensor, bins: int, value_range: tuple[float, float], 
     check_floating("values", values)
     check_option("kernel", kernel, PARZEN_KERNELS)
     check_finite_where("values", values, None)
-    return _parzen_weights(values, check_bins(bins), check_value_range(value_range), kernel)
+    return parzen_weights_unchecked(values, check_bins(bins), check_value_range(value_range), kernel)
 
 
-def _parzen_weights(values: Tensor, bins: int, value_range: tuple[float, float], kernel: str) -> Tensor:
-    """:func:`parzen_weights` of checked arguments (the histograms' inner loop)."""
+def parzen_weights_unchecked(values: Tensor, bins: int, value_range: tuple[float, float], kernel: str) -> Tensor:
+    """:func:`parzen_weights` without its checks, for callers that checked the arguments once (the histograms).
+
+    ``values`` floating point and finite, ``bins`` and ``value_range`` as :func:`~enmi_torch.utils.checks.check_bins`
+    and :func:`~enmi_torch.utils.checks.check_value_range` return them, ``kernel`` one of :data:`PARZEN_KERNELS`.
+
+    Example:
+        >>> parzen_weights_unchecked(torch.tensor([2.0]), 4, (0.0, 8.0), "hard")
+        tensor([[0., 1., 0., 0.]])
+    """
     if kernel == "hard":
         index = hard_bin_index(values, bins, value_range)
         return torch.nn.functional.one_hot(index, bins).to(values.dtype)
@@ -155,10 +163,10 @@ def likelihood_weights(
     check_finite_where("values", values, None)
     check_positive_where("variance", variance, None)
     bins, value_range = check_bins(bins), check_value_range(value_range)
-    return _likelihood_weights(values, variance, bins, value_range, kernel, log_prior)
+    return likelihood_weights_unchecked(values, variance, bins, value_range, kernel, log_prior)
 
 
-def _likelihood_weights(
+def likelihood_weights_unchecked(
     values: Tensor,
     variance: Tensor,
     bins: int,
@@ -166,7 +174,12 @@ def _likelihood_weights(
     kernel: str = "mass",
     log_prior: Tensor | None = None,
 ) -> Tensor:
-    """:func:`likelihood_weights` of checked arguments (the histograms' inner loop)."""
+    """:func:`likelihood_weights` without its checks, for callers that checked the arguments once (the histograms).
+
+    ``values`` floating point and finite, ``variance`` > 0, ``bins`` and ``value_range`` checked, ``kernel`` one of
+    :data:`LIKELIHOOD_WEIGHTS`, ``log_prior`` broadcastable to ``(..., bins)``. Differentiable in ``values`` and
+    ``variance``.
+    """
     if kernel == "truncated":
         log_weights = _log_bin_masses(values, variance, bins, value_range)
         return torch.softmax(log_weights if log_prior is None else log_weights + log_prior, dim=-1)
@@ -209,9 +222,7 @@ def truncated_likelihood_weights(
         difference beyond), so values far outside the range and tiny variances stay finite: a value far above the range
         gives its weight to the top bin. Differentiable in ``values`` and ``variance``; variances below
         :func:`min_variance` are clamped to it, values to ``max(8 sigma, 64 sigma^2 / bin width)`` outside the range
-        (one-hot weights there and beyond, to e^-64). Largest error against 60-digit mpmath (8 bins, values out to 200
-        standard deviations beyond the range): float64 5e-15 for a standard deviation up to 10 bin widths, 5e-9 at
-        10^4; float32 3e-6 up to 10 bin widths, 4e-4 at 100 (the standardised edges themselves are rounded).
+        (one-hot weights there and beyond, to e^-64).
 
     Example:
         >>> w = truncated_likelihood_weights(torch.tensor([3.0, 1e6]), torch.tensor([1.0, 1.0]), 4, (0.0, 8.0))
@@ -312,12 +323,12 @@ def likelihood_weights_vjp(
         with torch.enable_grad():
             values = values.detach().requires_grad_()
             variance = variance.detach().requires_grad_()
-            result = _likelihood_weights(values, variance, bins, value_range, kernel, log_prior)
+            result = likelihood_weights_unchecked(values, variance, bins, value_range, kernel, log_prior)
             grad_values, grad_variance = torch.autograd.grad(result, (values, variance), upstream)
         return grad_values, torch.where(clamped, 0.0, grad_variance)
     if kernel == "mass":
         # d weight_i / d cdf_k is +1 for i = k and -1 for i = k + 1.
-        grad_values, grad_variance = _mass_weights_vjp(
+        grad_values, grad_variance = mass_weights_vjp(
             values, variance, upstream[..., :-1] - upstream[..., 1:], bins, value_range
         )
         return grad_values, torch.where(clamped, 0.0, grad_variance)
@@ -332,10 +343,13 @@ def likelihood_weights_vjp(
     return grad_values, torch.where(clamped, 0.0, grad_variance)
 
 
-def _mass_weights_vjp(
+def mass_weights_vjp(
     values: Tensor, variance: Tensor, edge_upstream: Tensor, bins: int, value_range: tuple[float, float]
 ) -> tuple[Tensor, Tensor]:
-    """(d values, d variance) of the ``"mass"`` weights given ``upstream_k - upstream_k+1`` per interior edge.
+    """Vector-Jacobian product of the ``"mass"`` weights, given ``upstream_k - upstream_k+1`` per interior edge.
+
+    The closed form behind :func:`likelihood_weights_vjp` (``"mass"``, no prior), for callers that difference the
+    upstream gradient once per histogram row instead of once per pixel; returns ``(d values, d variance)``.
 
     ``edge_upstream`` ``(..., bins - 1)`` is overwritten; ``variance`` must already be clamped to
     :func:`min_variance` (the caller zeroes the variance gradient where it was). ``d cdf_k / d v = -pdf(z_k) / std``.

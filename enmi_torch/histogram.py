@@ -14,13 +14,13 @@ from torch import Tensor
 from enmi_torch.binning import (
     LIKELIHOOD_WEIGHTS,
     PARZEN_KERNELS,
-    _likelihood_weights,
-    _mass_weights_vjp,
-    _parzen_weights,
     bin_edges,
     hard_bin_index,
+    likelihood_weights_unchecked,
     likelihood_weights_vjp,
+    mass_weights_vjp,
     min_variance,
+    parzen_weights_unchecked,
 )
 from enmi_torch.utils.budget import check_histogram_memory
 from enmi_torch.utils.checks import (
@@ -40,8 +40,7 @@ from enmi_torch.utils.layout import flatten_image, mask_map, scalar_or_map, vari
 CAPTURED_KERNELS = PARZEN_KERNELS + LIKELIHOOD_WEIGHTS
 
 # Pixels per chunk are chosen so one chunk's (B, n, bins) weights stay near this many elements: on CPU 1 MiB in
-# float32, which keeps a chunk's temporaries in cache (data_tools/benchmarks/bench_enmi_loss.py --chunk_elements
-# compares sizes); on accelerators larger chunks amortise the kernel launches.
+# float32, which keeps a chunk's temporaries in cache; on accelerators larger chunks amortise the kernel launches.
 _CHUNK_ELEMENTS = 1 << 18
 _ACCELERATOR_CHUNK_ELEMENTS = 1 << 20
 # Hard entropies count pixels in a table of every cell up to this many cells (or 16 per pixel), else by sorting.
@@ -99,7 +98,7 @@ def joint_histogram(
     Raises:
         MemoryBudgetError: before allocating, when the ``(C, B, bins, bins)`` counts (and the dense bin weights of
             the Parzen kernels) would exceed the memory budget, 4 GiB unless raised with
-            :func:`~enmi_torch.set_memory_budget` or :func:`~enmi_torch.memory_budget`.
+            :func:`~enmi_torch.utils.budget.set_memory_budget` or :func:`~enmi_torch.utils.budget.memory_budget`.
 
     Convention:
         Gradients flow to ``captured`` and ``variance`` for the differentiable kernels and to
@@ -120,13 +119,15 @@ def joint_histogram(
         if variance is not None:
             raise TypeError("joint_histogram takes variance or its former name captured_variance, got both")
         variance = captured_variance
-    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, kernel, reference_kernel, log_prior)
+    inputs = prepare_inputs(
+        captured, reference, bins, value_range, variance, valid_mask, kernel, reference_kernel, log_prior
+    )
     if pixel_weight is not None:
         inputs = with_pixel_weight(inputs, pixel_weight, captured)
-    return _joint_histogram(inputs)
+    return joint_histogram_of_inputs(inputs)
 
 
-def with_pixel_weight(inputs: _Inputs, pixel_weight: Tensor | float, captured: Tensor) -> _Inputs:
+def with_pixel_weight(inputs: HistogramInputs, pixel_weight: Tensor | float, captured: Tensor) -> HistogramInputs:
     """``inputs`` whose valid pixels count with ``pixel_weight`` (checked finite and >= 0 there)."""
     weight = scalar_or_map("pixel_weight", pixel_weight, captured).detach().to(inputs.captured.dtype)
     weight = weight.expand_as(inputs.captured)
@@ -139,10 +140,12 @@ def with_pixel_weight(inputs: _Inputs, pixel_weight: Tensor | float, captured: T
     return inputs._replace(pair_weight=weight, weighted=True)
 
 
-def _joint_histogram(inputs: _Inputs, *, scored: bool = False) -> Tensor:
-    """The counts of checked inputs, after checking that they fit the memory budget.
+def joint_histogram_of_inputs(inputs: HistogramInputs, *, scored: bool = False) -> Tensor:
+    """The joint histogram of inputs checked by :func:`prepare_inputs`, after checking that it fits the memory budget.
 
-    ``scored``: the caller turns the counts into entropies, which holds three more tensors of their size.
+    What :func:`joint_histogram` returns, for the scores that check their arguments once and then count
+    (:func:`~enmi_torch.scores.nmi.nmi`, :func:`~enmi_torch.scores.enmi.enmi`). ``scored``: the caller turns the
+    counts into entropies, which holds three more tensors of their size (counted against the budget).
     """
     reference_kernel = inputs.reference_kernel
     candidates, batch, pixels = inputs.reference.shape
@@ -196,7 +199,7 @@ def hard_entropies(
     the mean surprisal of the pixels, ``H = sum_pixels log(n / c(pixel)) / n`` with ``c(pixel)`` the count of the
     pixel's cell and ``n`` the number of valid pixels: ``O(pixels)`` logarithms per sample instead of ``O(bins^2)``.
     That pays for small images and many samples (fewer pixels than ``bins^2 / 4``, e.g. the paper's 66 road tiles
-    and 32 bins), where :func:`~enmi_torch.nmi` uses it.
+    and 32 bins), where :func:`~enmi_torch.functional.nmi` uses it.
 
     Args:
         captured: ``(B, 1, H, W)`` or ``(B, H, W)`` (flat samples: ``(B, 1, N)``), floating point.
@@ -213,19 +216,27 @@ def hard_entropies(
         >>> [round(h.item(), 4) for h in hard_entropies(captured, captured.flip(-1), bins=2, value_range=(0, 4))]
         [0.6931, 0.6931, 0.6931]
     """
-    inputs = _prepare(captured, reference, bins, value_range, None, valid_mask, "hard", "hard", None)
+    inputs = prepare_inputs(captured, reference, bins, value_range, None, valid_mask, "hard", "hard", None)
     captured_bins = hard_bin_index(inputs.captured, inputs.bins, inputs.value_range)
     reference_bins = hard_bin_index(inputs.reference, inputs.bins, inputs.value_range)
     weight = inputs.captured.new_ones(inputs.captured.shape) if inputs.pair_weight is None else inputs.pair_weight
-    captured_entropy = _mean_surprisal(captured_bins, inputs.bins, weight).expand(inputs.reference.shape[:-1])
-    reference_entropy = _mean_surprisal(reference_bins, inputs.bins, weight)
-    joint_entropy = _mean_surprisal(captured_bins * inputs.bins + reference_bins, inputs.bins**2, weight)
+    captured_entropy = mean_surprisal(captured_bins, inputs.bins, weight).expand(inputs.reference.shape[:-1])
+    reference_entropy = mean_surprisal(reference_bins, inputs.bins, weight)
+    joint_entropy = mean_surprisal(captured_bins * inputs.bins + reference_bins, inputs.bins**2, weight)
     entropies = (captured_entropy, reference_entropy, joint_entropy)
     return tuple((entropy if inputs.with_candidates else entropy[0]).to(inputs.out_dtype) for entropy in entropies)
 
 
-def _mean_surprisal(cells: Tensor, cell_count: int, weight: Tensor) -> Tensor:
-    """Entropy of the cells ``(..., N)`` (in ``[0, cell_count)``) of each sample, pixels weighted by ``weight``."""
+def mean_surprisal(cells: Tensor, cell_count: int, weight: Tensor) -> Tensor:
+    """Entropy in nats of the cells ``(..., N)`` (in ``[0, cell_count)``) of each sample, pixels weighted by ``weight``.
+
+    The mean surprisal ``sum_pixels weight log(total / c(pixel)) / total``, ``c(pixel)`` the summed weight of the
+    pixel's cell: the entropy of the hard histogram read at the pixels (:func:`hard_entropies`), ``(...,)``.
+
+    Example:
+        >>> round(mean_surprisal(torch.tensor([[0, 0, 1, 1]]), 2, torch.ones(1, 4)).item(), 4)
+        0.6931
+    """
     weight = weight.expand(cells.shape)
     total = weight.sum(dim=-1, keepdim=True)
     # log n - log c: exactly 0 when c = n. Masked pixels weigh 0; the clamp keeps their log finite in empty cells.
@@ -255,8 +266,13 @@ def _cell_weights(cells: Tensor, cell_count: int, weight: Tensor) -> Tensor:
     return torch.empty_like(weight).scatter_(-1, order, run_weights[runs].view(cells.shape))
 
 
-class _Inputs(NamedTuple):
-    """Checked inputs in the compute dtype: ``captured`` ``(B, N)``, ``reference`` ``(C, B, N)``."""
+class HistogramInputs(NamedTuple):
+    """Inputs checked by :func:`prepare_inputs`, in the compute dtype.
+
+    ``captured`` is ``(B, N)``, ``reference`` ``(C, B, N)``; ``valid`` the mask ``(B or 1, N)`` or ``None``;
+    ``pair_weight`` each pixel's weight (the mask as 0/1, or real weights when ``weighted``); ``with_candidates``
+    whether the caller gave ``C`` candidate references; ``out_dtype`` the dtype the result is returned in.
+    """
 
     captured: Tensor
     reference: Tensor
@@ -274,7 +290,7 @@ class _Inputs(NamedTuple):
     weighted: bool = False
 
 
-def _prepare(
+def prepare_inputs(
     captured,
     reference,
     bins,
@@ -287,8 +303,11 @@ def _prepare(
     variance_name="captured_variance",
     captured_binned=True,
     reference_binned=True,
-) -> _Inputs:
+) -> HistogramInputs:
     """Check the arguments of :func:`joint_histogram` and bring them to the flat layout and compute dtype.
+
+    The scores built on histograms (NMI, ENMI, ECR, NCC, the mixture score) check their arguments here once, with the
+    same messages; returns :class:`HistogramInputs` for :func:`joint_histogram_of_inputs`.
 
     ``variance_name`` is the name the caller's users give ``captured_variance`` (``"variance"`` for ENMI);
     ``captured_binned``: the captured values are binned (not for ECR), so they must not all fall in one bin;
@@ -348,7 +367,7 @@ def _prepare(
     if log_prior is not None:
         log_prior = check_log_prior(log_prior, bins, batch).to(captured_flat.device, compute_dtype)
 
-    return _Inputs(
+    return HistogramInputs(
         captured_flat,
         reference_flat,
         valid,
@@ -384,9 +403,9 @@ def _chunks(batch: int, pixels: int, bins: int, device: torch.device):
 def _pixel_weights(captured, variance, pair_weight, log_prior, bins, value_range, kernel) -> Tensor:
     """``(B, n, bins)`` weights of the captured pixels, zero rows where masked."""
     if kernel in LIKELIHOOD_WEIGHTS:
-        weights = _likelihood_weights(captured, variance, bins, value_range, kernel, log_prior)
+        weights = likelihood_weights_unchecked(captured, variance, bins, value_range, kernel, log_prior)
     else:
-        weights = _parzen_weights(captured, bins, value_range, kernel)
+        weights = parzen_weights_unchecked(captured, bins, value_range, kernel)
     return weights if pair_weight is None else weights * pair_weight.unsqueeze(-1)
 
 
@@ -405,7 +424,7 @@ def _dense_joint_histogram(
         source = captured_weights.expand(*reference.shape, bins).reshape(-1, bins)
         transposed = captured_weights.new_zeros(reference.shape[:-1].numel() * bins, bins).index_add(0, rows, source)
         return transposed.view(*reference.shape[:-1], bins, bins).transpose(-1, -2)
-    reference_weights = _parzen_weights(reference, bins, value_range, reference_kernel)
+    reference_weights = parzen_weights_unchecked(reference, bins, value_range, reference_kernel)
     return torch.matmul(captured_weights.transpose(-1, -2), reference_weights)
 
 
@@ -440,7 +459,7 @@ def _twice_mass_weights(values: Tensor, variance: Tensor, bins: int, value_range
     return weights
 
 
-def _likelihood_counts(
+def likelihood_counts(
     captured: Tensor,
     variance: Tensor,
     rows: Tensor,
@@ -451,7 +470,7 @@ def _likelihood_counts(
     *,
     normalized_later: bool = False,
 ) -> Tensor:
-    """The transposed likelihood-weighted histogram ``(C * B * bins + 1, bins)`` of checked inputs, no autograd.
+    """The transposed likelihood-weighted histogram ``(C * B * bins + 1, bins)`` of checked inputs, without autograd.
 
     The forward pass of :class:`_LikelihoodJointHistogram` (see there for ``rows``), for callers that check their
     inputs once and score many batches (the paper's simulation). ``normalized_later``: the caller only uses the
@@ -464,7 +483,9 @@ def _likelihood_counts(
         if kernel == "mass" and log_prior is None:
             weights = _twice_mass_weights(captured[:, part], variance[:, part], bins, value_range)
         else:
-            weights = _likelihood_weights(captured[:, part], variance[:, part], bins, value_range, kernel, log_prior)
+            weights = likelihood_weights_unchecked(
+                captured[:, part], variance[:, part], bins, value_range, kernel, log_prior
+            )
         weights = weights.reshape(-1, bins)
         for candidate_rows in rows:
             transposed.index_add_(0, candidate_rows[:, part].reshape(-1), weights)
@@ -486,7 +507,7 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, captured, variance, rows, log_prior, bins, value_range, kernel):
-        transposed = _likelihood_counts(captured, variance, rows, log_prior, bins, value_range, kernel)
+        transposed = likelihood_counts(captured, variance, rows, log_prior, bins, value_range, kernel)
         ctx.save_for_backward(captured, variance, rows, log_prior)
         ctx.options = (bins, value_range, kernel)
         return transposed
@@ -515,7 +536,7 @@ class _LikelihoodJointHistogram(torch.autograd.Function):
             upstream = upstream.view(batch, -1, table.shape[-1])
             if mass:
                 part_variance = variance[:, part]
-                grad_captured[:, part], part_grad = _mass_weights_vjp(
+                grad_captured[:, part], part_grad = mass_weights_vjp(
                     captured[:, part], part_variance.clamp_min(floor), upstream, bins, value_range
                 )
                 grad_variance[:, part] = part_grad.masked_fill_(part_variance < floor, 0.0)

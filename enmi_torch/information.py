@@ -57,13 +57,21 @@ def nmi_from_joint_histogram(counts: Tensor) -> Tensor:
     if counts.ndim < 3 or counts.shape[-1] != counts.shape[-2]:
         raise ValueError(f"counts must have shape (B, K, K) or (..., B, K, K), got {tuple(counts.shape)}")
     check_counts("counts", counts)
-    return _nmi_from_entropies(*entropies(counts))
+    return nmi_from_entropies(*entropies(counts))
 
 
-def _nmi_from_entropies(
+def nmi_from_entropies(
     captured_entropy: Tensor, reference_entropy: Tensor, joint_entropy: Tensor, informative: Tensor | None = None
 ) -> Tensor:
-    """``(H[A] + H[B]) / H[A, B]`` where ``informative`` (default: ``H[A, B] > eps``), 1 elsewhere."""
+    """Studholme NMI ``(H[A] + H[B]) / H[A, B]`` from the three entropies, where ``informative``, and 1 elsewhere.
+
+    For scores that compute the entropies themselves (hard entropies at the pixels, FFT surfaces);
+    ``informative`` defaults to ``H[A, B] > eps`` (a zero joint entropy scores 1, as for independent images).
+
+    Example:
+        >>> nmi_from_entropies(torch.tensor([0.6931]), torch.tensor([0.6931]), torch.tensor([0.6931]))
+        tensor([2.])
+    """
     if informative is None:
         informative = joint_entropy > torch.finfo(joint_entropy.dtype).eps
     safe_joint = torch.where(informative, joint_entropy, torch.ones_like(joint_entropy))

@@ -2,9 +2,11 @@
 
 :class:`ScoreLoss` takes any score (``2 - NMI``, ``2 - ENMI``, ``1 - NCC``: 0 when aligned; ``-ECR``, ``-M``: lower
 as the reference explains more); :class:`ECRLoss`, :class:`ENMILoss`, :class:`NMILoss` and :class:`MixtureLoss` build
-their family's score from keyword options (or take one). The functional losses (``ecr_loss``, ``enmi_loss``, ...)
-live with their families in :mod:`enmi_torch.scores`. The losses default to a differentiable captured kernel
-(``"triangular"`` for NMI); :func:`~enmi_torch.nmi`, a measurement, defaults to hard bins (scikit-image's NMI).
+their family's score from keyword options (or take one). The score owns its options and their defaults: for any
+options, ``NMILoss(**options)(c, r)``, ``ScoreLoss(NMI(**options))(c, r)``, ``NMI(**options).loss(c, r)`` and the
+functional ``nmi_loss(c, r, **options)`` (:mod:`enmi_torch.functional`) are one computation, with one value and one
+gradient. A score that carries no gradient (``NMI(kernel="hard")``, see
+:attr:`~enmi_torch.scores.Score.is_differentiable`) is refused with a ``ValueError`` naming the option to change.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from enmi_torch.scores import ECR, ENMI, NMI, REDUCTIONS, Mixture, Score, as_sco
 from enmi_torch.utils.checks import check_option
 from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
+__all__ = ["ECRLoss", "ENMILoss", "MixtureLoss", "NMILoss", "ScoreLoss"]
+
 
 class ScoreLoss(nn.Module):
     """A score's loss as a module: the score, the reduction and an optional variance model stored.
@@ -28,9 +32,12 @@ class ScoreLoss(nn.Module):
     Tensor options of the score (ENMI's ``log_prior``) are non-persistent buffers: they follow ``.to()``.
 
     Args:
-        score: a :class:`~enmi_torch.scores.Score` or its name.
+        score: a :class:`~enmi_torch.scores.Score` or its name; one that carries a gradient.
         variance_model: optional :class:`~enmi_torch.variance.VarianceModel`, for scores that use a variance.
         reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
+
+    Raises:
+        ValueError: for a score without gradient (``NMI(kernel="hard")``), naming the option to change.
 
     Example:
         >>> from enmi_torch import ENMI
@@ -45,6 +52,7 @@ class ScoreLoss(nn.Module):
     ) -> None:
         super().__init__()
         self.score = as_score(score)
+        self.score.check_differentiable()
         self.reduction = check_option("reduction", reduction, REDUCTIONS)
         self.variance_model = check_variance_model(variance_model)
         if variance_model is not None and not self.score.uses_variance:
@@ -94,7 +102,6 @@ class _FamilyLoss(ScoreLoss):
     """A :class:`ScoreLoss` of one family, built from the family's options or given its score."""
 
     family: ClassVar[type[Score]]
-    defaults: ClassVar[dict[str, Any]] = {}
 
     def __init__(
         self,
@@ -106,7 +113,7 @@ class _FamilyLoss(ScoreLoss):
     ) -> None:
         name = type(self).__name__
         if score is None:
-            score = self.family(**{**self.defaults, **options})
+            score = self.family(**options)
         elif options:
             raise TypeError(f"{name} takes a score or its options, not both; got {score!r} and {sorted(options)}")
         elif not isinstance(score, self.family):
@@ -121,17 +128,16 @@ class NMILoss(_FamilyLoss):
         score: an :class:`~enmi_torch.NMI`, or ``None`` to build one from ``options``.
         variance_model: not used by NMI (``None``).
         reduction: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``.
-        **options: :class:`~enmi_torch.NMI`'s options; the ``kernel`` defaults to ``"triangular"`` (a gradient;
-            ``"hard"`` for evaluation only).
+        **options: :class:`~enmi_torch.NMI`'s options, with its defaults (``kernel="triangular"``: a gradient;
+            ``kernel="hard"``, without one, is refused).
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
-        >>> NMILoss(bins=4, kernel="hard")(image, image)
-        tensor(0.)
+        >>> NMILoss(bins=4)(image, image), NMILoss(bins=4)(image, image.mT)
+        (tensor(0.5727), tensor(0.9927))
     """
 
     family = NMI
-    defaults: ClassVar[dict[str, Any]] = {"kernel": "triangular"}
 
 
 class ENMILoss(_FamilyLoss):

@@ -7,7 +7,7 @@ score makes an error when ``score(V, u) >= score(V, a)``; the error rate is esti
 
 Convention:
     Trials are ``(T, K)`` tensors, one row per trial, so the scores run batched over trials with the library's
-    own :func:`~enmi_torch.nmi` and :func:`~enmi_torch.enmi`, the truth and the candidate
+    own :func:`~enmi_torch.functional.nmi` and :func:`~enmi_torch.functional.enmi`, the truth and the candidate
     scored as two references of one call (``(2, T, K)``: the captured weights are computed once).
     :func:`error_rates` checks its trials once and runs the steps of those functions after their checks, with the
     same scores bit for bit as :func:`count_errors`. Every noise
@@ -28,8 +28,8 @@ from torch import Tensor
 
 from enmi_torch.binning import gaussian_log_prior, hard_bin_index
 from enmi_torch.geometry.camera import RoadCamera, projected_area
-from enmi_torch.histogram import _likelihood_counts, _mean_surprisal
-from enmi_torch.information import _nmi_from_entropies, entropies
+from enmi_torch.histogram import likelihood_counts, mean_surprisal
+from enmi_torch.information import entropies, nmi_from_entropies
 from enmi_torch.scores.enmi import enmi
 from enmi_torch.scores.nmi import nmi
 from enmi_torch.utils.checks import (
@@ -210,7 +210,7 @@ def count_errors(
     # The trials as flat samples (T, 1, K): one row of K tiles each.
     captured, references = captured[:, None], torch.stack([amplitudes, candidates])[:, :, None]
     if score == "nmi":
-        values = nmi(captured, references, bins=bins, value_range=value_range)
+        values = nmi(captured, references, bins=bins, value_range=value_range, kernel="hard")
     else:
         kernel = "density" if score == "enmi_density" else "mass"
         variance = variance.reshape(1, 1, -1)
@@ -223,7 +223,7 @@ def count_errors(
 class _TrustedScorer:
     """:func:`count_errors` for trials that :func:`error_rates` drew and checked: the same scores, bit for bit.
 
-    It calls the steps :func:`~enmi_torch.nmi` and :func:`~enmi_torch.enmi` take after
+    It calls the steps :func:`~enmi_torch.functional.nmi` and :func:`~enmi_torch.functional.enmi` take after
     their checks, and computes once what does not depend on the noise power: the references' bins and hard
     entropies. A test checks every decision against :func:`count_errors`.
     """
@@ -234,7 +234,7 @@ class _TrustedScorer:
         references = torch.stack([trials.amplitudes, trials.candidates])
         self.reference_bins = hard_bin_index(references, bins, value_range)
         self.ones = references.new_ones(references.shape[1:])
-        self.reference_entropy = _mean_surprisal(self.reference_bins, bins, self.ones)
+        self.reference_entropy = mean_surprisal(self.reference_bins, bins, self.ones)
 
     def errors(self, captured: Tensor, part: slice, variance: Tensor, score: str) -> Tensor:
         """Which trials of ``part`` ``score`` gets wrong, ``(T,)`` bool, for their captured values ``(T, K)``."""
@@ -247,12 +247,12 @@ class _TrustedScorer:
         if score == "nmi":
             weight = self.ones[part]
             captured_bins = hard_bin_index(captured, self.bins, self.value_range)
-            captured_entropy = _mean_surprisal(captured_bins, self.bins, weight).expand(reference_bins.shape[:-1])
-            joint_entropy = _mean_surprisal(captured_bins * self.bins + reference_bins, self.bins**2, weight)
-            return _nmi_from_entropies(captured_entropy, self.reference_entropy[:, part], joint_entropy)
+            captured_entropy = mean_surprisal(captured_bins, self.bins, weight).expand(reference_bins.shape[:-1])
+            joint_entropy = mean_surprisal(captured_bins * self.bins + reference_bins, self.bins**2, weight)
+            return nmi_from_entropies(captured_entropy, self.reference_entropy[:, part], joint_entropy)
         batch = captured.shape[0]
         offsets = torch.arange(2 * batch, device=captured.device).view(2, batch, 1) * self.bins
-        transposed = _likelihood_counts(
+        transposed = likelihood_counts(
             captured,
             variance.reshape(1, -1).expand(captured.shape),
             reference_bins + offsets,
@@ -263,7 +263,7 @@ class _TrustedScorer:
             normalized_later=True,
         )
         counts = transposed[:-1].view(2, batch, self.bins, self.bins).transpose(-1, -2)
-        return _nmi_from_entropies(*entropies(counts))
+        return nmi_from_entropies(*entropies(counts))
 
 
 @dataclass

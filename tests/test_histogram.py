@@ -6,8 +6,8 @@ from torch.autograd import gradcheck
 
 import enmi_torch.binning as binning_module
 import enmi_torch.histogram as histogram_module
-from enmi_torch import enmi, gaussian_log_prior, joint_histogram
 from enmi_torch.binning import bin_edges
+from enmi_torch.functional import enmi, gaussian_log_prior, joint_histogram
 
 RANGE = (0.0, 16.0)
 BINS = 8

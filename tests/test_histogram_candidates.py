@@ -7,7 +7,7 @@ import torch
 from torch.autograd import gradcheck
 
 import enmi_torch.histogram as histogram_module
-from enmi_torch import enmi, entropies, gaussian_log_prior, joint_histogram, nmi, nmi_from_joint_histogram
+from enmi_torch.functional import enmi, entropies, gaussian_log_prior, joint_histogram, nmi, nmi_from_joint_histogram
 from enmi_torch.histogram import hard_entropies
 
 RANGE = (0.0, 16.0)
@@ -104,11 +104,11 @@ def test_gradcheck_enmi_with_candidates(images):
 
 def test_nmi_and_enmi_with_candidates_return_one_score_per_candidate(images):
     captured, candidates, variance, _ = images
-    hard = nmi(captured, candidates, bins=BINS, value_range=RANGE)
+    hard = nmi(captured, candidates, bins=BINS, value_range=RANGE, kernel="hard")
     soft = enmi(captured, candidates, variance, bins=BINS, value_range=RANGE)
     assert hard.shape == soft.shape == (4, 3)
     for index, candidate in enumerate(candidates):
-        torch.testing.assert_close(hard[index], nmi(captured, candidate, bins=BINS, value_range=RANGE))
+        torch.testing.assert_close(hard[index], nmi(captured, candidate, bins=BINS, value_range=RANGE, kernel="hard"))
         torch.testing.assert_close(soft[index], enmi(captured, candidate, variance, bins=BINS, value_range=RANGE))
     # The first candidate is the captured image plus small noise: it scores best.
     assert bool((hard.argmax(0) == 0).all()) and bool((soft.argmax(0) == 0).all())
@@ -137,7 +137,7 @@ def test_hard_entropies_equal_the_entropies_of_the_hard_histogram(images, masked
         torch.testing.assert_close(got.double(), want, rtol=0, atol=atol)
     assert float(actual[2][..., 2].abs().max()) == 0.0  # one cell: exactly zero joint entropy
     torch.testing.assert_close(
-        nmi(captured, reference, bins=BINS, value_range=RANGE, valid_mask=mask).double(),
+        nmi(captured, reference, bins=BINS, value_range=RANGE, valid_mask=mask, kernel="hard").double(),
         nmi_from_joint_histogram(counts.double()),
         rtol=0,
         atol=atol,
@@ -190,7 +190,7 @@ def test_nmi_reads_hard_entropies_at_the_pixels_only_for_small_images(images, bi
         return hard_entropies(*args, **kwargs)
 
     monkeypatch.setattr(information_module, "hard_entropies", spy)
-    score = nmi(captured, candidates, bins=bins, value_range=RANGE, valid_mask=valid)
+    score = nmi(captured, candidates, bins=bins, value_range=RANGE, valid_mask=valid, kernel="hard")
     assert bool(calls) == pixel_wise  # 35 pixels: fewer than 32^2 / 4, more than 8^2 / 4
     counts = joint_histogram(captured, candidates, bins=bins, value_range=RANGE, valid_mask=valid)
     torch.testing.assert_close(score, nmi_from_joint_histogram(counts), rtol=0, atol=1e-12)

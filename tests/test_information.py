@@ -7,7 +7,8 @@ from kornia.losses import normalized_mutual_information_loss_2d
 from skimage.metrics import normalized_mutual_information
 from torch.autograd import gradcheck
 
-from enmi_torch import enmi, entropies, joint_histogram, nmi, nmi_from_joint_histogram, value_checks
+from enmi_torch.functional import enmi, entropies, joint_histogram, nmi, nmi_from_joint_histogram
+from enmi_torch.utils.checks import value_checks
 
 EDGES = np.linspace(0, 256, 33)
 
@@ -25,7 +26,7 @@ def _shifted_pair(image: np.ndarray, shift: int, size: int = 128):
 def test_hard_nmi_equals_scikit_image_on_random_images(dtype, generator):
     reference = torch.rand(4, 1, 40, 50, generator=generator, dtype=torch.float64) * 256
     captured = (reference + 30 * torch.randn(4, 1, 40, 50, generator=generator, dtype=torch.float64)).clamp(0, 255.5)
-    scores = nmi(captured.to(dtype), reference.to(dtype))
+    scores = nmi(captured.to(dtype), reference.to(dtype), kernel="hard")
     expected = [_skimage_nmi(captured[index, 0].to(dtype), reference[index, 0].to(dtype)) for index in range(4)]
     np.testing.assert_allclose(scores.double().numpy(), expected, rtol=0, atol=1e-6)
 
@@ -33,15 +34,15 @@ def test_hard_nmi_equals_scikit_image_on_random_images(dtype, generator):
 def test_hard_nmi_equals_scikit_image_on_a_real_image(camera_image, dtype):
     for shift in (0, 1, 5):
         captured, reference = _shifted_pair(camera_image, shift)
-        score = nmi(captured.to(dtype), reference.to(dtype)).item()
+        score = nmi(captured.to(dtype), reference.to(dtype), kernel="hard").item()
         assert score == pytest.approx(_skimage_nmi(captured[0, 0], reference[0, 0]), abs=1e-6)
 
 
 def test_identical_images_score_two_and_independent_ones_near_one(generator, dtype):
     image = (torch.rand(2, 1, 256, 256, generator=generator) * 256).to(dtype)
     other = (torch.rand(2, 1, 256, 256, generator=generator) * 256).to(dtype)
-    torch.testing.assert_close(nmi(image, image), torch.full((2,), 2.0, dtype=dtype))
-    independent = nmi(image, other)
+    torch.testing.assert_close(nmi(image, image, kernel="hard"), torch.full((2,), 2.0, dtype=dtype))
+    independent = nmi(image, other, kernel="hard")
     # The plug-in estimate's bias for 1024 joint bins and 65536 pixels is about 1e-3.
     assert ((independent > 1.0) & (independent < 1.005)).all()
     assert (enmi(image, other, 25.0) < 1.005).all()
@@ -50,14 +51,14 @@ def test_identical_images_score_two_and_independent_ones_near_one(generator, dty
 def test_constant_images_score_one():
     constant = torch.full((1, 1, 8, 8), 100.0)
     ramp = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
-    torch.testing.assert_close(nmi(constant, constant), torch.ones(1))
-    torch.testing.assert_close(nmi(constant, ramp), torch.ones(1))
+    torch.testing.assert_close(nmi(constant, constant, kernel="hard"), torch.ones(1))
+    torch.testing.assert_close(nmi(constant, ramp, kernel="hard"), torch.ones(1))
 
 
 def test_enmi_tends_to_hard_nmi_as_the_variance_vanishes(generator, dtype):
     reference = torch.rand(3, 1, 32, 32, generator=generator, dtype=torch.float64) * 256
     captured = reference + 20 * torch.randn(3, 1, 32, 32, generator=generator, dtype=torch.float64)
-    hard = nmi(captured.to(dtype), reference.to(dtype))
+    hard = nmi(captured.to(dtype), reference.to(dtype), kernel="hard")
     previous = None
     for variance in (1e-1, 1e-3, 1e-6, 1e-10):
         gap = (enmi(captured.to(dtype), reference.to(dtype), variance, kernel="mass") - hard).abs().max()
@@ -74,7 +75,7 @@ def test_score_falls_monotonically_as_the_shift_grows(camera_image, score, gener
     for shift in range(7):
         captured, reference = _shifted_pair(camera_image, shift)
         captured = captured + noise
-        value = nmi(captured, reference) if score == "nmi" else enmi(captured, reference, 225.0)
+        value = nmi(captured, reference, kernel="hard") if score == "nmi" else enmi(captured, reference, 225.0)
         scores.append(value.item())
     assert all(later < earlier for earlier, later in itertools.pairwise(scores)), scores
 
@@ -83,8 +84,12 @@ def test_bijective_relabelling_of_bins_leaves_hard_nmi_unchanged(camera_image, g
     captured, reference = _shifted_pair(camera_image, 2)
     permutation = torch.randperm(32, generator=generator)
     relabelled = (permutation[(reference // 8).long()] * 8 + 4).double()
-    torch.testing.assert_close(nmi(captured, relabelled), nmi(captured, reference), rtol=0, atol=1e-12)
-    torch.testing.assert_close(nmi(relabelled, captured), nmi(reference, captured), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        nmi(captured, relabelled, kernel="hard"), nmi(captured, reference, kernel="hard"), rtol=0, atol=1e-12
+    )
+    torch.testing.assert_close(
+        nmi(relabelled, captured, kernel="hard"), nmi(reference, captured, kernel="hard"), rtol=0, atol=1e-12
+    )
 
 
 def test_batch_equals_loop(generator):
@@ -104,7 +109,7 @@ def test_masked_equals_cropped(generator, score):
     valid[0, :, 3:15, 5:20] = True
     valid[1, :, 0:10, 0:10] = True
     masked = (
-        nmi(captured, reference, valid_mask=valid)
+        nmi(captured, reference, valid_mask=valid, kernel="hard")
         if score == "nmi"
         else enmi(captured, reference, 40.0, valid_mask=valid)
     )
@@ -112,7 +117,9 @@ def test_masked_equals_cropped(generator, score):
     for sample, rows, columns in crops:
         part = (slice(sample, sample + 1), slice(None), rows, columns)
         cropped = (
-            nmi(captured[part], reference[part]) if score == "nmi" else enmi(captured[part], reference[part], 40.0)
+            nmi(captured[part], reference[part], kernel="hard")
+            if score == "nmi"
+            else enmi(captured[part], reference[part], 40.0)
         )
         torch.testing.assert_close(masked[sample : sample + 1], cropped, rtol=1e-12, atol=1e-12)
 
@@ -256,7 +263,7 @@ def test_nmi_rejects_likelihood_kernels_and_unknown_kernels():
 
 def test_value_checks_can_be_enabled_for_accelerators():
     with value_checks(True), pytest.raises(ValueError, match="captured must be finite"):
-        nmi(IMAGE.masked_fill(IMAGE > 100, float("nan")), IMAGE)
+        nmi(IMAGE.masked_fill(IMAGE > 100, float("nan")), IMAGE, kernel="hard")
 
 
 @pytest.mark.slow
@@ -347,7 +354,7 @@ def test_truncated_weights_keep_the_tails_out_of_the_edge_bins_and_tend_to_nmi(d
     # Variance to 0: a unit count in the pixel's bin, the hard NMI (values kept away from bin edges).
     centred = (captured // 16) * 16 + 8
     tiny = enmi(centred, reference, 1e-6, bins=16, kernel="truncated")
-    torch.testing.assert_close(tiny, nmi(centred, reference, bins=16), **tolerance)
+    torch.testing.assert_close(tiny, nmi(centred, reference, bins=16, kernel="hard"), **tolerance)
     # Far from the range's ends the truncated and the folded masses agree; near them they do not.
     inner = enmi(centred.clamp(40, 200), reference, 4.0, bins=16, kernel="truncated")
     torch.testing.assert_close(inner, enmi(centred.clamp(40, 200), reference, 4.0, bins=16), **tolerance)

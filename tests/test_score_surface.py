@@ -131,13 +131,17 @@ def test_surface_entries_equal_the_public_scores_at_each_placement():
     fast_enmi = enmi_surface(
         local, window, variance, bins=16, captured_mask=captured_mask, reference_mask=reference_mask
     )
-    fast_nmi = nmi_surface(local, window, bins=16, captured_mask=captured_mask, reference_mask=reference_mask)
+    fast_nmi = nmi_surface(
+        local, window, bins=16, captured_mask=captured_mask, reference_mask=reference_mask, kernel="hard"
+    )
     for row, col in [(0, 8), (4, 6), (7, 8), (3, 4)]:
         section = window[..., row : row + 9, col : col + 7]
         valid = captured_mask & reference_mask[..., row : row + 9, col : col + 7]
         expected = enmi(local, section, variance, bins=16, valid_mask=valid)
         torch.testing.assert_close(fast_enmi.score[:, row, col], expected, rtol=0, atol=1e-9)
-        torch.testing.assert_close(fast_nmi.score[:, row, col], nmi(local, section, bins=16, valid_mask=valid))
+        torch.testing.assert_close(
+            fast_nmi.score[:, row, col], nmi(local, section, bins=16, valid_mask=valid, kernel="hard")
+        )
 
 
 def test_ncc_entries_equal_numpy_corrcoef():
@@ -193,7 +197,7 @@ def test_enmi_surface_tends_to_the_nmi_surface_as_the_variance_vanishes():
     local = local.floor() + 0.5
     masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
     sharp = enmi_surface(local, window, 1e-8, bins=16, **masks)
-    hard = nmi_surface(local, window, bins=16, **masks)
+    hard = nmi_surface(local, window, bins=16, kernel="hard", **masks)
     torch.testing.assert_close(sharp.score, hard.score, rtol=0, atol=1e-9)
 
 
@@ -203,7 +207,7 @@ def test_placement_without_overlap_scores_as_independent_images():
     reference_mask[..., :, :7] = False
     for surface, empty_score in [
         (enmi_surface(local, window, variance, bins=8, reference_mask=reference_mask), 1.0),
-        (nmi_surface(local, window, bins=8, reference_mask=reference_mask), 1.0),
+        (nmi_surface(local, window, bins=8, reference_mask=reference_mask, kernel="hard"), 1.0),
         (ncc_surface(local, window, reference_mask=reference_mask), 0.0),
     ]:
         assert surface.overlap[0, :, 0].eq(0).all()
@@ -213,7 +217,11 @@ def test_placement_without_overlap_scores_as_independent_images():
 
 def test_peak_is_at_the_cut_position():
     local, window, variance, _, _ = _case(torch.float32, batch=1, local_shape=(20, 20), window_shape=(40, 40))
-    for surface in [enmi_surface(local, window, variance), nmi_surface(local, window), ncc_surface(local, window)]:
+    for surface in [
+        enmi_surface(local, window, variance),
+        nmi_surface(local, window, kernel="hard"),
+        ncc_surface(local, window),
+    ]:
         assert divmod(int(surface.score[0].flatten().argmax()), 21) == (3, 4)
 
 
@@ -352,13 +360,13 @@ def test_float32_surface_scores_a_nearly_constant_overlap_like_nmi():
     window = torch.full((1, 1, 210, 210), 100.0)
     window[..., 105, 105] = 200.0
     local = window[..., 5:205, 5:205].clone()
-    expected = nmi(local.double(), local.double())
+    expected = nmi(local.double(), local.double(), kernel="hard")
     assert expected.item() == pytest.approx(2.0)
-    surface = nmi_surface(local, window)
+    surface = nmi_surface(local, window, kernel="hard")
     assert surface.score[0, 5, 5].item() == pytest.approx(2.0, abs=1e-2)  # float32 round-off of a 2e-4 entropy
     # A truly constant overlap still scores 1 (the odd pixel outside the local footprint).
     flat = torch.full((1, 1, 210, 210), 100.0)
-    assert nmi_surface(flat[..., :200, :200], flat).score[0, 5, 5].item() == 1.0
+    assert nmi_surface(flat[..., :200, :200], flat, kernel="hard").score[0, 5, 5].item() == 1.0
 
 
 @pytest.mark.parametrize("masks", ["none", "both"])
@@ -379,7 +387,7 @@ def test_float32_surfaces_score_a_constant_overlap_in_a_textured_window_as_one()
     window[..., 10:80, 10:80] = 100.0
     local = torch.full((1, 1, 60, 60), 100.0)
     inside = (0, slice(10, 21), slice(10, 21))  # placements whose footprint lies in the constant region
-    assert (nmi_surface(local, window).score[inside] == 1.0).all()
+    assert (nmi_surface(local, window, kernel="hard").score[inside] == 1.0).all()
     assert (enmi_surface(local, window, 1e-4).score[inside] == 1.0).all()
 
 

@@ -74,7 +74,8 @@ def localize(
         variance: for a score that uses one (ECR, ENMI, mixture): the captured images' per-pixel noise variance (a
             number, ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``) or a :class:`~enmi_torch.variance.VarianceModel`
             (its ``valid_mask`` is used too). Must be ``None`` for the others (NMI, NCC).
-        score: the score of a candidate, a :class:`~enmi_torch.scores.Score` or its name (:func:`~enmi_torch.as_score`):
+        score: the score of a candidate, a :class:`~enmi_torch.scores.Score` or its name
+            (:func:`~enmi_torch.scores.as_score`):
             :class:`~enmi_torch.ECR` (the default: the noise-aware correlation ratio, where the per-pixel variance
             weighs each pixel's evidence),
             :class:`~enmi_torch.ENMI` (the paper's score; a ``(B, bins)`` ``log_prior`` gives each sample its row,

@@ -1,7 +1,7 @@
 """The reference for every surface: each placement scored on its own, as one aligned pair.
 
-Slow (a Python loop over placements); :func:`~enmi_torch.direct_surface` uses it to check the FFT surfaces on small
-windows.
+Slow (a Python loop over placements); :func:`~enmi_torch.scores.direct_surface` uses it to check the FFT surfaces on
+small windows.
 """
 
 from __future__ import annotations

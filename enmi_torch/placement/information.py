@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch.information import _nmi_from_entropies
+from enmi_torch.information import nmi_from_entropies
 from enmi_torch.placement.fft import Correlator
 from enmi_torch.placement.inputs import Surface, SurfaceInputs
 from enmi_torch.placement.planes import per_sample_reference_planes
@@ -117,7 +117,7 @@ def information_surface(
         captured_entropy = log_total - captured_sum.total / positive
         reference_entropy = log_total - reference_sum.total / positive
         informative = (total - joint_peak > 0.5 * smallest) & (joint_entropy > 0) & (overlap > 0)
-        score = _nmi_from_entropies(captured_entropy, reference_entropy, joint_entropy, informative)
+        score = nmi_from_entropies(captured_entropy, reference_entropy, joint_entropy, informative)
         scores.append(score)
         overlaps.append(overlap)
     return Surface(torch.stack(scores), torch.stack(overlaps))

@@ -9,42 +9,16 @@
 placements by ECR's). Each family's file owns the value on aligned pairs, the surface over every placement (built on
 :mod:`enmi_torch.placement`), the loss and the class; a new option of a family is added in its file only.
 
-The package re-exports the objects and each family's functions (value, ``_surface`` and ``_loss``): ``ecr``,
-``enmi``, ``nmi`` and ``ncc`` here are the functions; import a family's module by its full name
-(``from enmi_torch.scores.ecr import ...``) for the rest of it.
+The functions live in the family modules (``enmi_torch.scores.ecr.ecr``, ...; all of them in
+:mod:`enmi_torch.functional`): the package re-exports the objects only, so that ``enmi_torch.scores.ecr`` stays the
+module.
 """
 
 from enmi_torch.scores.base import REDUCTIONS, Score, as_score, direct_surface, score_names
-from enmi_torch.scores.ecr import ECR, ecr, ecr_loss, ecr_surface
-from enmi_torch.scores.enmi import ENMI, enmi, enmi_loss, enmi_surface
-from enmi_torch.scores.mixture import Mixture, mixture_information, mixture_loss, mixture_surface
-from enmi_torch.scores.ncc import NCC, ncc, ncc_loss, ncc_surface
-from enmi_torch.scores.nmi import NMI, nmi, nmi_loss, nmi_surface
+from enmi_torch.scores.ecr import ECR
+from enmi_torch.scores.enmi import ENMI
+from enmi_torch.scores.mixture import Mixture
+from enmi_torch.scores.ncc import NCC
+from enmi_torch.scores.nmi import NMI
 
-__all__ = [
-    "ECR",
-    "ENMI",
-    "NCC",
-    "NMI",
-    "REDUCTIONS",
-    "Mixture",
-    "Score",
-    "as_score",
-    "direct_surface",
-    "ecr",
-    "ecr_loss",
-    "ecr_surface",
-    "enmi",
-    "enmi_loss",
-    "enmi_surface",
-    "mixture_information",
-    "mixture_loss",
-    "mixture_surface",
-    "ncc",
-    "ncc_loss",
-    "ncc_surface",
-    "nmi",
-    "nmi_loss",
-    "nmi_surface",
-    "score_names",
-]
+__all__ = ["ECR", "ENMI", "NCC", "NMI", "REDUCTIONS", "Mixture", "Score", "as_score", "direct_surface", "score_names"]

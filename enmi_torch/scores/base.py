@@ -78,11 +78,15 @@ class Score:
         uses_variance: whether the score weighs the captured pixels by a noise variance (required then, refused
             otherwise).
         empty_score: the score of a placement where no valid pixel overlaps (that of unrelated images).
+        higher_is_better: ``True`` for every family: a larger score is a better match (its loss falls). Beside
+            it, :attr:`is_differentiable` says whether the score carries a gradient (a loss of one that does not is
+            refused).
     """
 
     name: ClassVar[str]
     uses_variance: ClassVar[bool]
     empty_score: ClassVar[float] = 0.0
+    higher_is_better: ClassVar[bool] = True
     # Whether the captured values are binned (they must then not all fall in one bin while varying).
     _bins_captured: ClassVar[bool] = False
 
@@ -141,6 +145,16 @@ class Score:
             for name, value in self._options.items()
         )
 
+    @property
+    def is_differentiable(self) -> bool:
+        """Whether the score carries a gradient to the captured image, so that its loss can train."""
+        return True
+
+    def check_differentiable(self) -> None:
+        """Raise ``ValueError`` when the score carries no gradient, naming the option that gives one."""
+        if not self.is_differentiable:
+            raise ValueError(f"{self!r} has no gradient, so it has no loss")
+
     def check_variance(self, variance: Any) -> None:
         """Raise ``ValueError`` unless a variance is given exactly when this score uses one."""
         if self.uses_variance and variance is None:
@@ -193,7 +207,13 @@ class Score:
         valid_mask: Tensor | None = None,
         reduction: str = "mean",
     ) -> Tensor:
-        """The family's loss (``2 - NMI``, ``2 - ENMI``, ``1 - NCC``, ``-ECR``, ``-M``) reduced over the batch."""
+        """The family's loss (``2 - NMI``, ``2 - ENMI``, ``1 - NCC``, ``-ECR``, ``-M``) reduced over the batch.
+
+        Raises:
+            ValueError: for a score without gradient (:attr:`is_differentiable` false), naming the option to change.
+        """
+        check_option("reduction", reduction, REDUCTIONS)
+        self.check_differentiable()
         self.check_variance(variance)
         return self._loss(captured, reference, variance, valid_mask, reduction)
 
@@ -346,7 +366,7 @@ def direct_surface(
     Example:
         >>> from enmi_torch import NMI
         >>> reference = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
-        >>> direct_surface(NMI(bins=64), reference[..., 2:6, 1:5], reference).score[0, 2, 1]
+        >>> direct_surface(NMI(bins=64, kernel="hard"), reference[..., 2:6, 1:5], reference).score[0, 2, 1]
         tensor(2.)
     """
     score = as_score(score)

@@ -37,9 +37,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch.histogram import _prepare
+from enmi_torch.histogram import prepare_inputs
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
-from enmi_torch.scores.base import REDUCTIONS, LeastSquaresFit, ResponseBasis, Score, reduce_loss
+from enmi_torch.scores.base import LeastSquaresFit, ResponseBasis, Score, reduce_loss
 from enmi_torch.scores.ecr_model_variance import (
     MISFITS,
     MODEL_VARIANCE_ESTIMATE,
@@ -96,7 +96,7 @@ def _aligned_inputs(captured, reference, variance, bins, value_range, model_vari
     """
     check_variance_given(variance)
     check_floating("captured", captured)
-    inputs = _prepare(
+    inputs = prepare_inputs(
         captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance", False
     )
     tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
@@ -348,20 +348,24 @@ def ecr_surface_model_variance(
 
 
 def ecr_loss(
-    captured: Tensor, reference: Tensor, variance: Tensor | float, *, reduction: str = "mean", **options
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+    **options,
 ) -> Tensor:
-    """``-ecr(captured, reference, variance, **options)`` reduced over the batch.
+    """``-ecr(captured, reference, variance, **options)`` reduced over the batch: ``ECR(**options).loss(...)``.
 
-    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
-    :func:`ecr`.
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: those of :class:`ECR`.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> ecr_loss(image, image, 1.0, bins=4), ecr_loss(image, image.mT, 1.0, bins=4)
         (tensor(-5.9688), tensor(0.0078))
     """
-    check_option("reduction", reduction, REDUCTIONS)
-    return reduce_loss(-ecr(captured, reference, variance, **options), reduction)
+    return ECR(**options).loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction)
 
 
 class ECR(Score):
@@ -427,7 +431,7 @@ class ECR(Score):
         return ecr_surface(captured, reference, variance, **masks, **self._options)
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
-        return ecr_loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction, **self._options)
+        return reduce_loss(-self._value(captured, reference, variance, valid_mask), reduction)
 
     def model_variance_of(
         self, captured: Tensor, reference: Tensor, variance: Tensor | float, *, valid_mask: Tensor | None = None

@@ -13,12 +13,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS, _likelihood_weights, reliability_weights
-from enmi_torch.histogram import _joint_histogram, _prepare, joint_histogram
+from enmi_torch.binning import LIKELIHOOD_WEIGHTS, PARZEN_KERNELS, likelihood_weights_unchecked, reliability_weights
+from enmi_torch.histogram import joint_histogram, joint_histogram_of_inputs, prepare_inputs
 from enmi_torch.information import nmi_from_joint_histogram
 from enmi_torch.placement.information import information_surface
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
-from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.base import Score, reduce_loss
 from enmi_torch.utils.budget import check_surface_memory
 from enmi_torch.utils.checks import (
     check_bins,
@@ -102,13 +102,13 @@ def enmi(
     if isinstance(variance, Tensor):
         check_same_device("variance", variance, "captured", captured)
     _check_reliability(reliability)
-    inputs = _prepare(
+    inputs = prepare_inputs(
         captured, reference, bins, value_range, variance, valid_mask, kernel, reference_kernel, log_prior, "variance"
     )
     if reliability:
         pixel_weight = reliability_weights(inputs.captured, inputs.variance, inputs.valid)
         inputs = inputs._replace(pair_weight=pixel_weight, weighted=True)
-    return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))
+    return nmi_from_joint_histogram(joint_histogram_of_inputs(inputs, scored=True))
 
 
 def enmi_surface(
@@ -165,7 +165,9 @@ def enmi_surface(
         log_prior = check_log_prior(log_prior, bins, batch).to(inputs.captured).unsqueeze(1)
     _check_reliability(reliability)
     with torch.no_grad():
-        plane_weights = _likelihood_weights(inputs.captured, inputs.variance, bins, value_range, kernel, log_prior)
+        plane_weights = likelihood_weights_unchecked(
+            inputs.captured, inputs.variance, bins, value_range, kernel, log_prior
+        )
         pixel_weight = None
         if reliability:
             pixel_weight = reliability_weights(
@@ -175,20 +177,24 @@ def enmi_surface(
 
 
 def enmi_loss(
-    captured: Tensor, reference: Tensor, variance: Tensor | float, *, reduction: str = "mean", **options
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+    **options,
 ) -> Tensor:
-    """``2 - enmi(captured, reference, variance, **options)`` reduced over the batch.
+    """``2 - enmi(captured, reference, variance, **options)`` reduced over the batch: ``ENMI(**options).loss(...)``.
 
-    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
-    :func:`enmi`.
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: those of :class:`ENMI`.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> enmi_loss(image, image, 1e-6, bins=4), enmi_loss(image, image.mT, 1e-6, bins=4)
         (tensor(0.), tensor(1.))
     """
-    check_option("reduction", reduction, REDUCTIONS)
-    return reduce_loss(2 - enmi(captured, reference, variance, **options), reduction)
+    return ENMI(**options).loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction)
 
 
 class ENMI(Score):
@@ -264,7 +270,7 @@ class ENMI(Score):
         )
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
-        return enmi_loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction, **self._options)
+        return reduce_loss(2 - self._value(captured, reference, variance, valid_mask), reduction)
 
     def _pair_scorer(self, inputs: SurfaceInputs):
         """With ``reliability``, the pixel weights come from each whole captured image, as in :func:`enmi_surface`."""

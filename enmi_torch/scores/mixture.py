@@ -39,10 +39,10 @@ import torch
 from torch import Tensor
 
 from enmi_torch.binning import hard_bin_index, truncated_likelihood_weights
-from enmi_torch.histogram import _prepare
+from enmi_torch.histogram import prepare_inputs
 from enmi_torch.placement.inputs import Surface, check_inputs
 from enmi_torch.placement.peaks import rescore_peaks
-from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.base import Score, reduce_loss
 from enmi_torch.scores.ecr_model_variance import default_model_variance
 from enmi_torch.scores.ecr_placements import ecr_surface_from_inputs
 from enmi_torch.utils.budget import check_histogram_memory, check_surface_memory
@@ -50,7 +50,6 @@ from enmi_torch.utils.checks import (
     check_bins,
     check_floating,
     check_non_negative_int,
-    check_option,
     check_positive_int,
     check_value_range,
     check_variance_given,
@@ -103,7 +102,9 @@ def mixture_information(
     check_variance_given(variance)
     check_floating("captured", captured)
     em_steps = check_non_negative_int("em_steps", em_steps)
-    inputs = _prepare(captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance")
+    inputs = prepare_inputs(
+        captured, reference, bins, value_range, variance, valid_mask, "mass", "hard", None, "variance"
+    )
     # The (C * B * bins, bins) histograms, their conditional probabilities and products, and (B, N, bins) weights.
     candidates = inputs.reference.shape[0] if inputs.with_candidates else None
     check_histogram_memory(
@@ -304,20 +305,24 @@ def _placement_scores(
 
 
 def mixture_loss(
-    captured: Tensor, reference: Tensor, variance: Tensor | float, *, reduction: str = "mean", **options
+    captured: Tensor,
+    reference: Tensor,
+    variance: Tensor | float,
+    *,
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+    **options,
 ) -> Tensor:
-    """``-mixture_information(captured, reference, variance, **options)`` reduced over the batch.
+    """``-mixture_information(captured, reference, variance, **options)`` reduced: ``Mixture(**options).loss(...)``.
 
-    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
-    :func:`mixture_information`.
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: those of :class:`Mixture`.
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> round(mixture_loss(image, image, 1.0, bins=4).item(), 4)
         -1.3863
     """
-    check_option("reduction", reduction, REDUCTIONS)
-    return reduce_loss(-mixture_information(captured, reference, variance, **options), reduction)
+    return Mixture(**options).loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction)
 
 
 class Mixture(Score):
@@ -352,4 +357,4 @@ class Mixture(Score):
         return mixture_surface(captured, reference, variance, **masks, **self._options)
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
-        return mixture_loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction, **self._options)
+        return reduce_loss(-self._value(captured, reference, variance, valid_mask), reduction)

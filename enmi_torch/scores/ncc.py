@@ -10,12 +10,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch.histogram import _prepare
+from enmi_torch.histogram import prepare_inputs
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import masked_mean, moment_blocks
-from enmi_torch.scores.base import REDUCTIONS, LeastSquaresFit, ResponseBasis, Score, reduce_loss
+from enmi_torch.scores.base import LeastSquaresFit, ResponseBasis, Score, reduce_loss
 from enmi_torch.utils.budget import check_surface_memory
-from enmi_torch.utils.checks import check_option
 
 
 def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None) -> Tensor:
@@ -40,7 +39,7 @@ def ncc(captured: Tensor, reference: Tensor, *, valid_mask: Tensor | None = None
         (tensor([0.9844]), tensor([-1.]))
     """
     # The layout and mask checks of the histograms; nothing is binned (bins and range only fill masked pixels).
-    inputs = _prepare(
+    inputs = prepare_inputs(
         captured,
         reference,
         2,
@@ -133,15 +132,14 @@ def ncc_loss(
     valid_mask: Tensor | None = None,
     reduction: str = "mean",
 ) -> Tensor:
-    """``1 - ncc(captured, reference)`` reduced over the batch (0 when aligned), in ``[0, 2]``.
+    """``1 - ncc(captured, reference)`` reduced over the batch (0 when aligned), in ``[0, 2]``: ``NCC().loss(...)``.
 
     Example:
         >>> captured = torch.tensor([[[1.0, 2.0, 3.0, 4.0]]])  # one flat sample (1, 1, N)
         >>> ncc_loss(captured, 2 * captured + 1), ncc_loss(captured, -captured)
         (tensor(0.), tensor(2.))
     """
-    check_option("reduction", reduction, REDUCTIONS)
-    return reduce_loss(1 - ncc(captured, reference, valid_mask=valid_mask), reduction)
+    return NCC().loss(captured, reference, valid_mask=valid_mask, reduction=reduction)
 
 
 class NCC(Score):
@@ -166,7 +164,7 @@ class NCC(Score):
         return ncc_surface(captured, reference, captured_mask=captured_mask, reference_mask=reference_mask)
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
-        return ncc_loss(captured, reference, valid_mask=valid_mask, reduction=reduction)
+        return reduce_loss(1 - self._value(captured, reference, variance, valid_mask), reduction)
 
     def response_basis(self) -> ResponseBasis:
         """The affine response ``a + b m``: NCC squared is the share of the variance it explains."""

@@ -1,9 +1,10 @@
 """Normalized mutual information (Studholme) with hard or Parzen bins: the measurement ENMI and ECR are compared to.
 
-:func:`nmi` of aligned pairs (hard bins by default, as scikit-image's
-``normalized_mutual_information``), :func:`nmi_surface` over every placement (hard bins, by FFT correlation of the bin
-planes: :func:`~enmi_torch.placement.information.information_surface`, shared with ENMI), :func:`nmi_loss` and
-:class:`NMI`.
+:func:`nmi` of aligned pairs, :func:`nmi_surface` over every placement (by FFT correlation of the captured bin-weight
+planes with the reference's bin planes: :func:`~enmi_torch.placement.information.information_surface`, shared with
+ENMI), :func:`nmi_loss` and :class:`NMI`. One default throughout: the captured image's ``kernel="triangular"`` Parzen
+window (a gradient, so the loss trains); ``kernel="hard"`` gives scikit-image's
+``normalized_mutual_information`` (no gradient).
 """
 
 from __future__ import annotations
@@ -11,12 +12,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from enmi_torch.binning import PARZEN_KERNELS, hard_bin_index
-from enmi_torch.histogram import _joint_histogram, _prepare, hard_entropies
-from enmi_torch.information import _nmi_from_entropies, nmi_from_joint_histogram
+from enmi_torch.binning import PARZEN_KERNELS, parzen_weights_unchecked
+from enmi_torch.histogram import hard_entropies, joint_histogram_of_inputs, prepare_inputs
+from enmi_torch.information import nmi_from_entropies, nmi_from_joint_histogram
 from enmi_torch.placement.information import information_surface
 from enmi_torch.placement.inputs import Surface, check_inputs
-from enmi_torch.scores.base import REDUCTIONS, Score, reduce_loss
+from enmi_torch.scores.base import Score, reduce_loss
 from enmi_torch.utils.budget import check_surface_memory
 from enmi_torch.utils.checks import check_bins, check_option, check_same_device, check_value_range
 
@@ -27,7 +28,7 @@ def nmi(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
-    kernel: str = "hard",
+    kernel: str = "triangular",
     reference_kernel: str = "hard",
     valid_mask: Tensor | None = None,
 ) -> Tensor:
@@ -39,8 +40,8 @@ def nmi(
             ``C`` candidates (the captured bins are computed once).
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``; values outside are clipped into the edge bins.
-        kernel: ``"hard"`` (unit counts, as scikit-image; no gradient), ``"triangular"`` or ``"xu"`` (Parzen
-            windows, differentiable in ``captured``).
+        kernel: ``"triangular"`` (the default) or ``"xu"`` (Parzen windows, differentiable in ``captured``), or
+            ``"hard"`` (unit counts: scikit-image's ``normalized_mutual_information``; no gradient).
         reference_kernel: the same choice for ``reference``.
         valid_mask: bool ``(H, W)``, ``(1, 1, H, W)`` or ``(B, 1, H, W)``; ``False`` pixels are left out.
 
@@ -54,20 +55,22 @@ def nmi(
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
-        >>> nmi(image, image, bins=4)
+        >>> nmi(image, image, bins=4, kernel="hard")
         tensor([2.])
-        >>> nmi(image, image.transpose(-1, -2), bins=4)
+        >>> nmi(image, image.transpose(-1, -2), bins=4, kernel="hard")
         tensor([1.])
+        >>> nmi(image, image, bins=4)  # the triangular window spreads each value over two bins
+        tensor([1.4273])
     """
     check_option("kernel", kernel, ("hard", "triangular", "xu"))
     check_same_device("reference", reference, "captured", captured)
     if kernel == "hard" and reference_kernel == "hard" and _few_pixels(captured, bins):
         # Same score as the hard joint histogram's, with O(pixels) logarithms per sample instead of O(bins^2).
-        return _nmi_from_entropies(
+        return nmi_from_entropies(
             *hard_entropies(captured, reference, bins=bins, value_range=value_range, valid_mask=valid_mask)
         )
-    inputs = _prepare(captured, reference, bins, value_range, None, valid_mask, kernel, reference_kernel, None)
-    return nmi_from_joint_histogram(_joint_histogram(inputs, scored=True))
+    inputs = prepare_inputs(captured, reference, bins, value_range, None, valid_mask, kernel, reference_kernel, None)
+    return nmi_from_joint_histogram(joint_histogram_of_inputs(inputs, scored=True))
 
 
 def _few_pixels(captured: Tensor, bins: int) -> bool:
@@ -88,49 +91,59 @@ def nmi_surface(
     *,
     bins: int = 32,
     value_range: tuple[float, float] = (0.0, 256.0),
+    kernel: str = "triangular",
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
 ) -> Surface:
-    """Hard-binned NMI of ``captured`` at every placement inside ``reference``, by FFT correlation of bin planes.
+    """NMI of ``captured`` at every placement inside ``reference``, by FFT correlation of bin planes.
 
     Args:
         captured: captured image ``(B, 1, h, w)``, floating point.
         reference: map section ``(1 or B, 1, Hw, Ww)``, ``Hw >= h``, ``Ww >= w``.
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)``.
+        kernel: the captured image's window, as in :func:`nmi` (the reference is hard-binned).
         captured_mask: bool ``(h, w)``, ``(1, 1, h, w)`` or ``(B, 1, h, w)``; ``False`` pixels are left out.
         reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference.
 
     Returns:
-        :class:`Surface`; ``score[b, u, v]`` equals ``nmi(captured[b], reference[b, :, u:u + h, v:v + w], ...)``.
+        :class:`Surface`; ``score[b, u, v]`` equals ``nmi(captured[b], reference[b, :, u:u + h, v:v + w], ...)``
+        with the same ``kernel``, without gradient.
 
     Example:
         >>> reference = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
-        >>> round(nmi_surface(reference[..., 2:6, 1:5], reference, bins=64).score[0, 2, 1].item(), 4)
+        >>> round(nmi_surface(reference[..., 2:6, 1:5], reference, bins=64, kernel="hard").score[0, 2, 1].item(), 4)
         2.0
     """
+    check_option("kernel", kernel, PARZEN_KERNELS)
     bins = check_bins(bins)
     value_range = check_value_range(value_range)
     inputs = check_inputs(captured, reference, captured_mask, reference_mask, value_range, bins=bins)
     check_surface_memory(inputs.captured, inputs.reference, bins)
     with torch.no_grad():
-        one_hot = torch.nn.functional.one_hot(hard_bin_index(inputs.captured, bins, value_range), bins)
-        return information_surface(one_hot.to(inputs.captured.dtype), inputs, bins, value_range)
+        planes = parzen_weights_unchecked(inputs.captured, bins, value_range, kernel)
+        return information_surface(planes, inputs, bins, value_range)
 
 
-def nmi_loss(captured: Tensor, reference: Tensor, *, reduction: str = "mean", **options) -> Tensor:
-    """``2 - nmi(captured, reference, **options)`` reduced over the batch.
+def nmi_loss(
+    captured: Tensor,
+    reference: Tensor,
+    *,
+    valid_mask: Tensor | None = None,
+    reduction: str = "mean",
+    **options,
+) -> Tensor:
+    """``2 - nmi(captured, reference, **options)`` reduced over the batch: ``NMI(**options).loss(...)``.
 
-    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: the keyword arguments of
-    :func:`nmi` (``kernel`` defaults to ``"triangular"``: a gradient; ``"hard"`` is the measurement).
+    ``reduction``: ``"none"`` (``(B,)``), ``"mean"`` or ``"sum"``; ``options``: those of :class:`NMI` (the default
+    ``kernel="triangular"`` carries a gradient; ``kernel="hard"`` has none and is refused).
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
-        >>> nmi_loss(image, image, bins=4, kernel="hard"), nmi_loss(image, image.mT, bins=4, kernel="hard")
-        (tensor(0.), tensor(1.))
+        >>> nmi_loss(image, image, bins=4), nmi_loss(image, image.mT, bins=4)
+        (tensor(0.5727), tensor(0.9927))
     """
-    check_option("reduction", reduction, REDUCTIONS)
-    return reduce_loss(2 - nmi(captured, reference, **{"kernel": "triangular", **options}), reduction)
+    return NMI(**options).loss(captured, reference, valid_mask=valid_mask, reduction=reduction)
 
 
 class NMI(Score):
@@ -139,15 +152,17 @@ class NMI(Score):
     Args:
         bins: number of equal-width bins over ``value_range``.
         value_range: ``(low, high)`` of the bins.
-        kernel: ``"hard"`` (the measurement, the only one the surface takes), ``"triangular"`` or ``"xu"`` (Parzen
-            windows: a gradient for the loss).
+        kernel: ``"triangular"`` (the default) or ``"xu"`` (Parzen windows: a gradient for the loss), or ``"hard"``
+            (scikit-image's NMI; no gradient, so no loss).
         reference_kernel: the same choice for the reference (``"hard"`` for the surface).
 
     Example:
         >>> image = torch.arange(16.0).reshape(1, 1, 4, 4) * 16 + 8
         >>> score = NMI(bins=4)
-        >>> score(image, image), score.loss(image, image.mT)
-        (tensor([2.]), tensor(1.))
+        >>> score(image, image), score.loss(image, image.mT), score.is_differentiable
+        (tensor([1.4273]), tensor(0.9927), True)
+        >>> NMI(bins=4, kernel="hard")(image, image), NMI(kernel="hard").is_differentiable
+        (tensor([2.]), False)
     """
 
     name = "nmi"
@@ -160,7 +175,7 @@ class NMI(Score):
         *,
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
-        kernel: str = "hard",
+        kernel: str = "triangular",
         reference_kernel: str = "hard",
     ) -> None:
         bins = check_bins(bins)
@@ -169,17 +184,25 @@ class NMI(Score):
         check_option("reference_kernel", reference_kernel, PARZEN_KERNELS)
         super().__init__(bins=bins, value_range=value_range, kernel=kernel, reference_kernel=reference_kernel)
 
+    @property
+    def is_differentiable(self) -> bool:
+        """Whether the score carries a gradient to the captured image: not with ``kernel="hard"``."""
+        return self.kernel != "hard"
+
+    def check_differentiable(self) -> None:
+        """Raise ``ValueError`` for ``kernel="hard"``, naming the kernels that carry a gradient."""
+        if not self.is_differentiable:
+            raise ValueError(f"{self!r} has no gradient: give kernel='triangular' (the default) or 'xu' for a loss")
+
     def _value(self, captured, reference, variance, valid_mask) -> Tensor:
         return nmi(captured, reference, valid_mask=valid_mask, **self._options)
 
     def _surface(self, captured, reference, variance, captured_mask, reference_mask) -> Surface:
-        if (self.kernel, self.reference_kernel) != ("hard", "hard"):
-            raise ValueError(
-                f"NMI's surface needs kernel='hard' and reference_kernel='hard', got {self.kernel!r} and "
-                f"{self.reference_kernel!r}"
-            )
+        if self.reference_kernel != "hard":
+            raise ValueError(f"NMI's surface needs reference_kernel='hard', got {self.reference_kernel!r}")
         masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
-        return nmi_surface(captured, reference, bins=self.bins, value_range=self.value_range, **masks)
+        options = {name: value for name, value in self._options.items() if name != "reference_kernel"}
+        return nmi_surface(captured, reference, **options, **masks)
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
-        return nmi_loss(captured, reference, valid_mask=valid_mask, reduction=reduction, **self._options)
+        return reduce_loss(2 - self._value(captured, reference, variance, valid_mask), reduction)

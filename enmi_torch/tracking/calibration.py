@@ -136,7 +136,7 @@ class Calibration(NamedTuple):
     """The score's likelihood scale and health threshold, saved next to a map.
 
     Attributes:
-        score: the name of the score they belong to (:func:`~enmi_torch.as_score`).
+        score: the name of the score they belong to (:func:`~enmi_torch.scores.as_score`).
         temperature: divide ``score * n_valid`` by it to get a log-likelihood.
         min_peak_z: the smallest robust z-score of a surface's peak that counts as a match.
     """

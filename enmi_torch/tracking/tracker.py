@@ -16,9 +16,10 @@ One step of the filter (:func:`track_step`, :class:`Tracker` for a stream of fra
   :func:`~enmi_torch.localize`): if that search lands on the window's own peak the frame is used after all, and if it
   finds a match better than the window's by ``relocalize_odds`` nats where the previous frame's wide search found its
   own (two frames agreeing), the filter restarts there (relocalization);
-* a window with no candidate at all (off the map, a frame fully masked: :class:`~enmi_torch.NoCandidateError` from
-  the search) is a frame without a match: the belief coasts on the odometry. ``lost`` says that the filter has gone
-  ``patience`` frames without a match and the wide search has not found the vehicle again.
+* a window with no candidate at all (off the map, a frame fully masked:
+  :class:`~enmi_torch.localization.NoCandidateError` from the search) is a frame without a match: the belief coasts
+  on the odometry. ``lost`` says that the filter has gone ``patience`` frames without a match and the wide search
+  has not found the vehicle again.
 
 Convention:
     Poses and odometry as in :mod:`~enmi_torch.tracking.belief`; searches run without gradient.
@@ -303,8 +304,8 @@ class Tracker(nn.Module):
             (ECR with a spatially correlated misfit and the binned response; ECR's own shrunk response, also what
             the name ``"ecr"`` gives, re-reads its ``delta^2`` every frame: :func:`default_score` says what that
             does to the health rules).
-        calibration: optional :class:`~enmi_torch.Calibration` (sets ``temperature``, ``min_peak_z`` and, without
-            ``score``, the score by name).
+        calibration: optional :class:`~enmi_torch.tracking.Calibration` (sets ``temperature``, ``min_peak_z``
+            and, without ``score``, the score by name).
         shifts: belief window radius ``r`` or ``(ry, rx)``.
         yaw_bins: odd number of yaw bins.
         yaw_step: yaw bin spacing in degrees.

@@ -24,7 +24,8 @@ from typing import Any
 DEFAULT_MEMORY_BUDGET = 4 << 30
 _ENVIRONMENT = "ENMI_TORCH_MEMORY_BUDGET"
 _RAISE_IT = (
-    "or raise the budget with enmi_torch.set_memory_budget(bytes), `with enmi_torch.memory_budget(bytes):` or "
+    "or raise the budget with enmi_torch.utils.budget.set_memory_budget(bytes), "
+    "`with enmi_torch.utils.budget.memory_budget(bytes):` or "
     f"{_ENVIRONMENT}=bytes (None or 'none' turns the check off)"
 )
 
@@ -61,7 +62,7 @@ def get_memory_budget() -> int | None:
     """The memory budget in bytes (``None``: no check).
 
     Example:
-        >>> from enmi_torch import get_memory_budget, memory_budget
+        >>> from enmi_torch.utils.budget import get_memory_budget, memory_budget
         >>> with memory_budget(2**30):
         ...     get_memory_budget()
         1073741824
@@ -73,7 +74,7 @@ def set_memory_budget(budget: int | float | None) -> int | None:
     """Set the memory budget of every later call, in bytes (``None`` turns the check off); returns the previous one.
 
     Example:
-        >>> from enmi_torch import get_memory_budget, set_memory_budget
+        >>> from enmi_torch.utils.budget import get_memory_budget, set_memory_budget
         >>> previous = set_memory_budget(16 * 2**30)
         >>> get_memory_budget() == 16 * 2**30
         True
@@ -90,7 +91,8 @@ def memory_budget(budget: int | float | None) -> Iterator[None]:
     """Use ``budget`` bytes (``None``: no check) as the memory budget within a ``with`` block.
 
     Example:
-        >>> from enmi_torch import MemoryBudgetError, joint_histogram, memory_budget
+        >>> from enmi_torch.functional import joint_histogram
+        >>> from enmi_torch.utils.budget import MemoryBudgetError, memory_budget
         >>> image = torch.rand(1, 1, 4, 4)
         >>> try:
         ...     with memory_budget(1000):

@@ -32,7 +32,8 @@ def value_checks(enabled: bool | None = True) -> Iterator[None]:
 
     Example:
         >>> import torch
-        >>> from enmi_torch import nmi, value_checks
+        >>> from enmi_torch.functional import nmi
+        >>> from enmi_torch.utils.checks import value_checks
         >>> with value_checks(False):
         ...     nmi(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8)).shape
         torch.Size([1])

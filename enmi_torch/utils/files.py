@@ -30,7 +30,8 @@ def read_npy(path: str | Path, source: str) -> np.ndarray:
     Raises:
         ValueError: naming ``source`` and the file, when it cannot be opened, is not a ``.npy`` file (a pickle, say),
             has a damaged header, holds Python objects, or holds fewer bytes than its header states.
-        MemoryBudgetError: when the array is larger than the memory budget (:func:`~enmi_torch.set_memory_budget`).
+        MemoryBudgetError: when the array is larger than the memory budget
+            (:func:`~enmi_torch.utils.budget.set_memory_budget`).
 
     Example:
         >>> import tempfile

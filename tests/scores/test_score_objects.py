@@ -80,7 +80,7 @@ def _families():
             NMI(bins=12, value_range=RANGE),
             lambda c, r, v, **k: nmi(c, r, bins=12, value_range=RANGE, **k),
             lambda c, r, v, **k: nmi_surface(c, r, bins=12, value_range=RANGE, **k),
-            lambda c, r, v, **k: nmi_loss(c, r, bins=12, value_range=RANGE, kernel="hard", **k),
+            lambda c, r, v, **k: nmi_loss(c, r, bins=12, value_range=RANGE, **k),
         ),
         (
             NCC(),
@@ -298,8 +298,8 @@ def test_a_variance_is_required_by_the_scores_that_use_one_and_refused_by_the_ot
 
 def test_surfaces_refuse_kernels_they_cannot_correlate():
     local, reference, variance, _, _ = _placements(torch.float64)
-    with pytest.raises(ValueError, match="NMI's surface needs kernel='hard' and reference_kernel='hard'"):
-        NMI(kernel="triangular").surface(local, reference)
+    with pytest.raises(ValueError, match="NMI's surface needs reference_kernel='hard', got 'xu'"):
+        NMI(reference_kernel="xu").surface(local, reference)
     with pytest.raises(ValueError, match="ENMI's surface needs reference_kernel='hard', got 'xu'"):
         ENMI(reference_kernel="xu").surface(local, reference, variance)
 
@@ -389,8 +389,8 @@ def test_score_loss_is_the_score_loss_with_a_variance_model_and_buffers():
 
 
 def test_family_losses_build_their_score_or_take_one():
-    assert NMILoss().score == NMI(kernel="triangular")  # a loss needs a gradient: not NMI's hard default
-    assert NMILoss(NMI(kernel="hard")).score == NMI()
+    assert NMILoss().score == NMI() == NMI(kernel="triangular")  # NMI's one default carries a gradient
+    assert NMILoss(NMI(kernel="xu")).score == NMI(kernel="xu")
     assert ENMILoss(kernel="density", bins=8).score == ENMI(kernel="density", bins=8)
     assert ECRLoss(response="linear").score == ECR(response="linear") and MixtureLoss(em_steps=2).score == Mixture(
         em_steps=2

@@ -76,11 +76,13 @@ def test_histogram_scores_are_no_least_squares_fit(score):
         score.least_squares_fit(image, image, None, torch.ones_like(image, dtype=torch.bool))
 
 
-def test_the_scores_package_holds_the_family_functions_and_the_modules_stay_importable():
+def test_the_family_functions_live_in_their_modules_and_functional_and_the_modules_stay_modules():
+    functional = importlib.import_module("enmi_torch.functional")
     for family in ("ecr", "enmi", "nmi", "ncc"):
         module = importlib.import_module(f"enmi_torch.scores.{family}")
+        assert getattr(scores, family) is module
         for suffix in ("", "_surface", "_loss"):
-            assert getattr(scores, family + suffix) is getattr(module, family + suffix)
+            assert getattr(functional, family + suffix) is getattr(module, family + suffix)
     mixture = importlib.import_module("enmi_torch.scores.mixture")
     for name in ("mixture_information", "mixture_surface", "mixture_loss"):
-        assert getattr(scores, name) is getattr(mixture, name)
+        assert getattr(functional, name) is getattr(mixture, name)
