@@ -1,6 +1,6 @@
 """Time per N0 point of the paper simulation's scores, three ways, against the point's kernel floor.
 
-    python data_tools/benchmarks/bench_paper_simulation.py [--trials 10000] [--repeats 5] [--chunk-trials 96] \
+    python -m data_tools.benchmarks.bench_paper_simulation [--trials 10000] [--repeats 5] [--chunk-trials 96] \
         [--threads 1]
 
 One "point" is ``trials`` trials of the paper's 66 tiles at one N0, each trial scoring the truth and the candidate

@@ -34,10 +34,10 @@ odometry, the best candidate taken): ECR with the analytic, the learned and a un
 window +-8 cells, 5 yaws 1 degree apart). Errors are split along the true heading (longitudinal) and across it
 (lateral); "covered" is the share of frames whose filter 95 % ellipse holds the truth.
 
-    python data_tools/drive/drive.py                                      # runs/drive/drive.png, ~3 min on 2 cores
-    python data_tools/drive/drive.py --out data_tools/figures/drive.png   # README's figure
-    python data_tools/drive/drive.py --frames 60 --methods ecr_analytic   # a quick look
-    python data_tools/drive/drive.py --scene-change 0.5 --seeds 0 1 2 --out runs/drive/changed.png
+    python -m data_tools.experiments.drive.drive                                     # the tables, ~3 min on 2 cores
+    python -m data_tools.experiments.drive.drive --figure docs/images/drive.png      # and the docs' figure
+    python -m data_tools.experiments.drive.drive --frames 60 --methods ecr_analytic  # a quick look
+    python -m data_tools.experiments.drive.drive --scene-change 0.5 --seeds 0 1 2 --figure runs/drive/changed.png
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ LABELS = {
     "nmi": "NMI",
     "ncc": "NCC",
 }
-OUT = Path("runs/drive/drive.png")
+LOGDIR = Path("runs/drive")
 MISFIT = default_score().misfit  # ECR's misfit in the benchmark: the tracker's
 
 
@@ -639,8 +639,8 @@ def main(argv=None) -> None:
         default=0.0,
         help="the filter's chance that a frame matched some other place (Tracker's mismatch_probability)",
     )
-    parser.add_argument("--out", type=Path, default=OUT, help="the figure (of the first drive)")
-    parser.add_argument("--logdir", type=Path, default=OUT.parent, help="calibration files and TensorBoard logs")
+    parser.add_argument("--figure", type=Path, help="draw the first drive's track and errors into this PNG")
+    parser.add_argument("--logdir", type=Path, default=LOGDIR, help="calibration files and TensorBoard logs")
     args = parser.parse_args(argv)
     if not 0 <= args.scene_change <= 1:
         parser.error(f"--scene-change must be in [0, 1], got {args.scene_change}")
@@ -696,11 +696,14 @@ def main(argv=None) -> None:
             folder.mkdir(parents=True, exist_ok=True)
             for method, calibration in calibrations.items():
                 calibration.save(folder / f"calibration_{method}.json")
-            plot(drive, results, args.out)
+            if args.figure is not None:
+                plot(drive, results, args.figure)
+                print(f"wrote {args.figure}")
             logged = log_tensorboard(drive, results, folder / "tensorboard")
             step_ms = {method: 1000 * float(pair[0]["seconds"].median()) for method, pair in results.items()}
             print(f"\nmedian filter step (ms): {json.dumps({k: round(v, 1) for k, v in step_ms.items()})}")
-            print(f"wrote {args.out}" + (f" and TensorBoard logs in {logged}" if logged else ""))
+            if logged:
+                print(f"wrote TensorBoard logs in {logged}")
     print("\n".join(across_drives(rows)))
     print(f"\n{time.perf_counter() - start:.0f} s")
 

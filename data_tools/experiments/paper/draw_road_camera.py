@@ -1,8 +1,9 @@
 """Draw the paper's Fig. GridRoad for a camera config: tiled road, its camera image, the rectified view, the variance.
 
 Usage:
-    python data_tools/paper/draw_road_camera.py --config configs/camera/paper.yaml    # writes runs/road_camera.png
-    python data_tools/paper/draw_road_camera.py --out data_tools/figures/road_camera.png  # the README figure
+    # writes runs/road_camera.png
+    python -m data_tools.experiments.paper.draw_road_camera --config configs/camera/paper.yaml
+    python -m data_tools.experiments.paper.draw_road_camera --figure docs/images/road_camera.png  # the README figure
 
 The road is the config's grid of tiles with random shades N(128, 32^2) (the paper's simulation) and dark joints,
 drawn on a grid twenty times finer; it is warped into the camera with ``unrectify``, back to the ground with
@@ -47,7 +48,7 @@ def view_outline(camera: RoadCamera) -> tuple[list[float], list[float]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=Path("configs/camera/paper.yaml"))
-    parser.add_argument("--out", type=Path, default=Path("runs/road_camera.png"), help="PNG to write")
+    parser.add_argument("--figure", type=Path, default=Path("runs/road_camera.png"), help="PNG to write")
     parser.add_argument("--noise-power", type=float, default=0.01, help="N0 of the variance map")
     parser.add_argument("--refine", type=int, default=20, help="texture cells per tile side")
     parser.add_argument("--seed", type=int, default=0)
@@ -121,9 +122,9 @@ def main() -> None:
         axis.set_xlabel("lateral x (cm)")
         axis.set_ylabel("distance ahead d (cm)")
     figure.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=80)
-    print(f"wrote {args.out}")
+    args.figure.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(args.figure, dpi=80)
+    print(f"wrote {args.figure}")
 
 
 if __name__ == "__main__":

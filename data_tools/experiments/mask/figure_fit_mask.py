@@ -1,7 +1,8 @@
 """README figure: the masks learned by ``enmi-fit-mask`` from lidar-like and camera-like pairs.
 
-    python data_tools/mask/figure_fit_mask.py                                        # writes runs/fit_mask.png
-    python data_tools/mask/figure_fit_mask.py --out data_tools/figures/fit_mask.png  # regenerates the README figure
+    python -m data_tools.experiments.mask.figure_fit_mask  # writes runs/fit_mask.png
+    # regenerates the README figure
+    python -m data_tools.experiments.mask.figure_fit_mask --figure docs/images/fit_mask.png
 
 Runs the default configuration (configs/fit_mask.yaml) twice, once per synthetic flavour, and stacks the two mask
 figures the command writes (learned, empirical and true variance on one colour scale, and one held-out residual).
@@ -21,8 +22,8 @@ from enmi_torch.training.fit_mask import fit_mask
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("runs/fit_mask.png"), help="PNG to write")
-    output = parser.parse_args().out
+    parser.add_argument("--figure", type=Path, default=Path("runs/fit_mask.png"), help="PNG to write")
+    output = parser.parse_args().figure
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for flavour in ("lidar", "camera"):

@@ -4,12 +4,13 @@ import json
 import numpy as np
 import pytest
 import torch
-from _data_tools import load_data_tool
+
+from data_tools.experiments.yardstick import scene_change
 
 
 @pytest.fixture(scope="module")
 def yardstick():
-    return load_data_tool("yardstick/scene_change.py", "scene_change_yardstick")
+    return scene_change
 
 
 def _crop(trials, index, size):

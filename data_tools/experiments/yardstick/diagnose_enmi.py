@@ -11,8 +11,8 @@ under the noisy half of the local footprint (averaged over trials, with its stan
 that null surface. On aligned trials it reports the peak's z-score: (score at the truth - mean) / std over the
 placements. A score that weighs evidence by precision (ECR) has no content term and a sharper peak.
 
-    python data_tools/yardstick/diagnose_enmi.py          # camera photograph, mean sigma 240, 60 trials, ~1 min
-    python data_tools/yardstick/diagnose_enmi.py --map astronaut --sigma 120 --trials 100
+    python -m data_tools.experiments.yardstick.diagnose_enmi  # camera photograph, mean sigma 240, 60 trials, ~1 min
+    python -m data_tools.experiments.yardstick.diagnose_enmi --map astronaut --sigma 120 --trials 100
 """
 
 from __future__ import annotations
@@ -21,17 +21,12 @@ import argparse
 import math
 import sys
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import torch
 
-import torch  # noqa: E402
-
-from data_tools.yardstick.yardstick import LOCAL, MAPS, RADIUS, map_image, variance_profile  # noqa: E402
-from enmi_torch.binning import hard_bin_index  # noqa: E402
-from enmi_torch.scores import ECR, ENMI, NCC, NMI  # noqa: E402
+from data_tools.experiments.yardstick.yardstick import LOCAL, MAPS, RADIUS, map_image, variance_profile
+from enmi_torch.binning import hard_bin_index
+from enmi_torch.scores import ECR, ENMI, NCC, NMI
 
 BINS = 32
 

@@ -4,14 +4,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _data_tools import load_data_tool
 
+from data_tools.experiments.mask import scene_change_pairs
 from enmi_torch.data.pairs import PairDataset
 
 
 @pytest.fixture(scope="module")
 def pairs_tool():
-    return load_data_tool("mask/scene_change_pairs.py", "scene_change_pairs")
+    return scene_change_pairs
 
 
 def _real_folders(root: Path) -> None:

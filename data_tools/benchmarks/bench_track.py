@@ -1,35 +1,27 @@
 """One step of the tracking filter against one ``localize`` call of the same window, in one run.
 
-A 64 x 64 frame (the drive's camera model, ``data_tools/drive/drive.py``), a window of +-8 cells and 5 yaws one degree
-apart, ECR with a per-pixel variance and the tracker's default spatially correlated misfit (``--misfit independent``
-for ECR's own default): ``track_step`` (predict, the search, update, pose read-out and health) against
-the bare ``localize`` call, interleaved in rounds on one thread; the table gives the medians of the per-round times
-and of the per-round ratios.
+A 64 x 64 frame (the drive's camera model, ``data_tools.experiments.drive.drive``), a window of +-8 cells and 5 yaws one
+degree apart, ECR with a per-pixel variance and the tracker's default spatially correlated misfit (``--misfit
+independent`` for ECR's own default): ``track_step`` (predict, the search, update, pose read-out and health) against the
+bare ``localize`` call, interleaved in rounds on one thread; the table gives the medians of the per-round times and of
+the per-round ratios.
 
-    python data_tools/drive/bench_track.py              # ~1 min on 2 cores
-    python data_tools/drive/bench_track.py --bins 16 --rounds 40
-    python data_tools/drive/bench_track.py --misfit independent
+    python -m data_tools.benchmarks.bench_track              # ~1 min on 2 cores
+    python -m data_tools.benchmarks.bench_track --bins 16 --rounds 40
+    python -m data_tools.benchmarks.bench_track --misfit independent
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
 import time
-from pathlib import Path
 
 import torch
 
+from data_tools.experiments.drive import drive as drive_tools
 from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import default_score, initial_belief, track_step
-
-
-def _drive():
-    spec = importlib.util.spec_from_file_location("drive", Path(__file__).with_name("drive.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _seconds(call, repeats: int) -> float:
@@ -51,7 +43,6 @@ def main(argv=None) -> None:
     )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    drive_tools = _drive()
     drive = drive_tools.Drive(12, seed=0)
     index = 10
     frame = drive.frames[index : index + 1].float()

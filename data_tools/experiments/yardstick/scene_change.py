@@ -36,7 +36,7 @@ map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best uniform`` t
 oracle); ``ECR linear true`` and ``ECR linear uniform`` (``response="linear"`` with the true variance and with its
 mean); ENMI true; NMI; NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask`` (a ``(64, 64)``
 ``.npy`` variance map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the pairs of
-``data_tools/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
+``data_tools/experiments/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
 
 The report gives each method's success, and each method minus ``ECR true`` paired per trial with its SE.
 
@@ -44,15 +44,15 @@ Writes ``results.csv`` (outcomes per trial as bits, and the estimated ``tau^2`` 
 learned``), ``calibration.json``, ``data.json`` and ``report.md`` into ``--output`` (refusing files git tracks), and
 prints the report.
 
-    python data_tools/yardstick/scene_change.py --trials 12 --cases same tone@1 --output /tmp/sc   # a minute or two
-    python data_tools/yardstick/scene_change.py --trials 100 --jobs 2                            # the full table
+    # a minute or two
+    python -m data_tools.experiments.yardstick.scene_change --trials 12 --cases same tone@1 --output /tmp/sc
+    python -m data_tools.experiments.yardstick.scene_change --trials 100 --jobs 2  # the full table
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import importlib.util
 import json
 import math
 import subprocess
@@ -65,22 +65,13 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from data_tools.experiments.yardstick import yardstick
 from enmi_torch import ECR, ENMI, NCC, NMI
 from enmi_torch.data.scene_change import CHANGES, scene_change
 from enmi_torch.scores.ecr import default_model_variance
 from enmi_torch.utils.files import read_npy
 
-
-def _noise_only_yardstick():
-    """Today's noise-only yardstick (maps, profiles, response, success rule), imported from ``yardstick.py`` beside."""
-    path = Path(__file__).resolve().parent / "yardstick.py"
-    spec = importlib.util.spec_from_file_location("_noise_only_yardstick", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-NOISE_ONLY = _noise_only_yardstick()
+NOISE_ONLY = yardstick  # the noise-only yardstick: maps, profiles, response, success rule
 LOCAL, RADIUS, BINS = NOISE_ONLY.LOCAL, NOISE_ONLY.RADIUS, NOISE_ONLY.BINS
 VALUE_RANGE = (0.0, 256.0)
 SPAN = LOCAL + 2 * RADIUS

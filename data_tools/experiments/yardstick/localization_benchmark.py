@@ -28,14 +28,15 @@ With ``--response nonmonotonic`` the local sensor sees the ground through a non-
 (``255 |2 v / 255 - 1|^0.8``: mid-grey road bright, dark gravel and white paint both dark), as when a camera image is
 matched against a map made by another sensor: the case mutual information is for, and where correlation fails.
 
-Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model and writes
-the figure ``runs/localization_success.png`` (``localization_success_nonmonotonic.png``), or ``--figure``.
+Success: |dx|, |dy| errors <= 1 cell and yaw error <= 1 degree. Prints one table per map and sensor model;
+``--figure PATH`` also draws success against noise into PATH.
 
-    python data_tools/yardstick/localization_benchmark.py                 # 26 s (quiet) to 150 s (busy) on a 2-core CPU
-    python data_tools/yardstick/localization_benchmark.py --response nonmonotonic
-    python data_tools/yardstick/localization_benchmark.py --trials 100    # tighter rates
-    python data_tools/yardstick/localization_benchmark.py --figure data_tools/figures/localization_success.png
-    python data_tools/yardstick/localization_benchmark.py --example runs/example   # files for the command line tool
+    python -m data_tools.experiments.yardstick.localization_benchmark  # 26 s (quiet) to 150 s (busy) on a 2-core CPU
+    python -m data_tools.experiments.yardstick.localization_benchmark --response nonmonotonic
+    python -m data_tools.experiments.yardstick.localization_benchmark --trials 100    # tighter rates
+    python -m data_tools.experiments.yardstick.localization_benchmark --figure docs/images/localization_success.png
+    # files for the command line tool
+    python -m data_tools.experiments.yardstick.localization_benchmark --example runs/example
 """
 
 from __future__ import annotations
@@ -68,7 +69,6 @@ METHODS = (
     "NMI",
     "NCC",
 )
-FIGURE = Path("runs/localization_success.png")
 
 
 def prior_map(name: str) -> torch.Tensor:
@@ -235,7 +235,7 @@ def main() -> None:
     parser.add_argument("--bins", type=int, default=16, help="bins of ENMI and NMI (16 suit ~3000 valid cells)")
     parser.add_argument("--response", choices=("identity", "nonmonotonic"), default="identity")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--figure", type=Path, help=f"default {FIGURE} (with _nonmonotonic for that response)")
+    parser.add_argument("--figure", type=Path, help="draw success against noise into this PNG")
     parser.add_argument("--example", type=Path, help="only write the command-line example files to this folder")
     parser.add_argument("--overwrite", action="store_true", help="let --example replace the files of an earlier call")
     args = parser.parse_args()
@@ -263,11 +263,10 @@ def main() -> None:
                 tqdm.write(f"| {power:g} | {cells} |")
                 bar.update()
     bar.close()
-    figure = args.figure
-    if figure is None:
-        figure = FIGURE if args.response == "identity" else FIGURE.with_name(f"{FIGURE.stem}_{args.response}.png")
-    plot(rates, args.trials, args.bins, args.response, figure)
-    print(f"\nwrote {figure} in {time.perf_counter() - start:.0f} s")
+    if args.figure is not None:
+        plot(rates, args.trials, args.bins, args.response, args.figure)
+        print(f"\nwrote {args.figure}")
+    print(f"\n{time.perf_counter() - start:.0f} s")
 
 
 if __name__ == "__main__":

@@ -31,11 +31,16 @@ Methods (32 bins for the binned scores):
   mean x {1/16, 1/4, 1, 4, 16} picked per cell after the fact (an oracle no user has); hard NMI; NCC.
 
 Prints one table per response and profile (success rate and its standard error), the paired differences that decide
-the claims, and where failures put their peak (share on the window's edge), and writes a CSV and a figure. Nothing
-tracked is written unless ``--output`` points into the repository.
+the claims, and where failures put their peak (share on the window's edge), and writes a CSV; ``--figure PATH`` also
+draws success against noise, averaged over the maps. Nothing tracked is written unless a path points into the
+repository.
 
-    python data_tools/yardstick/yardstick.py --trials 100 --jobs 2 --output /tmp/yardstick     # ~30 min on 2 cores
-    python data_tools/yardstick/yardstick.py --trials 8 --maps camera --levels 120 --output /tmp/quick   # a minute
+    # ~30 min on 2 cores
+    python -m data_tools.experiments.yardstick.yardstick --trials 100 --jobs 2 --output /tmp/yardstick
+    # a minute
+    python -m data_tools.experiments.yardstick.yardstick --trials 8 --maps camera --levels 120 --output /tmp/quick
+    python -m data_tools.experiments.yardstick.yardstick --report --output data_tools/results/yardstick \
+        --figure docs/images/yardstick.png                                            # the committed tables and figure
 """
 
 from __future__ import annotations
@@ -252,8 +257,8 @@ def methods_in(table) -> list[str]:
     return [method for method in METHODS if method in present]
 
 
-def report(rows: list, output: Path) -> None:
-    """Tables, paired claims and the figure from the result rows."""
+def report(rows: list, figure: Path | None = None) -> None:
+    """Tables and paired claims from the result rows; the figure too where ``figure`` names its PNG."""
     table = {}
     for map_name, profile, response, level, label, successes, trials, edge, bits in rows:
         table[map_name, profile, response, level, _method(label)] = (label, successes, trials, edge, bits)
@@ -278,7 +283,9 @@ def report(rows: list, output: Path) -> None:
     _print_summary(table, keys)
     _print_claims(table, keys)
     _print_edges(table, keys)
-    _plot(table, keys, output.with_suffix(".png"))
+    if figure is not None:
+        _plot(table, keys, figure)
+        print(f"\nwrote {figure}")
 
 
 def _print_summary(table, keys) -> None:
@@ -465,7 +472,8 @@ def main(argv=None) -> None:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (one torch thread each)")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="a subset of the methods")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--output", type=Path, default=Path("/tmp/enmi_yardstick"), help="CSV and PNG path stem")
+    parser.add_argument("--output", type=Path, default=Path("/tmp/enmi_yardstick"), help="CSV path (stem)")
+    parser.add_argument("--figure", type=Path, help="draw success against noise into this PNG")
     parser.add_argument("--report", action="store_true", help="only print the tables of an existing --output CSV")
     args = parser.parse_args(argv)
     if args.trials < 2 or args.jobs < 1 or args.pairs < 2:
@@ -479,7 +487,7 @@ def main(argv=None) -> None:
                 (*row[:3], float(row[3]), row[4], int(row[5]), int(row[6]), int(row[7]), row[8])
                 for row in list(csv.reader(file))[1:]
             ]
-        report(rows, output)
+        report(rows, args.figure)
         return
     output.parent.mkdir(parents=True, exist_ok=True)
     chosen = cells(args)
@@ -521,7 +529,7 @@ def main(argv=None) -> None:
         f"in {time.perf_counter() - start:.0f} s "
         f"(one torch thread per job, {args.jobs} jobs); wrote {output}"
     )
-    report(rows, output)
+    report(rows, args.figure)
 
 
 if __name__ == "__main__":

@@ -2,15 +2,16 @@ import json
 
 import numpy as np
 import pytest
-from _data_tools import load_data_tool
 from PIL import Image
 from scipy import ndimage
 from skimage import data
 
+from data_tools.experiments.yardstick import prepare_scene_change
+
 
 @pytest.fixture(scope="module")
 def prep():
-    return load_data_tool("yardstick/prepare_scene_change.py", "prepare_scene_change")
+    return prepare_scene_change
 
 
 @pytest.fixture(scope="module")

@@ -1,18 +1,18 @@
-r"""Pairs for ``train/fit_mask.py`` whose captured image is a changed scene plus sensor noise (issue 19, the main job).
+r"""Pairs for ``train/fit_mask.py`` whose captured image is a changed scene plus sensor noise (the main job).
 
 Each pair is a 64 x 64 prior section of a map and the captured image of the same ground (co-registered, the yardstick's
 size): a scene change of a real photograph (``controlled``: the changes of :mod:`enmi_torch.data.scene_change`, all
 kinds mixed, strength drawn in ``--strength``, made on the 88 x 88 window around the section as the yardstick makes
 them) or a real pair of another date or modality (``real:<case>/<dataset>`` from ``--data``, a random crop), plus
-Gaussian noise of the sensor's per-pixel variance (``yardstick.py``'s profiles, mean sigma ``--level``). The places
-are held out from ``data_tools/yardstick/scene_change.py``'s trials: the photographs are not the yardstick's maps
+Gaussian noise of the sensor's per-pixel variance (``yardstick.py``'s profiles, mean sigma ``--level``). The places are
+held out from ``data_tools.experiments.yardstick.scene_change``'s trials: the photographs are not the yardstick's maps
 (:data:`PHOTOGRAPHS`), and real pairs come from the ``--real-folders`` half of each dataset (``even`` by default; run
 the yardstick with ``--real-folders odd``). ``meta.json`` names the sensor's variance map as the truth (the dashboards'
 analytic map) and lists the settings and the real folders drawn from.
 
-    python data_tools/mask/scene_change_pairs.py runs/pairs_controlled --sources controlled --level 60
+    python -m data_tools.experiments.mask.scene_change_pairs runs/pairs_controlled --sources controlled --level 60
     python train/fit_mask.py --data.root runs/pairs_controlled --data.batch_size 64 --trainer.max_epochs 10
-    python data_tools/yardstick/scene_change.py --levels 60 --sensors camera-like --real-folders odd \
+    python -m data_tools.experiments.yardstick.scene_change --levels 60 --sensors camera-like --real-folders odd \
         --learned-mask runs/fit_mask/version_0/mask/variance_mask.npy --methods "ECR learned" "ECR true" ...
 """
 
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -29,6 +28,7 @@ import numpy as np
 import torch
 from skimage import color, data
 
+from data_tools.experiments.yardstick import scene_change as scene_change_yardstick
 from enmi_torch.data.pairs import write_pairs
 from enmi_torch.data.scene_change import CHANGES, scene_change
 from enmi_torch.data.truth import VarianceTruth
@@ -37,16 +37,7 @@ from enmi_torch.data.truth import VarianceTruth
 PHOTOGRAPHS = ("grass", "chelsea", "coins", "moon", "retina", "immunohistochemistry")
 
 
-def _yardstick():
-    """``data_tools/yardstick/scene_change.py`` (real pairs, folder halves, the sensors' profiles)."""
-    path = Path(__file__).resolve().parents[1] / "yardstick" / "scene_change.py"
-    spec = importlib.util.spec_from_file_location("_scene_change_yardstick", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-YARDSTICK = _yardstick()
+YARDSTICK = scene_change_yardstick  # real pairs, folder halves, the sensors' profiles
 LOCAL, SPAN = YARDSTICK.LOCAL, YARDSTICK.SPAN
 
 
@@ -147,7 +138,9 @@ def main(argv=None) -> None:
     except ValueError as error:
         parser.error(str(error))
     settings = {key: str(value) if isinstance(value, Path) else value for key, value in vars(args).items()}
-    source = json.dumps({"made_by": "data_tools/mask/scene_change_pairs.py", **settings, "real_folders_used": used})
+    source = json.dumps(
+        {"made_by": "data_tools.experiments.mask.scene_change_pairs", **settings, "real_folders_used": used}
+    )
     count = write_pairs(args.output, pairs, truth=truth, source=source)
     print(f"wrote {count} pairs of {LOCAL} x {LOCAL} to {args.output} ({', '.join(args.sources)})", file=sys.stderr)
 

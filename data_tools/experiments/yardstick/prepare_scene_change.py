@@ -1,7 +1,8 @@
 """Turn downloaded copies of public scene-change datasets into the yardstick's co-registered pair folders.
 
 Usage:
-    python data_tools/yardstick/prepare_scene_change.py --dataset levir-cd --source DIR --out DIR [--correct]
+    python -m data_tools.experiments.yardstick.prepare_scene_change --dataset levir-cd --source DIR \
+        --out DIR [--correct]
 
 Each pair becomes ``OUT/<case>/<dataset>-<id>/`` with ``reference.npy`` (the map: the older date, the street-map
 rendering, the optical image) and ``captured.npy`` (the other date or modality), both grey float32 in [0, 255] and of

@@ -1,6 +1,6 @@
 """With few pairs, the mask's prior matters: per-pixel, smooth, and parametric (radial, perspective) fits compared.
 
-    python data_tools/mask/compare_mask_forms.py
+    python -m data_tools.experiments.mask.compare_mask_forms
 
 Runs ``enmi-fit-mask`` on 32 synthetic pairs of 128 x 128 (lidar-like and camera-like) with each form and prints
 the relative RMS error of the learned mask against the true variance, next to the paper's empirical mask's.

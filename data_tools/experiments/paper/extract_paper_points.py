@@ -3,8 +3,9 @@ r"""Extract the plotted points of the paper's Fig. simPerformance (committed as 
 The figure's data is the pgfplots file ``FiguresNMI/plot.tex``, appended at the end of the paper's source
 (``aspconArXiv.tex``): two ``\addplot coordinates{...}`` blocks, NMI first, ENMI second, over the same N0 values.
 
-    python data_tools/paper/extract_paper_points.py path/to/aspconArXiv.tex    # writes runs/paper_points.csv
-    python data_tools/paper/extract_paper_points.py path/to/aspconArXiv.tex --output configs/paper_points.csv
+    python -m data_tools.experiments.paper.extract_paper_points path/to/aspconArXiv.tex  # writes runs/paper_points.csv
+    python -m data_tools.experiments.paper.extract_paper_points path/to/aspconArXiv.tex \
+        --output configs/paper_points.csv
 """
 
 from __future__ import annotations

@@ -1,14 +1,15 @@
-"""data_tools/benchmarks/bench_register.py runs on a tiny cell and refuses bad cells in one line."""
+"""data_tools.benchmarks.bench_register runs on a tiny cell and refuses bad cells in one line."""
 
 from __future__ import annotations
 
 import pytest
-from _data_tools import load_data_tool
+
+from data_tools.benchmarks import bench_register
 
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_data_tool("benchmarks/bench_register.py", "_bench_register")
+    return bench_register
 
 
 def test_a_tiny_run_prints_its_table(bench, capsys):

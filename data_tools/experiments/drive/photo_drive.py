@@ -1,20 +1,20 @@
 """Track drives over real photographs taken on two dates: the map from one, the frames from the other.
 
-The pairs are the co-registered folders written by ``data_tools/yardstick/prepare_scene_change.py`` (``reference.npy``,
-the older date, is the map; ``captured.npy``, the other date, is what the vehicle sees), one map cell per pixel.
-Each drive goes round a loop of ``--frames`` frames (radius ``--radius`` cells about the map's centre, yaw 0); each
-frame is the 64 x 64 cut of the other date's photograph centred on the true cell, plus camera-like noise whose
-standard deviation grows tenfold from the near (bottom) row to the far (top) row, so the far rows are 100 times
-noisier in variance; its mean over the rows is ``--sigma`` grey levels. The odometry over-reads each move by 6 %
-and adds white noise of 0.3 cells. The filter runs as README shows it (``Tracker(map, shifts=8, yaw_bins=3,
-motion_noise=(0.5, 0.5, 0.3))``, no calibration); per-frame argmax searches the same window around the previous
-estimate moved by the odometry and takes the best candidate. ``--oracle`` adds a reference that no tracker can run,
-oracle gating: each frame is searched in the window centred on the truth, its best candidate taken where it is
-within one cell of the truth, the odometry dead-reckoned through the other frames. It measures how much of a drive
-the frames and the odometry leave to be lost even by a filter that never takes a wrong match. ``--temperatures auto
-5 10 30`` adds the filter with hand-set temperatures (``Tracker(..., temperature=T)``) beside README's automatic one:
-a grid of controls, a row "filter, temperature T" each; the best of them, chosen on these same drives, is what tuning
-the temperature could reach.
+The pairs are the co-registered folders written by ``data_tools.experiments.yardstick.prepare_scene_change``
+(``reference.npy``, the older date, is the map; ``captured.npy``, the other date, is what the vehicle sees), one map
+cell per pixel. Each drive goes round a loop of ``--frames`` frames (radius ``--radius`` cells about the map's centre,
+yaw 0); each frame is the 64 x 64 cut of the other date's photograph centred on the true cell, plus camera-like noise
+whose standard deviation grows tenfold from the near (bottom) row to the far (top) row, so the far rows are 100 times
+noisier in variance; its mean over the rows is ``--sigma`` grey levels. The odometry over-reads each move by 6 % and
+adds white noise of 0.3 cells. The filter runs as README shows it (``Tracker(map, shifts=8, yaw_bins=3,
+motion_noise=(0.5, 0.5, 0.3))``, no calibration); per-frame argmax searches the same window around the previous estimate
+moved by the odometry and takes the best candidate. ``--oracle`` adds a reference that no tracker can run, oracle
+gating: each frame is searched in the window centred on the truth, its best candidate taken where it is within one cell
+of the truth, the odometry dead-reckoned through the other frames. It measures how much of a drive the frames and the
+odometry leave to be lost even by a filter that never takes a wrong match. ``--temperatures auto 5 10 30`` adds the
+filter with hand-set temperatures (``Tracker(..., temperature=T)``) beside README's automatic one: a grid of controls, a
+row "filter, temperature T" each; the best of them, chosen on these same drives, is what tuning the temperature could
+reach.
 
 Methods: ECR (the tracker's default score) with the true per-row variance and with a uniform variance
 (``--uniform-scales`` times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
@@ -23,11 +23,14 @@ independent misfit instead. "Within 1 cell": on both axes; "lost": more than 4 c
 filter's 95 % ellipse holds the truth; "raised": drives that ended in an exception. A second table pairs each row with
 the first on the same drives; the last line is JSON with every drive's values, pair by pair and seed by seed.
 
-    python data_tools/yardstick/prepare_scene_change.py --dataset levir-cd --source DIR --out runs/pairs --correct
-    python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2
-    python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --misfit independent
-    python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --methods ecr_true ncc nmi --oracle
-    python data_tools/drive/photo_drive.py --pairs runs/pairs --seeds 0 1 2 --methods ecr_true --temperatures auto 10
+    python -m data_tools.experiments.yardstick.prepare_scene_change --dataset levir-cd --source DIR \
+        --out runs/pairs --correct
+    python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2
+    python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --misfit independent
+    python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --methods ecr_true ncc nmi \
+        --oracle
+    python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --methods ecr_true \
+        --temperatures auto 10
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """README figure for NMI and ENMI: score against shift on a real image with noise that grows with distance.
 
-    python data_tools/paper/draw_enmi_scores.py                                       # writes runs/enmi_vs_nmi.png
-    python data_tools/paper/draw_enmi_scores.py --out data_tools/figures/enmi_vs_nmi.png  # the README figure
+    python -m data_tools.experiments.paper.draw_enmi_scores  # writes runs/enmi_vs_nmi.png
+    python -m data_tools.experiments.paper.draw_enmi_scores --figure docs/images/enmi_vs_nmi.png  # the README figure
 
 The reference is a 48 x 48 crop of scikit-image's bundled CC0 ``gravel()``; the captured image is the crop
 shifted by s pixels plus Gaussian noise of variance N0 (1 + 99 d^3), d the row's distance from the bottom
@@ -38,7 +38,7 @@ def variance_map(size: int, noise_power: float) -> torch.Tensor:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("runs/enmi_vs_nmi.png"), help="PNG to write")
+    parser.add_argument("--figure", type=Path, default=Path("runs/enmi_vs_nmi.png"), help="PNG to write")
     parser.add_argument("--draws", type=int, default=100, help="noise draws per N0 (default 100)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -86,12 +86,12 @@ def main() -> None:
     axes[2].legend(fontsize=8)
     axes[2].grid(alpha=0.3)
     figure.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=80)
+    args.figure.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(args.figure, dpi=80)
     print("N0 | " + " | ".join(success))
     for index, noise_power in enumerate(NOISE_POWERS):
         print(f"{noise_power:g} | " + " | ".join(f"{rates[index]:.2f}" for rates in success.values()))
-    print(f"wrote {args.out}")
+    print(f"wrote {args.figure}")
 
 
 if __name__ == "__main__":
