@@ -42,8 +42,10 @@ import numpy as np
 import torch
 
 from data_tools.experiments.yardstick import yardstick
-from enmi_torch import ECR, NCC, localize, register, value_checks, warp_reference
+from enmi_torch import ECR, NCC, localize, register
 from enmi_torch.data.scene_change import scene_change
+from enmi_torch.registration import warp_reference
+from enmi_torch.utils.checks import value_checks
 
 PHOTOGRAPHS = ("camera", "astronaut", "coffee", "rocket")
 LOCAL = 64

@@ -53,15 +53,17 @@ import torch
 import torch.nn.functional as F
 from skimage import data
 
-from enmi_torch import GroundGrid, Localization, NoCandidateError, RoadCamera, rectify, unrectify, value_checks
+from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify
 from enmi_torch.data.scene_change import scene_change
 from enmi_torch.geometry.rectify import ground_to_image_homography
+from enmi_torch.localization import NoCandidateError
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
 from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature, default_score
 from enmi_torch.tracking.belief import check_mismatch_probability, finite_floor
 from enmi_torch.tracking.health import peak_z_score
+from enmi_torch.utils.checks import value_checks
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
 

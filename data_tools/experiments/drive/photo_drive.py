@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from enmi_torch import ECR, NCC, NMI, NoCandidateError, localize
+from enmi_torch import ECR, NCC, NMI, localize
+from enmi_torch.localization import NoCandidateError
 from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import CHI2_95_2D, Tracker, default_score
 from enmi_torch.tracking.belief import check_mismatch_probability

@@ -23,7 +23,8 @@ import torch
 from skimage import data
 from tqdm import tqdm
 
-from enmi_torch import enmi, nmi
+from enmi_torch.scores.enmi import enmi
+from enmi_torch.scores.nmi import nmi
 
 SIZE = 48
 SHIFTS = range(-6, 7)
