@@ -1,9 +1,7 @@
-"""``python data_tools/make_pairs.py`` runs ``enmi-make-pairs``: write synthetic local/prior pairs (``--help``)."""
+"""``python -m data_tools.make_pairs`` runs ``enmi-make-pairs``: write synthetic local/prior pairs (``--help``).
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the clone's enmi_torch, installed or not
+Run from the repository root, it uses the clone's ``enmi_torch`` whether or not it is installed.
+"""
 
 from enmi_torch.cli.make_pairs import main
 

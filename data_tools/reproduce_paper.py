@@ -1,9 +1,7 @@
-"""``python data_tools/reproduce_paper.py`` runs ``enmi-reproduce-paper``: the paper's Fig. simPerformance."""
+"""``python -m data_tools.reproduce_paper`` runs ``enmi-reproduce-paper``: the paper's Fig. simPerformance.
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the clone's enmi_torch, installed or not
+Run from the repository root, it uses the clone's ``enmi_torch`` whether or not it is installed.
+"""
 
 from enmi_torch.cli.reproduce_paper import main
 

@@ -1,8 +1,6 @@
 import json
 import math
 import re
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -763,33 +761,6 @@ def test_command_line_hints_work_as_written(gravel_map, tmp_path, capsys):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # torch warns on a read-only array: none here
         _command(["--map", str(tmp_path / "map.png"), "--local", str(tmp_path / "local.png"), "--variance", "4"])
-
-
-def test_command_line_example_names_the_files_the_example_writer_makes(tmp_path):
-    from enmi_torch.localization.cli import _EPILOG
-
-    tool = ROOT / "data_tools" / "yardstick" / "localization_benchmark.py"
-    completed = subprocess.run(
-        [sys.executable, str(tool), "--example", str(tmp_path)], capture_output=True, text=True, timeout=300
-    )
-    assert completed.returncode == 0, completed.stderr
-    named = set(re.findall(r"runs/example/(\w+\.npy)", _EPILOG))
-    assert named and named <= {path.name for path in tmp_path.iterdir()}
-    # A second call refuses to replace the files (one line, exit 2) unless --overwrite.
-    before = {path.name: path.stat().st_mtime_ns for path in tmp_path.iterdir()}
-    again = subprocess.run(
-        [sys.executable, str(tool), "--example", str(tmp_path)], capture_output=True, text=True, timeout=300
-    )
-    assert again.returncode == 2 and "already holds" in again.stderr and "--overwrite" in again.stderr
-    assert "Traceback" not in again.stderr
-    assert {path.name: path.stat().st_mtime_ns for path in tmp_path.iterdir()} == before
-    replaced = subprocess.run(
-        [sys.executable, str(tool), "--example", str(tmp_path), "--overwrite"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert replaced.returncode == 0, replaced.stderr
 
 
 def test_a_nan_is_refused_naming_the_mask_argument_of_the_function(gravel_map):

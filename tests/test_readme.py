@@ -1,9 +1,10 @@
-"""README's examples run and print what README says they print.
+"""README's and docs/examples.md's examples run and print what they say they print; README stays short.
 
 An example is a ``python`` block followed by the ``text`` block of its output, or a ``console`` block of ``$ ``
 commands, each followed by its output. ``...`` in an output stands for any text (doctest's ELLIPSIS). An example
-after a ``<!-- slow -->`` line runs with ``pytest -m slow``. All run in one folder that sees the repository's
-``configs``, ``data_tools`` and ``train``, in README's order (the mask example reads what the command wrote).
+after a ``<!-- slow -->`` line runs with ``pytest -m slow``. Each document's examples run in a folder of their own that
+sees the repository's ``configs``, ``data_tools`` and ``train``, in the document's order (the mask example reads what
+the command before it wrote).
 """
 
 import contextlib
@@ -19,11 +20,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BLOCK = re.compile(r"^(<!-- slow -->\n)?```(\w+)\n(.*?)^```\n", re.MULTILINE | re.DOTALL)
+DOCUMENTS = ("README.md", "docs/examples.md")
+README_LINES = 150
 
 
-def readme_examples() -> list:
-    """``pytest.param((language, code, expected))`` per example, marked slow where README says so."""
-    text = (ROOT / "README.md").read_text()
+def readme_examples(document: str = "README.md") -> list:
+    """``pytest.param((document, language, code, expected))`` per example, marked slow where the document says so."""
+    text = (ROOT / document).read_text()
     blocks = list(BLOCK.finditer(text))
     examples = []
     for index, block in enumerate(blocks):
@@ -31,30 +34,40 @@ def readme_examples() -> list:
         line = text.count("\n", 0, block.start()) + 1
         if language == "python":
             after = blocks[index + 1] if index + 1 < len(blocks) else None
-            assert after is not None and after.group(2) == "text", f"README line {line}: no output after the example"
-            assert text[block.end() : after.start()].strip() == "", f"README line {line}: text before the output"
-            example = ("python", body, after.group(3))
+            assert after is not None and after.group(2) == "text", (
+                f"{document} line {line}: no output after the example"
+            )
+            assert text[block.end() : after.start()].strip() == "", f"{document} line {line}: text before the output"
+            example = (document, "python", body, after.group(3))
         elif language == "console":
-            example = ("console", body, None)
+            example = (document, "console", body, None)
         else:
             continue
         marks = [pytest.mark.slow] if slow else []
-        examples.append(pytest.param(example, id=f"line{line}-{language}", marks=marks))
+        examples.append(pytest.param(example, id=f"{Path(document).stem}-line{line}-{language}", marks=marks))
     return examples
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory) -> Path:
-    working = tmp_path_factory.mktemp("readme")
-    for name in ("configs", "data_tools", "train"):
-        (working / name).symlink_to(ROOT / name)
-    return working
+def folders(tmp_path_factory) -> dict:
+    """One working folder per document, made on first use."""
+    made = {}
+
+    def folder(document: str) -> Path:
+        if document not in made:
+            working = tmp_path_factory.mktemp(Path(document).stem)
+            for name in ("configs", "data_tools", "train"):
+                (working / name).symlink_to(ROOT / name)
+            made[document] = working
+        return made[document]
+
+    return folder
 
 
 def check_output(expected: str, actual: str, what: str) -> None:
     actual = "\n".join(line.rstrip() for line in actual.splitlines()) + "\n"
     if not doctest.OutputChecker().check_output(expected, actual, doctest.ELLIPSIS):
-        pytest.fail(f"{what} printed\n{actual}\nbut README says\n{expected}")
+        pytest.fail(f"{what} printed\n{actual}\nbut the document says\n{expected}")
 
 
 def console_commands(body: str) -> list[tuple[str, str]]:
@@ -69,18 +82,28 @@ def console_commands(body: str) -> list[tuple[str, str]]:
 
 
 def test_examples_exist():
-    languages = [param.values[0][0] for param in readme_examples()]
-    assert languages.count("python") >= 5 and languages.count("console") >= 3
+    languages = [param.values[0][1] for param in readme_examples()]
+    assert languages.count("python") >= 5 and languages.count("console") >= 1
+    languages = [param.values[0][1] for param in readme_examples("docs/examples.md")]
+    assert languages.count("python") >= 2 and languages.count("console") >= 3
 
 
-@pytest.mark.parametrize("example", readme_examples())
-def test_readme_example(example, folder, monkeypatch):
-    language, body, expected = example
+def test_readme_is_short():
+    lines = (ROOT / "README.md").read_text().count("\n")
+    assert lines <= README_LINES, (
+        f"README.md has {lines} lines, at most {README_LINES}: move examples to docs/examples.md"
+    )
+
+
+@pytest.mark.parametrize("example", [param for document in DOCUMENTS for param in readme_examples(document)])
+def test_readme_example(example, folders, monkeypatch):
+    document, language, body, expected = example
+    folder = folders(document)
     monkeypatch.chdir(folder)
     if language == "python":
         printed = io.StringIO()
         with contextlib.redirect_stdout(printed):
-            exec(compile(body, "README.md", "exec"), {"__name__": "__readme__"})
+            exec(compile(body, document, "exec"), {"__name__": "__readme__"})
         check_output(expected, printed.getvalue(), "the example")
         return
     environment = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}

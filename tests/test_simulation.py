@@ -5,7 +5,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _data_tools import load_data_tool
 
 from enmi_torch.functional import enmi, gaussian_log_prior, nmi
 from enmi_torch.geometry.camera import RoadCamera
@@ -20,10 +19,6 @@ from enmi_torch.simulation import (
 )
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def _load_data_tool(name: str):
-    return load_data_tool(f"paper/{name}.py", name)
 
 
 @pytest.fixture(scope="module")
@@ -289,20 +284,6 @@ def test_enmi_is_never_worse_than_nmi(issue_rates):
 def test_invalid_inputs_raise_clear_errors(paper_tiles, call, error, message):
     with pytest.raises(error, match=message):
         call(paper_tiles)
-
-
-def test_extract_paper_points_reads_the_plot_part():
-    tool = _load_data_tool("extract_paper_points")
-    tex = (
-        "\\begin{document} (0.5,0.9) \\end{document}\n%% file: FiguresNMI/plot.tex\n"
-        "\\addplot [blue] coordinates{ (0.001,0.0) (0.01, 0.25)\n(2.0,0.5) };\n"
-        "\\addplot [black] coordinates{\n(0.001,0.0)\n(0.01,0.0048)\n(2.0,0.49)\n};\n"
-    )
-    assert tool.extract_points(tex) == [("0.001", "0.0", "0.0"), ("0.01", "0.25", "0.0048"), ("2.0", "0.5", "0.49")]
-    with pytest.raises(ValueError, match="plot part"):
-        tool.extract_points("no plot here")
-    with pytest.raises(ValueError, match="same N0"):
-        tool.extract_points(tex.replace("(2.0,0.49)", "(3.0,0.49)"))
 
 
 def test_committed_paper_points_are_the_papers_plot():

@@ -1,7 +1,7 @@
 """How soon ``enmi-fit-mask`` answers ``--help`` and a mistake, against the floors of starting Python and torch.
 
-    python data_tools/benchmarks/bench_command_start.py              # 5 rounds, about a minute
-    python data_tools/benchmarks/bench_command_start.py --rounds 3
+    python -m data_tools.benchmarks.bench_command_start              # 5 rounds, about a minute
+    python -m data_tools.benchmarks.bench_command_start --rounds 3
 
 Each command runs in a fresh process from the repository root (``python train/fit_mask.py ...``, the clone's
 package); a round runs every command once, in turn, so that the machine's other load falls on all of them alike.

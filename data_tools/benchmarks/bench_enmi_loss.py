@@ -1,6 +1,6 @@
 """Time and peak memory of ENMILoss against kornia's and MONAI's mutual-information losses, and its kernel floor.
 
-    python data_tools/benchmarks/bench_enmi_loss.py [--batch 8] [--size 256] [--bins 32] [--repeats 7] [--threads 1]
+    python -m data_tools.benchmarks.bench_enmi_loss [--batch 8] [--size 256] [--bins 32] [--repeats 7] [--threads 1]
 
 Every method scores the same B x 1 x H x W captured/reference batch with the same number of bins; ENMILoss also
 takes a per-pixel variance map (and gets its gradient). Each round times every method once, interleaved, after a
@@ -185,7 +185,7 @@ def main() -> None:
     times, floor_times = time_methods(args)
     peak_mib = {}
     for method in tqdm(METHODS, desc="peak memory (a process each)", unit="method"):
-        command = [sys.executable, __file__, *sys.argv[1:], "--memory-of", method]
+        command = [sys.executable, "-m", __spec__.name, *sys.argv[1:], "--memory-of", method]
         output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         peak_mib[method] = json.loads(output.strip().splitlines()[-1])["peak_bytes"] / 2**20
     monai = "monai.GlobalMutualInformationLoss"

@@ -1,7 +1,7 @@
 """Benchmark of ``enmi-fit-mask``: fitting 2,000 pairs of 128 x 128, before and after keeping the pairs in memory.
 
-    python data_tools/benchmarks/bench_fit_mask.py              # 3 interleaved rounds, about 2 minutes on 2 cores
-    python data_tools/benchmarks/bench_fit_mask.py --rounds 1 --pairs 500 --epochs 4
+    python -m data_tools.benchmarks.bench_fit_mask              # 3 interleaved rounds, about 2 minutes on 2 cores
+    python -m data_tools.benchmarks.bench_fit_mask --rounds 1 --pairs 500 --epochs 4
 
 Runs the default configuration (configs/fit_mask.yaml) in this process, logging to a temporary folder, in two ways:
 

@@ -18,8 +18,8 @@ The parent process runs the measurements in child processes, in turn as is, with
 regions instead of spinning), and prints them side by side; the ratio to the direct loop is the median of ratios
 taken within each round, which shared-machine load bursts affect least.
 
-    python data_tools/benchmarks/bench_localize.py                          # about 3 minutes on 2 CPU cores
-    python data_tools/benchmarks/bench_localize.py --rounds 8 --children 3  # steadier medians
+    python -m data_tools.benchmarks.bench_localize                          # about 3 minutes on 2 CPU cores
+    python -m data_tools.benchmarks.bench_localize --rounds 8 --children 3  # steadier medians
 """
 
 from __future__ import annotations
@@ -167,7 +167,7 @@ def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
 
 
 def _child(environment: dict, rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
-    command = [sys.executable, __file__, "--child", "--rounds", str(rounds), "--loop-rows", str(loop_rows)]
+    command = [sys.executable, "-m", __spec__.name, "--child", "--rounds", str(rounds), "--loop-rows", str(loop_rows)]
     command += ["--yaw-rounds", str(yaw_rounds)]
     inherited = {key: value for key, value in os.environ.items() if key not in {*MALLOC_ENV, *PASSIVE_ENV}}
     completed = subprocess.run(command, env={**inherited, **environment}, capture_output=True, text=True, check=True)

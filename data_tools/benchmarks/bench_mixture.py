@@ -6,8 +6,8 @@ timed in interleaved rounds (each round runs every surface once, in turn) and th
 load bursts then hit every surface alike. Also printed: how many placements the two-stage surface rescored, and
 whether its argmax equals the direct loop's (every placement rescored, run once).
 
-    python data_tools/benchmarks/bench_mixture.py            # about a minute on a busy 2-core machine
-    python data_tools/benchmarks/bench_mixture.py --rounds 21
+    python -m data_tools.benchmarks.bench_mixture            # about a minute on a busy 2-core machine
+    python -m data_tools.benchmarks.bench_mixture --rounds 21
 """
 
 from __future__ import annotations

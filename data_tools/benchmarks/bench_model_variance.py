@@ -9,8 +9,8 @@ binned default's extra work). Each round times every entry once, in turn; the ra
 fixed ``tau^2`` is the median of the per-round ratios (robust to the load bursts of a shared machine). One torch
 thread unless told.
 
-    python data_tools/benchmarks/bench_model_variance.py               # a minute or two on a quiet 2-core CPU
-    python data_tools/benchmarks/bench_model_variance.py --rounds 41
+    python -m data_tools.benchmarks.bench_model_variance               # a minute or two on a quiet 2-core CPU
+    python -m data_tools.benchmarks.bench_model_variance --rounds 41
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Time per N0 point of the paper simulation's scores, three ways, against the point's kernel floor.
 
-    python data_tools/benchmarks/bench_paper_simulation.py [--trials 10000] [--repeats 5] [--chunk-trials 96] \
+    python -m data_tools.benchmarks.bench_paper_simulation [--trials 10000] [--repeats 5] [--chunk-trials 96] \
         [--threads 1]
 
 One "point" is ``trials`` trials of the paper's 66 tiles at one N0, each trial scoring the truth and the candidate
@@ -36,8 +36,11 @@ import time
 import torch
 from tqdm import tqdm
 
-from enmi_torch import RoadCamera, enmi, entropies, gaussian_log_prior, joint_histogram, nmi_from_joint_histogram
-from enmi_torch.histogram import hard_entropies
+from enmi_torch import RoadCamera
+from enmi_torch.binning import gaussian_log_prior
+from enmi_torch.histogram import hard_entropies, joint_histogram
+from enmi_torch.information import entropies, nmi_from_joint_histogram
+from enmi_torch.scores.enmi import enmi
 from enmi_torch.simulation import SCORES, _TrustedScorer, count_errors, draw_trials, road_tiles
 
 PAPER_POINTS = 141

@@ -1,7 +1,7 @@
 """Time rectify / unrectify / PerspectiveVariance against bare kornia warp_perspective calls of the same sizes.
 
 Usage:
-    python data_tools/benchmarks/bench_rectify.py [--batch 8] [--repeats 15]
+    python -m data_tools.benchmarks.bench_rectify [--batch 8] [--repeats 15]
 
 Prints the median wall time of each call over ``--repeats`` interleaved rounds (after one warm-up) and its ratio to
 the bare ``warp_perspective`` call of the same output size in the same process, so the ratios stay meaningful on a

@@ -27,24 +27,25 @@ reduction="none")`` and then averages the per-pixel result over the warped image
 (NMI, ENMI, ECR) cannot give: its value is one number for the whole image, so the pixels warped in from outside would
 count (see README).
 
-    python data_tools/benchmarks/bench_register.py                  # every cell, 48 trials each (~5 min on 2 cores)
-    python data_tools/benchmarks/bench_register.py --trials 16 --cells camera-like@60
+    python -m data_tools.benchmarks.bench_register                  # every cell, 48 trials each (~5 min on 2 cores)
+    python -m data_tools.benchmarks.bench_register --trials 16 --cells camera-like@60
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from enmi_torch import ECR, NCC, localize, register, value_checks, warp_reference
+from data_tools.experiments.yardstick import yardstick
+from enmi_torch import ECR, NCC, localize, register
 from enmi_torch.data.scene_change import scene_change
+from enmi_torch.registration import warp_reference
+from enmi_torch.utils.checks import value_checks
 
 PHOTOGRAPHS = ("camera", "astronaut", "coffee", "rocket")
 LOCAL = 64
@@ -66,15 +67,6 @@ METHODS = (
     "SimpleITK Mattes translation",
     "SimpleITK Mattes rigid",
 )
-
-
-def _yardstick():
-    """``data_tools/yardstick/yardstick.py``: its grey photographs (``map_image``) and noise profiles."""
-    path = Path(__file__).resolve().parents[1] / "yardstick" / "yardstick.py"
-    spec = importlib.util.spec_from_file_location("_yardstick", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def parse_cell(cell: str) -> tuple[str, float, str | None]:
@@ -231,7 +223,6 @@ def main(argv=None) -> None:
         except ImportError:
             parser.error("the SimpleITK methods need SimpleITK: pip install -e '.[bench]' (or leave them out)")
     torch.set_num_threads(1)
-    yardstick = _yardstick()
     print(f"{args.trials} paired trials per cell; torch threads 1; errors in cells (yaw in degrees)", flush=True)
     lines = [
         "| cell | method | found | RMS error, found | RMS error, all | median error | within 0.25 cell "

@@ -5,8 +5,8 @@ scikit-image's gravel, 101 x 101 shifts, 10,201 candidates) and the yardstick's 
 round times every surface once, in turn; the ratio to ENMI is the median of the per-round ratios (robust to the
 load bursts of a shared machine). Run it with one thread (the default here) or say the setting you used.
 
-    python data_tools/benchmarks/bench_scores.py                 # ~1 minute on a quiet 2-core CPU
-    python data_tools/benchmarks/bench_scores.py --rounds 20 --threads 2
+    python -m data_tools.benchmarks.bench_scores                 # ~1 minute on a quiet 2-core CPU
+    python -m data_tools.benchmarks.bench_scores --rounds 20 --threads 2
 """
 
 from __future__ import annotations

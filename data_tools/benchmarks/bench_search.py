@@ -20,8 +20,8 @@ scikit-image's gravel, brick (repetitive) and camera (CC0), seen through the ide
 (``255 |2 v / 255 - 1|^0.8``), with noise of a camera-like variance profile (16-fold range) at four levels up to an
 extreme one (noise std 8 to 128 grey levels at the profile's mean), searched over +-16 cells and 7 yaws.
 
-    python data_tools/benchmarks/bench_search.py                 # about 2 minutes on a busy 2-core CPU
-    python data_tools/benchmarks/bench_search.py --rounds 9 --trials 8
+    python -m data_tools.benchmarks.bench_search                 # about 2 minutes on a busy 2-core CPU
+    python -m data_tools.benchmarks.bench_search --rounds 9 --trials 8
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Torch threads and ``OMP_WAIT_POLICY``: time representative calls under each setting, quiet and under load.
 
-    python data_tools/benchmarks/bench_threads.py        # 3 rounds, 0 and 1 competing busy process, about 5 min
-    python data_tools/benchmarks/bench_threads.py --rounds 1 --busy 0 --repeats 3
+    python -m data_tools.benchmarks.bench_threads        # 3 rounds, 0 and 1 competing busy process, about 5 min
+    python -m data_tools.benchmarks.bench_threads --rounds 1 --busy 0 --repeats 3
 
 Settings: torch intra-op threads 1 or 2 (``torch.set_num_threads``) times ``OMP_WAIT_POLICY`` unset (OpenMP's
 default: idle threads spin for a while before they sleep) or ``PASSIVE`` (they sleep at once). OpenMP reads the
@@ -95,7 +95,7 @@ def run_child(threads: str, policy: str, repeats: int) -> dict[str, float]:
     environment = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
     if policy:
         environment["OMP_WAIT_POLICY"] = policy
-    command = [sys.executable, __file__, "--child", "--threads", threads, "--repeats", str(repeats)]
+    command = [sys.executable, "-m", __spec__.name, "--child", "--threads", threads, "--repeats", str(repeats)]
     result = subprocess.run(command, env=environment, capture_output=True, text=True, check=True)
     return json.loads(result.stdout.strip().splitlines()[-1])
 

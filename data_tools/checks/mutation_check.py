@@ -7,9 +7,9 @@ on a copy of the repository. A mutant is killed when they fail
 mutant is equivalent. Mutants are drawn at random (``--seed``) from all candidates, at most ``--per-module`` per
 module; comment and docstring lines are skipped.
 
-    python data_tools/checks/mutation_check.py                          # 8 mutants per module, a few minutes on 2 cores
-    python data_tools/checks/mutation_check.py --per-module 30 --jobs 2
-    python data_tools/checks/mutation_check.py --root ../other_checkout  # the same check on another version
+    python -m data_tools.checks.mutation_check                          # 8 mutants per module, a few minutes on 2 cores
+    python -m data_tools.checks.mutation_check --per-module 30 --jobs 2
+    python -m data_tools.checks.mutation_check --root ../other_checkout  # the same check on another version
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ def run_mutant(root: Path, mutant: tuple[str, int, str, str], timeout: float) ->
         shutil.copytree(root / "enmi_torch", copy / "enmi_torch")
         shutil.copytree(root / "tests", copy / "tests")
         shutil.copy(root / "pyproject.toml", copy / "pyproject.toml")
-        for folder_name in ("configs", "data_tools"):  # some tests load a data_tools script (tests/_data_tools.py)
+        for folder_name in ("configs", "data_tools"):  # tests/data_tools imports the data_tools package
             if (root / folder_name).is_dir():
                 shutil.copytree(root / folder_name, copy / folder_name)
         path = module_file(copy, module)

@@ -12,8 +12,8 @@ SCRIPTS = {name.strip(): value.strip().strip('"') for name, value in (line.split
 WRAPPERS = {
     "enmi-fit-mask": ["train/fit_mask.py"],
     "enmi-localize": ["-m", "enmi_torch.localization"],
-    "enmi-reproduce-paper": ["data_tools/reproduce_paper.py"],
-    "enmi-make-pairs": ["data_tools/make_pairs.py"],
+    "enmi-reproduce-paper": ["-m", "data_tools.reproduce_paper"],
+    "enmi-make-pairs": ["-m", "data_tools.make_pairs"],
 }
 
 

@@ -1,0 +1,1 @@
+"""Experiments whose results the docs pages report: the yardstick, drives, the paper, the variance mask."""

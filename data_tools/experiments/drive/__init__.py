@@ -1,0 +1,1 @@
+"""Tracking simulated drives and drives over photographs of two dates."""

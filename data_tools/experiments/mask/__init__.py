@@ -1,0 +1,1 @@
+"""The learned variance mask: its figure, its forms, pairs with scene change."""

@@ -1,0 +1,1 @@
+"""Localization success against noise and scene change, per score: the yardstick and its data."""
