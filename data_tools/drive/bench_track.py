@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from enmi_torch.scores.ecr import MISFITS
-from enmi_torch.tracking import default_score, initial_belief, track_step
+from enmi_torch.tracking import TrackerSettings, default_score, initial_belief, track_step
 
 
 def _drive():
@@ -76,7 +76,7 @@ def main(argv=None) -> None:
             variance,
             drive.valid,
             score=score,
-            motion_noise=drive.motion_noise,
+            settings=TrackerSettings(motion_noise=drive.motion_noise),
         )
 
     search(), step()
