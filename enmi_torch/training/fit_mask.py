@@ -27,13 +27,13 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch.utils.data import Subset
 
-from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
 from enmi_torch.data.pairs import PairDataset
 from enmi_torch.training.localization_figure import ANSWER_METHODS, METHOD_MEANINGS, held_out_order
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
+from enmi_torch.utils.command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.utils.files import load_plain_torch
 from enmi_torch.utils.resources import config_file
 
@@ -632,7 +632,7 @@ SIMPLE_TYPES = {int: "int", float: "float", bool: "bool", int | None: "int|null"
 
 
 def quick_reference(columns: int) -> dict:
-    """What ``enmi-fit-mask`` answers without Lightning (:mod:`enmi_torch.cli.fit_mask`).
+    """What ``enmi-fit-mask`` answers without Lightning (:mod:`enmi_torch.cli.fit_mask_quick`).
 
     The help, formatted at ``columns``, and every option with its simple type (``"int"``, ``"bool|null"``, ...;
     ``None`` for the others).
