@@ -47,7 +47,7 @@ and to the true variance, and how often each score finds held-out pairs. Use the
 ENMILoss(variance_model=LearnedVariance.load(".../variance_mask.pt")).
 
 examples:
-  {PROG}                                         # also: python train/fit_mask.py
+  {PROG}                                         # also: python -m enmi_torch.cli.fit_mask
   {PROG} --data.flavour camera                   # camera-like synthetic pairs
   {PROG} --data.root PAIRS_FOLDER                # your own pairs (enmi-make-pairs writes the format)
   {PROG} --ckpt_path runs/fit_mask/lidar_0/checkpoints/last.ckpt --trainer.max_epochs 20
