@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from enmi_torch import LearnedVariance, MemoryBudgetError, memory_budget
+from enmi_torch.cli.localize import main
 from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
-from enmi_torch.localization.cli import main
 from enmi_torch.utils.files import read_npy
 
 TRUNCATED = (

@@ -11,8 +11,8 @@ from kornia.geometry.transform import rotate
 from skimage import data
 
 from enmi_torch import ECR, ENMI, NCC, Mixture, NoCandidateError, as_score, direct_surface, ecr_surface
+from enmi_torch.cli.localize import _command, main
 from enmi_torch.localization.candidates import rotate_captured
-from enmi_torch.localization.cli import _command, main
 from enmi_torch.localization.peak import Localization, _quadratic_peak
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.localization.strategy import SearchStrategy
@@ -512,7 +512,7 @@ def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(grav
 
 
 def test_yaw_parabola_and_yaw_ranges_are_exact():
-    from enmi_torch.localization.cli import _parse_yaws
+    from enmi_torch.cli.localize import _parse_yaws
     from enmi_torch.localization.peak import _parabola_offset
 
     # A parabola with its vertex 0.3 steps right of the middle sample.

@@ -143,10 +143,7 @@ def test_the_top_level_imports_its_names_on_first_use():
     # import enmi_torch (and so every command's --help) does not import torch; each public name resolves when used.
     code = (
         "import sys, enmi_torch; assert 'torch' not in sys.modules, 'torch imported'; "
-        # TrackerSettings may be missing only while enmi_torch.tracking does not define it yet.
-        "import enmi_torch.tracking as tracking; "
-        "names = [n for n in enmi_torch.__all__ if n != 'TrackerSettings' or hasattr(tracking, n)]; "
-        "assert all(getattr(enmi_torch, name) is not None for name in names); "
+        "assert all(getattr(enmi_torch, name) is not None for name in enmi_torch.__all__); "
         "assert set(enmi_torch.__all__) <= set(dir(enmi_torch)); print(enmi_torch.ECR.__module__)"
     )
     completed = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)

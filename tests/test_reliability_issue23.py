@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from enmi_torch import ECR, Localization, NoCandidateError, ecr, enmi, localize, ncc, nmi, nmi_from_joint_histogram
-from enmi_torch.localization.cli import main as localize_main
+from enmi_torch.cli.localize import main as localize_main
 from enmi_torch.utils.files import read_image
 
 

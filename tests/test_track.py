@@ -23,6 +23,7 @@ from enmi_torch.tracking import (
     Belief,
     Calibration,
     Tracker,
+    TrackerSettings,
     belief_pose,
     calibrate_temperature,
     grid_temperature,
@@ -167,7 +168,8 @@ def test_mismatch_probability_outside_zero_to_one_is_refused_by_name(generator, 
     reference = _texture(generator, (60, 90)).float()
     belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=3, yaw_bins=1)
     with pytest.raises(ValueError, match="mismatch_probability"):
-        track_step(belief, _cut(reference, 45, 30), reference, torch.zeros(1, 3), 1.0, mismatch_probability=probability)
+        settings = TrackerSettings(mismatch_probability=probability)
+        track_step(belief, _cut(reference, 45, 30), reference, torch.zeros(1, 3), 1.0, settings=settings)
 
 
 def test_a_mismatch_probability_bounds_how_far_one_wrong_frame_moves_the_belief(generator):
@@ -178,17 +180,20 @@ def test_a_mismatch_probability_bounds_how_far_one_wrong_frame_moves_the_belief(
     prior = predict(belief, odometry, noise).log_prob
     moves = {}
     for probability in (0.0, 0.05):
-        settings = {"score": ECR(bins=16), "motion_noise": noise, "mismatch_probability": probability}
-        posterior, output, _ = track_step(belief, frame, reference, odometry, 1.0, **settings)
+        settings = TrackerSettings(motion_noise=noise, mismatch_probability=probability)
+        posterior, output, _ = track_step(
+            belief, frame, reference, odometry, 1.0, score=ECR(bins=16), settings=settings
+        )
         assert bool(output.healthy[0])  # the frame is used in full
         moved = (posterior.log_prob - prior).flatten()
         moves[probability] = float(moved.max() - moved.min())
     assert moves[0.0] > 2 * math.log(1 / 0.05)  # taken as it is, the frame moves the odds by more than the bound
     assert 1 < moves[0.05] <= math.log(1 / 0.05) + 1e-9  # mixed: still used, by at most log(1/p) nats
-    unmixed, _, _ = track_step(belief, frame, reference, odometry, 1.0, score=ECR(bins=16), motion_noise=noise)
-    zero, _, _ = track_step(
-        belief, frame, reference, odometry, 1.0, score=ECR(bins=16), motion_noise=noise, mismatch_probability=0
+    unmixed, _, _ = track_step(
+        belief, frame, reference, odometry, 1.0, score=ECR(bins=16), settings=TrackerSettings(motion_noise=noise)
     )
+    zero_settings = TrackerSettings(motion_noise=noise, mismatch_probability=0)
+    zero, _, _ = track_step(belief, frame, reference, odometry, 1.0, score=ECR(bins=16), settings=zero_settings)
     assert torch.equal(unmixed.log_prob, zero.log_prob)  # 0, the default: the likelihood as it is
 
 
@@ -202,8 +207,7 @@ def test_noiseless_drive_is_tracked_exactly(generator, temperature, tolerance):
         score=ECR(bins=16, response="binned"),  # the tracker's response (default_score says why)
         shifts=(4, 5),
         yaw_bins=3,
-        motion_noise=(0.5, 0.5, 0.3),
-        temperature=temperature,
+        settings=TrackerSettings(motion_noise=(0.5, 0.5, 0.3), temperature=temperature),
     )
     tracker.start(torch.tensor([[40.0, 50.0, 0.0]]))
     x, y = 40, 50
@@ -241,8 +245,8 @@ def test_a_window_without_candidates_raises_no_candidate_error(generator):
 
 def _edge_drive(generator, steps: int, frame_of, start_x: float = 45.0) -> list:
     reference = _texture(generator, (60, 90))
-    settings = {"score": ECR(bins=16), "shifts": 3, "yaw_bins": 1, "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
-    tracker = Tracker(reference.float(), relocalize_shifts=6, coarse_factor=2, **settings)
+    settings = TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=6, coarse_factor=2)
+    tracker = Tracker(reference.float(), settings=settings, score=ECR(bins=16), shifts=3, yaw_bins=1)
     tracker.start(torch.tensor([[start_x, 30.0, 0.0]]))
     return [frame_of(tracker, reference, step) for step in range(steps)]
 
@@ -283,10 +287,10 @@ def test_a_coasting_belief_widens_as_a_random_walk_by_default_or_as_a_bias(gener
     # coasted frames, k^2 sigma^2 in all, a constant bias's spread. Unequal noise along u (x, the map's columns
     # at yaw 0) and v (y, rows) catches swapped axes.
     reference = _texture(generator, (80, 120)).float()
-    settings = {"shifts": 20, "yaw_bins": 1, "motion_noise": (1.0, 0.6, 0.1)}
+    settings = TrackerSettings(motion_noise=(1.0, 0.6, 0.1))
     if coasting is not None:  # None: the default
-        settings["coasting"] = coasting
-    tracker = Tracker(reference, score=ECR(bins=16), **settings)
+        settings = settings.replace(coasting=coasting)
+    tracker = Tracker(reference, settings=settings, score=ECR(bins=16), shifts=20, yaw_bins=1)
     tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.5, 1.5, 0.1))
     start_variance = _position_variance(tracker.belief)
     blind = torch.zeros(1, 1, *FRAME, dtype=torch.bool)
@@ -329,7 +333,11 @@ def test_a_tracker_refines_each_used_frame_below_one_cell(generator):
     # Frames cut at sub-cell poses (bilinear): the belief stays on its cells, the refined pose finds the truth.
     reference = _texture(generator, (96, 200))
     tracker = Tracker(
-        reference.float(), score=ECR(bins=16), shifts=4, yaw_bins=3, motion_noise=(0.5, 0.5, 0.3), refine=True
+        reference.float(),
+        settings=TrackerSettings(motion_noise=(0.5, 0.5, 0.3), refine=True),
+        score=ECR(bins=16),
+        shifts=4,
+        yaw_bins=3,
     )
     tracker.start(torch.tensor([[40.0, 50.0, 0.0]]))
     truth = torch.tensor([[40.0, 50.0, 0.0]], dtype=torch.float64)
@@ -343,13 +351,13 @@ def test_a_tracker_refines_each_used_frame_below_one_cell(generator):
     assert float((output.pose[0, :2].double() - truth[0, :2]).abs().max()) < 0.6  # the belief's own: one cell
     belief = initial_belief(torch.tensor([[40.0, 50.0, 0.0]]))
     with pytest.raises(ValueError, match="score must be ECR or NCC for register"):
-        track_step(belief, frame, reference.float(), move.float(), refine=True, score="nmi")
+        track_step(belief, frame, reference.float(), move.float(), settings=TrackerSettings(refine=True), score="nmi")
 
 
 def test_a_kidnapped_vehicle_is_recovered_by_relocalization(generator):
     reference = _texture(generator, (120, 240))
-    settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
-    tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
+    settings = TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=40, coarse_factor=2)
+    tracker = Tracker(reference.float(), settings=settings, score=ECR(bins=16), shifts=4, yaw_bins=1)
     tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
     x, y, recovered_after, relocalized = 40, 60, None, []
     for step in range(16):
@@ -375,8 +383,8 @@ def test_a_lone_match_elsewhere_after_weak_frames_does_not_move_a_filter_that_wa
     # repeated pattern can), then the vehicle's own frames again: one frame's best match over the wide window is no
     # reason to jump (it jumped 27 cells before the wide searches of two frames had to agree).
     reference = _texture(generator, (120, 240))
-    settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
-    tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
+    settings = TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=40, coarse_factor=2)
+    tracker = Tracker(reference.float(), settings=settings, score=ECR(bins=16), shifts=4, yaw_bins=1)
     tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
     x, y = 40, 60
     noise = torch.Generator().manual_seed(5)
@@ -397,8 +405,8 @@ def test_a_weak_frame_whose_wide_search_lands_on_the_window_peak_is_used_without
     # After clear frames (peak z ~60), noisy ones (z ~10) fall under z_drop times the recent matches' z: skipped. The
     # second such frame searches wide; its best match is the window's own peak, so the frame is used, no restart.
     reference = _texture(generator, (120, 240))
-    settings = {"shifts": 4, "yaw_bins": 1, "score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1), "patience": 2}
-    tracker = Tracker(reference.float(), relocalize_shifts=40, coarse_factor=2, **settings)
+    settings = TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=40, coarse_factor=2)
+    tracker = Tracker(reference.float(), settings=settings, score=ECR(bins=16), shifts=4, yaw_bins=1)
     tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
     x, noise, outputs = 40, torch.Generator().manual_seed(1), []
     for step in range(7):
@@ -438,12 +446,15 @@ def test_batched_vehicles_equal_one_at_a_time(generator):
 
 def test_module_agrees_with_the_function(generator):
     reference = _texture(generator, (80, 120)).float()
-    tracker = Tracker(reference, score=NMI(bins=16), shifts=3, yaw_bins=3, temperature=0.01)
+    tracker = Tracker(reference, settings=TrackerSettings(temperature=0.01), score=NMI(bins=16), shifts=3, yaw_bins=3)
     tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
     start = tracker.belief
     frame, odometry = _cut(reference, 62, 41), torch.tensor([[2.0, 1.0, 0.0]])
     output = tracker(frame, odometry)
-    belief, expected, health = track_step(start, frame, reference, odometry, None, score=NMI(bins=16), temperature=0.01)
+    settings = TrackerSettings(temperature=0.01)
+    belief, expected, health = track_step(
+        start, frame, reference, odometry, None, score=NMI(bins=16), settings=settings
+    )
     torch.testing.assert_close(output.pose, expected.pose)
     torch.testing.assert_close(tracker.belief.log_prob, belief.log_prob)
     assert health.weak_frames.tolist() == tracker.health.weak_frames.tolist()
@@ -537,12 +548,16 @@ def _bad_call(case: str):
         "captured batch": lambda: track_step(belief, torch.rand(2, 1, 8, 8), reference, odometry, 1.0),
         "reference shape": lambda: track_step(belief, frame, torch.rand(32, 32), odometry, 1.0),
         "score": lambda: track_step(belief, frame, reference, odometry, 1.0, score="ssd"),
-        "temperature": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature=0.0),
-        "temperature name": lambda: track_step(belief, frame, reference, odometry, 1.0, temperature="grid"),
-        "patience": lambda: track_step(belief, frame, reference, odometry, 1.0, patience=0),
-        "coasting": lambda: track_step(belief, frame, reference, odometry, 1.0, coasting="constant"),
-        "weak update": lambda: track_step(belief, frame, reference, odometry, 1.0, weak_update="use"),
-        "motion noise": lambda: track_step(belief, frame, reference, odometry, 1.0, motion_noise=(0.1, 0.1)),
+        "temperature": lambda: TrackerSettings(temperature=0.0),
+        "temperature name": lambda: TrackerSettings(temperature="grid"),
+        "patience": lambda: TrackerSettings(patience=0),
+        "coasting": lambda: TrackerSettings(coasting="constant"),
+        "weak update": lambda: TrackerSettings(weak_update="use"),
+        "motion noise": lambda: TrackerSettings(motion_noise=(0.1, 0.1)),
+        "settings type": lambda: track_step(belief, frame, reference, odometry, 1.0, settings={"patience": 1}),
+        "calibration and settings": lambda: Tracker(
+            reference, settings=TrackerSettings(temperature=2.0), calibration=Calibration("ecr", 2.0, 3.0)
+        ),
         "truth shape": lambda: calibrate_temperature(torch.zeros(4, 1, 3, 3), torch.zeros(4, 2)),
         "unknown setting": lambda: Tracker(reference, shift=3),
         "no start": lambda: Tracker(reference)(frame, odometry, 1.0),
@@ -575,7 +590,9 @@ def _bad_call(case: str):
         ("weak update", ValueError, r"weak_update must be one of \['nudge', 'skip'\], got 'use'"),
         ("motion noise", ValueError, "motion_noise must be three standard deviations >= 0"),
         ("truth shape", ValueError, r"truth \(N, 3\)"),
-        ("unknown setting", TypeError, r"unknown setting\(s\) \['shift'\]"),
+        ("settings type", TypeError, "settings must be a TrackerSettings or None, got dict"),
+        ("calibration and settings", ValueError, "calibration sets temperature, min_peak_z, got settings with"),
+        ("unknown setting", TypeError, "unexpected keyword argument 'shift'"),
         ("no start", RuntimeError, "call start"),
         ("variance twice", ValueError, "variance must be None when Tracker has a variance_model"),
     ],
@@ -597,7 +614,7 @@ def test_a_tracker_takes_the_score_by_name_or_object_alike(generator, name):
     variance = 1.0 if name == "ecr" else None
     outputs = []
     for score in (name, as_score(name)):
-        tracker = Tracker(reference, score=score, shifts=3, yaw_bins=3, temperature=0.05)
+        tracker = Tracker(reference, settings=TrackerSettings(temperature=0.05), score=score, shifts=3, yaw_bins=3)
         tracker.start(torch.tensor([[60.0, 40.0, 0.0]]), std=(1.0, 1.0, 1.0))
         outputs.append(tracker(frame, odometry, variance))
     for first, second in zip(*outputs, strict=True):  # NaN alike: no refined pose without refine=True
@@ -644,7 +661,7 @@ def test_a_calibration_file_that_names_its_score_metric_still_loads(tmp_path):
 
 
 def test_a_restart_moves_the_window_to_the_pose_on_the_yaw_lattice():
-    from enmi_torch.tracking.tracker import _peak_position, _restart
+    from enmi_torch.tracking.step import _peak_position, _restart
 
     belief = initial_belief(torch.tensor([[10.0, 20.0, 20.0], [30.0, 40.0, -5.0]]), shifts=(2, 3), yaw_step=5.0)
     moved = _restart(belief, 0, torch.tensor([57.4, 31.6, 1.7], dtype=torch.float64))
@@ -743,12 +760,14 @@ def test_a_weak_frame_nudges_the_belief_by_its_clearness_squared_or_is_skipped(g
     reference = _texture(generator, (80, 120)).float()
     belief = initial_belief(torch.tensor([[60.0, 40.0, 0.0]]), shifts=(4, 5), yaw_bins=1, std=(2.0, 1.5, 1.0))
     frame, odometry = _cut(reference, 61, 39), torch.zeros(1, 3)
-    settings = {"score": ECR(bins=16), "motion_noise": (0.3, 0.3, 0.1)}
-    used, output, _ = track_step(belief, frame, reference, odometry, 1.0, **settings)
+    settings, score = TrackerSettings(motion_noise=(0.3, 0.3, 0.1)), ECR(bins=16)
+    used, output, _ = track_step(belief, frame, reference, odometry, 1.0, score=score, settings=settings)
     assert bool(output.healthy[0])
     bar = 2 * float(output.peak_z[0])
-    nudged, weak, _ = track_step(belief, frame, reference, odometry, 1.0, min_peak_z=bar, **settings)
-    skipped, _, _ = track_step(belief, frame, reference, odometry, 1.0, min_peak_z=bar, weak_update="skip", **settings)
+    weak_settings = settings.replace(min_peak_z=bar)
+    nudged, weak, _ = track_step(belief, frame, reference, odometry, 1.0, score=score, settings=weak_settings)
+    skip_settings = weak_settings.replace(weak_update="skip")
+    skipped, _, _ = track_step(belief, frame, reference, odometry, 1.0, score=score, settings=skip_settings)
     assert not bool(weak.healthy[0])
     prior = predict(belief, odometry, (0.3, 0.3, 0.1)).log_prob
     torch.testing.assert_close(skipped.log_prob, prior)
@@ -768,9 +787,9 @@ def test_the_mismatch_mixing_takes_the_likelihood_at_a_fixed_temperature(generat
     )
     raw = found.surface.double() * frame.numel()
     for temperature in (3000.0, 30000.0):  # a few nats and a fraction of one between the best cells
-        settings = {"score": ECR(bins=16), "motion_noise": noise, "temperature": temperature}
+        settings = TrackerSettings(motion_noise=noise, temperature=temperature, mismatch_probability=0.05)
         posterior, output, _ = track_step(
-            belief, frame, reference, odometry, 1.0, mismatch_probability=0.05, **settings
+            belief, frame, reference, odometry, 1.0, score=ECR(bins=16), settings=settings
         )
         assert bool(output.healthy[0])
         expected = normalized(prior.log_prob + mixed_with_mismatch(raw / temperature, 0.05))
@@ -790,7 +809,7 @@ def test_the_mismatch_mixing_takes_the_likelihood_at_a_fixed_temperature(generat
     ],
 )
 def test_two_wide_searches_agree_within_two_cells_and_two_yaw_bins(offset, previous, yaw_step, agree):
-    from enmi_torch.tracking.tracker import wide_matches_agree
+    from enmi_torch.tracking.step import wide_matches_agree
 
     offset, previous = torch.tensor(offset, dtype=torch.float64), torch.tensor(previous, dtype=torch.float64)
     assert wide_matches_agree(offset, previous, yaw_step) is agree
@@ -843,7 +862,7 @@ def test_a_tracker_refuses_a_calibration_of_another_score():
     with pytest.raises(ValueError, match=r"calibration was fitted for score 'ecr', got score='nmi'"):
         Tracker(reference, score="nmi", calibration=Calibration("ecr", 2.0, 3.0))
     tracker = Tracker(reference, score=ECR(bins=16), calibration=Calibration("ecr", 2.0, 3.0))
-    assert tracker.settings["temperature"] == 2.0 and tracker.settings["score"] == ECR(bins=16)
+    assert tracker.settings.temperature == 2.0 and tracker.score == ECR(bins=16)
 
 
 def test_a_tracker_refuses_a_belief_over_the_memory_budget_before_allocating():
@@ -861,7 +880,7 @@ def test_a_tracker_refuses_a_belief_over_the_memory_budget_before_allocating():
 
 
 def test_the_relocalization_gain_is_the_fresh_best_over_the_windows_best():
-    from enmi_torch.tracking.tracker import relocalization_gain
+    from enmi_torch.tracking.step import relocalization_gain
 
     window = torch.tensor([[[[120.0, 150.0], [90.0, 10.0]]]], dtype=torch.float64)
     assert float(relocalization_gain(window + 7.5, window)) == 7.5
@@ -924,7 +943,7 @@ def test_the_belief_budget_counts_every_cell_of_the_window():
 def test_a_relocalization_peak_must_be_as_clear_and_sharp_as_the_recent_matches(
     peak_z, temperature, typical_z, typical_temperature, clear
 ):
-    from enmi_torch.tracking.tracker import fresh_peak_is_clear
+    from enmi_torch.tracking.step import fresh_peak_is_clear
 
     values = (
         torch.tensor(value, dtype=torch.float64) for value in (peak_z, temperature, typical_z, typical_temperature)

@@ -21,7 +21,7 @@ import torch
 
 from data_tools.experiments.drive import drive as drive_tools
 from enmi_torch.scores.ecr import MISFITS
-from enmi_torch.tracking import default_score, initial_belief, track_step
+from enmi_torch.tracking import TrackerSettings, default_score, initial_belief, track_step
 
 
 def _seconds(call, repeats: int) -> float:
@@ -67,7 +67,7 @@ def main(argv=None) -> None:
             variance,
             drive.valid,
             score=score,
-            motion_noise=drive.motion_noise,
+            settings=TrackerSettings(motion_noise=drive.motion_noise),
         )
 
     search(), step()

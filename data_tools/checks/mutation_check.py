@@ -71,6 +71,9 @@ MODULES = {
     "registration/response_fit": ["tests/registration/test_register.py"],
     "tracking/calibration": ["tests/test_track.py"],
     "tracking/tracker": ["tests/test_track.py"],
+    "tracking/step": ["tests/test_track.py"],
+    "tracking/search": ["tests/test_track.py"],
+    "tracking/settings": ["tests/test_track.py"],
     "tracking/belief": ["tests/test_track.py"],
     "utils/checks": ["tests/test_checks.py", "tests/registration/test_register.py", "tests/test_budget.py"],
 }
@@ -94,6 +97,8 @@ LEGACY_FILES = {
     "localization/candidates": ["localization/search", "localize"],
     "localization/peak": ["localize"],
     "registration/response_fit": ["registration/refine"],
+    "tracking/step": ["tracking/tracker"],
+    "tracking/search": ["tracking/tracker"],
 }
 
 

@@ -1,4 +1,4 @@
-"""``enmi-make-pairs`` (also ``python data_tools/make_pairs.py``): write synthetic local/prior pairs to a folder."""
+"""``enmi-make-pairs`` (also ``python -m enmi_torch.cli.make_pairs``): write synthetic local/prior pairs to a folder."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from enmi_torch.cli._command import ArgumentParser, run_command, with_flag_names
 from enmi_torch.data import SyntheticPairs, gravel_texture, make_truth, write_pairs
+from enmi_torch.utils.command import ArgumentParser, run_command, with_flag_names
 
 PROG = "enmi-make-pairs"
 DESCRIPTION = f"""\
@@ -17,7 +17,7 @@ where invalid), which the training dashboards compare the learned mask with. 2,0
 300 MB as .npy: write them outside the repository or under its runs/ folder, which git ignores.
 
 examples:
-  {PROG} runs/pairs --pairs 2000                 # also: python data_tools/make_pairs.py runs/pairs ...
+  {PROG} runs/pairs --pairs 2000                 # also: python -m enmi_torch.cli.make_pairs runs/pairs ...
   enmi-fit-mask --data.root runs/pairs"""
 
 
@@ -70,3 +70,7 @@ def make_pairs(argv: Sequence[str]) -> None:
         f"wrote {count} {args.flavour}-like pairs of {args.size}x{args.size} to {args.out} ({megabytes:.1f} MB) "
         f"in {seconds:.1f} s; fit a mask to them with enmi-fit-mask --data.root {args.out}"
     )
+
+
+if __name__ == "__main__":
+    main()

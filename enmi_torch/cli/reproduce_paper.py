@@ -1,4 +1,4 @@
-"""``enmi-reproduce-paper`` (also ``python data_tools/reproduce_paper.py``): the paper's Fig. simPerformance.
+"""``enmi-reproduce-paper`` (also ``python -m enmi_torch.cli.reproduce_paper``): the paper's Fig. simPerformance.
 
 Probability of error of NMI and ENMI against the noise power N0, simulated with the library's ``nmi`` and ``enmi``
 at every N0 of the paper's plot; ``--help`` says what it writes and prints.
@@ -25,8 +25,8 @@ from jsonargparse.typing import Path_fr
 from tqdm import tqdm
 
 from enmi_torch import RoadCamera
-from enmi_torch.cli._command import check_text_files, dashed_aliases, parser_error, run_command
 from enmi_torch.simulation import SCORES, ErrorRates, error_rates, road_tiles
+from enmi_torch.utils.command import check_text_files, dashed_aliases, parser_error, run_command
 from enmi_torch.utils.resources import config_file
 
 PROG = "enmi-reproduce-paper"
@@ -42,9 +42,9 @@ over the paper's) to --output-dir (refusing to replace an earlier run's unless -
 run time and the deviations from the paper as Markdown tables.
 
 examples:
-  {PROG}                                              # also: python data_tools/reproduce_paper.py
+  {PROG}                                              # also: python -m enmi_torch.cli.reproduce_paper
   {PROG} --scores '[nmi, enmi_mass]' --trials 2000    # two curves, fewer trials
-  {PROG} --output-dir data_tools/figures --overwrite true   # regenerate the README's figure and CSV
+  {PROG} --output-dir runs/paper --overwrite true     # replace an earlier run's figure and CSV there
   {PROG} --tensorboard runs/paper_tensorboard         # also log every point and the figure
 
 Every key of the config is an option, its underscores written as dashes (output_dir: --output-dir). Relative paths
@@ -143,7 +143,8 @@ def read_paper_points(path: Path) -> dict[str, list[float]]:
         rows = list(csv.DictReader(handle))
     if not rows or set(rows[0]) != {"noise_power", "nmi", "enmi"}:
         raise ValueError(
-            f"{path} must be a CSV with columns noise_power, nmi, enmi (data_tools/paper/extract_paper_points.py)"
+            f"{path} must be a CSV with columns noise_power, nmi, enmi (the paper's plotted points, as in the "
+            "default config's paper_points.csv)"
         )
     return {column: [float(row[column]) for row in rows] for column in ("noise_power", "nmi", "enmi")}
 

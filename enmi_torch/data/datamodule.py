@@ -52,8 +52,8 @@ class PairDataModule(LightningDataModule):
             (:class:`~enmi_torch.data.synthetic.KeptPairs`, ``9 H W`` bytes per pair); ``False`` draws each pair again
             whenever it is read. Either way every epoch sees the same pairs (pair ``i`` is a function of the seed and
             ``i``; only their order changes from epoch to epoch), so the fitted mask is the same, bit for bit;
-            keeping them saves drawing every pair again each epoch (most of an epoch's time: ``python
-            data_tools/benchmarks/bench_fit_mask.py``). A folder's pairs are always read from disk.
+            keeping them saves drawing every pair again each epoch (most of an epoch's time). A folder's pairs are
+            always read from disk.
 
     Attributes:
         shape: ``(H, W)`` of the images.

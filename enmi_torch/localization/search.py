@@ -8,7 +8,7 @@ ECR, ENMI, mixture, NMI or NCC over every shift at once); the search knows no sc
 visited is a :class:`~enmi_torch.localization.strategy.SearchStrategy`, carried out by
 :mod:`~enmi_torch.localization.candidates`.
 
-Run ``enmi-localize --help`` (or ``python -m enmi_torch.localization --help``) for the command-line tool.
+Run ``enmi-localize --help`` (or ``python -m enmi_torch.cli.localize --help``) for the command-line tool.
 
 Convention:
     Poses are in map cells and degrees. ``center = (row, col)`` is the map cell under the captured image's centre

@@ -1,12 +1,12 @@
 """The score's likelihood scale and health threshold: the grid temperature, a fitted one, the calibration file.
 
 A score surface turns into a log-likelihood ``score * n_valid / temperature``. ECR is a Gaussian log-likelihood ratio
-per pixel, but its peak is far narrower than the filter's bins (on the drive benchmark the log-likelihood falls by
-~4,000 nats one cell from its peak): the belief cannot hold a likelihood sharper than its own bins, and the sub-cell
-position and yaw are unknown within them. :func:`grid_temperature`, the tracker's default, flattens each frame's
-log-likelihood just enough that no axis is sharper than a pose spread uniformly over one bin (variance ``width^2 /
-12``); nothing is fitted. :func:`calibrate_temperature` fits one temperature on surveyed frames instead, for any score.
-:class:`Calibration` saves it with the peak threshold next to a map.
+per pixel, but its peak can be far narrower than the filter's bins (thousands of nats lost one cell from the peak):
+the belief cannot hold a likelihood sharper than its own bins, and the sub-cell position and yaw are unknown within
+them. :func:`grid_temperature`, the tracker's default, flattens each frame's log-likelihood just enough that no axis
+is sharper than a pose spread uniformly over one bin (variance ``width^2 / 12``); nothing is fitted.
+:func:`calibrate_temperature` fits one temperature on surveyed frames instead, for any score. :class:`Calibration`
+saves it with the peak threshold next to a map.
 """
 
 from __future__ import annotations
@@ -152,7 +152,7 @@ class Calibration(NamedTuple):
             ValueError: naming the field, when ``temperature`` is not a finite number > 0 or ``min_peak_z`` is not
                 finite (JSON has no NaN or inf), or ``score`` is not a score's name.
         """
-        _checked(self, "Calibration")
+        checked_calibration(self, "Calibration")
         path = Path(path)
         path.write_text(json.dumps(self._asdict(), indent=2) + "\n")
         return path
@@ -175,11 +175,11 @@ class Calibration(NamedTuple):
             values["score"] = values.pop("metric")
         if set(values) != set(cls._fields):
             raise ValueError(f"{named}: a calibration needs keys {list(cls._fields)}, got {sorted(values)}")
-        return _checked(cls(values["score"], values["temperature"], values["min_peak_z"]), named)
+        return checked_calibration(cls(values["score"], values["temperature"], values["min_peak_z"]), named)
 
 
-def _checked(calibration: Calibration, named: str) -> Calibration:
-    """``calibration`` with float fields once each field is checked; messages start with ``named``."""
+def checked_calibration(calibration: Calibration, named: str) -> Calibration:
+    """``calibration`` with float fields once each field is checked, else a ValueError that starts with ``named``."""
     score, temperature, min_peak_z = calibration
     if not isinstance(score, str) or score not in score_names():
         raise ValueError(f"{named}: score must be one of {list(score_names())}, got {score!r}")

@@ -1,7 +1,8 @@
 """The fit-mask command: LightningCLI over :class:`MaskFitModule` and :class:`~enmi_torch.data.PairDataModule`.
 
 :func:`fit_mask` runs it with a list of arguments and returns the summary (what ``enmi-fit-mask`` prints);
-:mod:`enmi_torch.cli.fit_mask` is the console entry point around it.
+:mod:`enmi_torch.cli.fit_mask` is the console entry point around it. What it checks before training is in
+:mod:`~enmi_torch.training.fit_checks`, what it writes in :mod:`~enmi_torch.training.fit_outputs`.
 """
 
 from __future__ import annotations
@@ -9,9 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import copy
-import json
 import logging
-import math
 import os
 import shutil
 import signal
@@ -22,24 +21,20 @@ from pathlib import Path
 
 import torch
 from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from torch.utils.data import Subset
 
-from enmi_torch.cli._command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.data import PairDataModule
-from enmi_torch.data.pairs import PairDataset
-from enmi_torch.training.localization_figure import ANSWER_METHODS, METHOD_MEANINGS, held_out_order
+from enmi_torch.training.fit_checks import check_checkpoint, check_output_dir, check_pairs
+from enmi_torch.training.fit_outputs import MaskWriter, print_summary, write_outputs
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
-from enmi_torch.utils.files import load_plain_torch
+from enmi_torch.utils.command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
 from enmi_torch.utils.resources import config_file
 
 PROG = "enmi-fit-mask"
-# A learned mask farther than this from the paper's empirical mask has not converged yet.
-CONVERGED = 0.05
 
 DESCRIPTION = f"""\
 Learn a per-pixel noise-variance mask from local/prior image pairs, for ENMILoss.
@@ -52,7 +47,7 @@ and to the true variance, and how often each score finds held-out pairs. Use the
 ENMILoss(variance_model=LearnedVariance.load(".../variance_mask.pt")).
 
 examples:
-  {PROG}                                         # also: python train/fit_mask.py
+  {PROG}                                         # also: python -m enmi_torch.cli.fit_mask
   {PROG} --data.flavour camera                   # camera-like synthetic pairs
   {PROG} --data.root PAIRS_FOLDER                # your own pairs (enmi-make-pairs writes the format)
   {PROG} --ckpt_path runs/fit_mask/lidar_0/checkpoints/last.ckpt --trainer.max_epochs 20
@@ -139,7 +134,6 @@ def _short(action: argparse.Action, defaults) -> argparse.Action:
 DEFAULT_SAVE_DIR = "runs"
 # The run folder chosen by the main process, for the processes DDP starts (they run the command again).
 RUN_FOLDER = "ENMI_FIT_MASK_RUN_FOLDER"
-OUTPUT_FILES = ("variance_mask.pt", "variance_mask.npy", "variance_mask.png", "summary.json")
 
 
 class FitMaskCLI(LightningCLI):
@@ -256,262 +250,6 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)", category=FutureWarning)
     # The command hands LightningCLI its own command line as args (so that tests and scripts can call it too).
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
-
-
-def check_checkpoint(path: str, model: torch.nn.Module | None = None) -> None:
-    """Refuse a checkpoint that does not load as plain tensors and primitives (``weights_only=True``).
-
-    With ``model``, refuse one whose tensors do not have the model's shapes either (a 16x16 run's checkpoint resumed on
-    32x32 data), naming the sizes, instead of ``load_state_dict``'s traceback.
-    """
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"ckpt_path must be a checkpoint file, got {path!r}")
-    try:
-        checkpoint = load_plain_torch(path, "a plain checkpoint")
-    except ValueError as error:
-        raise ValueError(f"--ckpt_path {error}") from None
-    except Exception as error:  # torch's unpickler fails on foreign files in its own ways (IndexError on some text)
-        raise ValueError(
-            f"--ckpt_path {path} is refused: it is not a plain checkpoint that loads with weights_only=True "
-            f"({type(error).__name__}: {error})"
-        ) from None
-    if model is None:
-        return
-    saved = checkpoint.get("state_dict") if isinstance(checkpoint, dict) else None
-    if not isinstance(saved, dict):
-        raise ValueError(f"--ckpt_path {path!r} is not a Lightning checkpoint: it has no state_dict")
-    wanted = model.state_dict()
-    differ = [
-        f"{key} {tuple(value.shape)} (this run: {tuple(wanted[key].shape)})"
-        for key, value in saved.items()
-        if key in wanted and isinstance(value, torch.Tensor) and value.shape != wanted[key].shape
-    ]
-    if differ:
-        shape = getattr(model, "shape", None)
-        this_run = f" of {shape[0]}x{shape[1]} images" if shape is not None and len(shape) == 2 else ""
-        raise ValueError(
-            f"--ckpt_path {path!r} was saved by a run of other sizes than this one{this_run}: {', '.join(differ)}; "
-            "resume it on the data it was trained on (--data.size, --data.root), or start afresh without --ckpt_path"
-        )
-
-
-def finite_for_json(value: object, where: str = "") -> tuple[object, list[str]]:
-    """``value`` with every NaN or inf float replaced by ``None`` (JSON has neither), and the keys where it was."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None, [where or "value"]
-    if isinstance(value, dict):
-        pairs = [(key, finite_for_json(item, f"{where}.{key}" if where else str(key))) for key, item in value.items()]
-        return {key: item for key, (item, _) in pairs}, [path for _, (_, paths) in pairs for path in paths]
-    if isinstance(value, (list, tuple)):
-        items = [finite_for_json(item, f"{where}[{index}]") for index, item in enumerate(value)]
-        return [item for item, _ in items], [path for _, paths in items for path in paths]
-    return value, []
-
-
-def check_output_dir(output_dir: Path, overwrite: bool) -> None:
-    """Refuse an ``output_dir`` that cannot become a folder, or holds an earlier run's files unless ``overwrite``."""
-    existing = next(path for path in (output_dir, *output_dir.absolute().parents) if path.exists())
-    if not existing.is_dir():
-        which = "which is" if existing == output_dir else f"but {str(existing)!r} on its path is"
-        raise ValueError(f"--output_dir must be a folder, got {str(output_dir)!r}, {which} a file")
-    if not os.access(existing, os.W_OK):
-        raise ValueError(f"--output_dir {str(output_dir)!r} cannot be written: {str(existing)!r} is read-only")
-    earlier = [name for name in OUTPUT_FILES if (output_dir / name).exists()]
-    if earlier and not overwrite:
-        raise FileExistsError(
-            f"--output_dir {str(output_dir)!r} already holds {', '.join(earlier)} from an earlier run; choose another "
-            "--output_dir, or pass --overwrite true to replace them"
-        )
-
-
-class MaskWriter(Callback):
-    """Writes the mask (``.pt``, ``.npy``) before each held-out evaluation, so that no error there loses the fit.
-
-    ``output_dir``: the folder; ``None`` takes ``<log dir>/mask``. :attr:`written` is the ``.pt`` file once written.
-    """
-
-    def __init__(self, output_dir: Path | None) -> None:
-        self.output_dir = output_dir
-        self.written: Path | None = None
-
-    def folder(self, trainer) -> Path:
-        """The mask's folder."""
-        return self.output_dir or Path(trainer.log_dir) / "mask"
-
-    def on_validation_start(self, trainer, pl_module: MaskFitModule) -> None:
-        """Save the mask trained so far (the main process; every process holds the same mask)."""
-        if trainer.sanity_checking or pl_module.mask is None:
-            return
-        folder = self.folder(trainer)  # every process asks: trainer.log_dir is a collective under DDP
-        if not trainer.is_global_zero:
-            return
-        folder.mkdir(parents=True, exist_ok=True)
-        for suffix in ("pt", "npy"):
-            pl_module.mask.save(folder / f"variance_mask.{suffix}")
-        self.written = folder / "variance_mask.pt"
-
-
-# Reading the pairs to check them stops after this many seconds (the fit's first pass reads them all anyway).
-CHECK_SECONDS = 3.0
-# Ranges suggested for pairs that do not fit --model.value_range: the usual ones, the smallest that covers them.
-USUAL_RANGES = (1.0, 256.0, 4096.0, 65536.0)
-
-
-def check_pairs(datamodule: PairDataModule, bins: int, value_range: Sequence[float]) -> None:
-    """Read the pairs (for :data:`CHECK_SECONDS` at most) and refuse them before training if they cannot be fitted.
-
-    Reading raises on a file that cannot be read, of another shape, or with NaN at a valid pixel (naming it); here,
-    pairs that ``--model.value_range`` does not resolve (images in [0, 1] against the default [0, 256], 16-bit images)
-    are refused with the range to pass, spelt as on the command line.
-    """
-    from enmi_torch.utils.checks import check_resolved_by_bins
-
-    start = time.perf_counter()
-    low, high = float("inf"), float("-inf")  # of the prior images (the maps, noise-free) where there are any
-    refused = None
-    for dataset in (datamodule.train_set, datamodule.val_set):
-        for index in range(len(dataset)):
-            item = dataset[index]
-            for role in ("local", "prior"):
-                values, valid = item[role].reshape(1, -1).double(), item["valid"].reshape(1, -1)
-                if role == "prior" and bool(valid.any()):  # noise may spill past the range: the map's range rules
-                    low, high = min(low, float(values[valid].min())), max(high, float(values[valid].max()))
-                try:
-                    check_resolved_by_bins(role, values, valid, bins, tuple(value_range))
-                except ValueError:
-                    refused = refused or (role, _pair_name(dataset, index))
-            if time.perf_counter() - start > CHECK_SECONDS and refused is None:
-                return
-    if refused is None:
-        return
-    suggested_low = 0.0 if low >= 0 else math.floor(low)
-    suggested_high = next((usual for usual in USUAL_RANGES if high <= usual), math.ceil(high) + 1.0)
-    role, name = refused
-    raise ValueError(
-        f"--model.value_range {[float(value) for value in value_range]} does not fit the pairs: their prior images "
-        f"run from {low:.4g} to {high:.4g} (the {role} image of {name} falls in one or two of its {bins} bins); pass "
-        f'--model.value_range "[{suggested_low:g}, {suggested_high:g}]"'
-    )
-
-
-def _pair_name(dataset, index: int) -> str:
-    """The pair's local file where it has one, else ``pair <index>``."""
-    if isinstance(dataset, Subset) and isinstance(dataset.dataset, PairDataset):
-        name = dataset.dataset.names[dataset.indices[index]]
-        return str(dataset.dataset._files["local"][name])
-    return f"pair {index}"
-
-
-def write_outputs(
-    model: MaskFitModule,
-    trainer,
-    output_dir: Path,
-    log_dir: str,
-    seconds: float,
-    source: str,
-    *,
-    overwrite: bool = False,
-) -> dict:
-    """Write the mask files and ``summary.json``; returns the summary (``source``: where the pairs came from).
-
-    Refuses to replace an earlier run's files unless ``overwrite``.
-    """
-    import matplotlib.pyplot as plt
-
-    check_output_dir(output_dir, overwrite)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    paths = {suffix: output_dir / f"variance_mask.{suffix}" for suffix in ("pt", "npy", "png")}
-    model.mask.save(paths["pt"])
-    model.mask.save(paths["npy"])
-    figure = model.figure()
-    figure.savefig(paths["png"], dpi=90)
-    plt.close(figure)
-    datamodule = trainer.datamodule
-    metrics = trainer.callback_metrics
-    summary = {
-        "files": {suffix: str(path) for suffix, path in paths.items()},
-        "log_dir": log_dir,
-        "last_checkpoint": getattr(trainer.checkpoint_callback, "last_model_path", "") or None,
-        "source": source,
-        "shape": list(model.shape),
-        "train_pairs": datamodule.num_train_pairs,
-        "val_pairs": len(datamodule.val_set),
-        "epochs": trainer.current_epoch,
-        "seconds": seconds,
-        "train_epoch_seconds": model.epoch_seconds,
-        "learned_pixels": int(model.mask.valid.sum()),
-        "errors": model.mask_errors(),
-        "localization_pairs": min(model.hparams.localization_pairs, len(datamodule.val_set)),
-        "localization": _by_set(metrics, "localization/"),
-        "localization_z": _by_set(metrics, "localization_z/"),
-    }
-    written, non_finite = finite_for_json(summary)
-    (output_dir / "summary.json").write_text(json.dumps(written, indent=2, allow_nan=False) + "\n")
-    if non_finite:
-        print(f"summary.json: {', '.join(non_finite)} not finite, written as null")
-    return summary
-
-
-def _by_set(metrics: dict, prefix: str) -> dict[str, dict[str, float]]:
-    """``{"<prefix><set>/<method>": value}`` as ``{set: {method: value}}``."""
-    nested: dict[str, dict[str, float]] = {}
-    for key, value in metrics.items():
-        if key.startswith(prefix) and key.count("/") == 2:
-            held_out, method = key[len(prefix) :].split("/")
-            nested.setdefault(held_out, {})[method] = float(value)
-    return nested
-
-
-def _localization_lines(rates: dict[str, dict[str, float]], pairs: int) -> list[str]:
-    """A table: the share of held-out pairs each method located (rows), at each noise level (columns).
-
-    Rows are named as in TensorBoard (``localization/<set>/<method>``); the answer's lines first, what they mean below.
-    """
-    sets = held_out_order(rates)
-    methods = [method for method in METHOD_MEANINGS if any(method in rates[name] for name in sets)]
-    stderr = 0.5 / pairs**0.5
-    header = "".join(f"{name:>11}" for name in sets)
-    lines = [
-        f"  held-out pairs located within one pixel, share of {pairs} (standard error at most {stderr:.2f}):",
-        f"    {'':<19}{header}",
-    ]
-    for method in methods:
-        cells = "".join(f"{rates[name][method]:>11.3f}" if method in rates[name] else f"{'-':>11}" for name in sets)
-        lines.append(f"    {method:<19}{cells}")
-    shown = [method for method in ANSWER_METHODS if method in methods]
-    lines += [f"    {method}: {METHOD_MEANINGS[method]}" for method in shown]
-    return lines
-
-
-def print_summary(summary: dict) -> None:
-    """Print how good the mask is, where the outputs are, and how to use the mask."""
-    errors = summary["errors"]
-    height, width = summary["shape"]
-    lines = [
-        f"Variance mask learned from {summary['train_pairs']} pairs of {height}x{width} ({summary['source']}), "
-        f"{summary['epochs']} epochs, {summary['seconds']:.1f} s ({summary['learned_pixels']} pixels learned)",
-        f"  relative RMS error vs the paper's empirical mask: {100 * errors['rel_rms_vs_empirical']:.2f} %",
-    ]
-    if "rel_rms_vs_truth" in errors:
-        lines.append(
-            f"  relative RMS error vs the true variance:          {100 * errors['rel_rms_vs_truth']:.2f} % "
-            f"(empirical mask: {100 * errors['empirical_rel_rms_vs_truth']:.2f} %)"
-        )
-    if errors["rel_rms_vs_empirical"] > CONVERGED:
-        lines.append(
-            f"  not converged after {summary['epochs']} epochs: train longer (--trainer.max_epochs) before using it"
-        )
-    if summary["localization"]:
-        lines += _localization_lines(summary["localization"], summary["localization_pairs"])
-    mask = summary["files"]["pt"]
-    lines += [
-        f"  mask files:  {mask} (.npy, .png and summary.json beside it)",
-        f"  checkpoint:  {summary['last_checkpoint']}",
-        f"  dashboards:  tensorboard --logdir {Path(summary['log_dir']).parent}",
-        "Use it in ENMI:",
-        f'  ENMILoss(variance_model=LearnedVariance.load("{mask}"))',
-    ]
-    print("\n".join(lines))
 
 
 # The run's own keys, also accepted with dashes as the other commands spell their options.
@@ -632,7 +370,7 @@ SIMPLE_TYPES = {int: "int", float: "float", bool: "bool", int | None: "int|null"
 
 
 def quick_reference(columns: int) -> dict:
-    """What ``enmi-fit-mask`` answers without Lightning (:mod:`enmi_torch.cli.fit_mask`).
+    """What ``enmi-fit-mask`` answers without Lightning (:mod:`enmi_torch.cli.fit_mask_quick`).
 
     The help, formatted at ``columns``, and every option with its simple type (``"int"``, ``"bool|null"``, ...;
     ``None`` for the others).

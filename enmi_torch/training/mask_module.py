@@ -10,7 +10,7 @@ single-process gradient of the same global batch: the fitted mask does not depen
 Dashboards (TensorBoard, written by :class:`~enmi_torch.training.logger.MaskLogger`): ``train/nll`` and ``val/nll``
 (the one loss, per valid pixel); ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth`` and its floor
 ``mask/empirical_rel_rms_vs_truth``; ``localization/<held-out set>/<method>`` (share of held-out pairs located
-within one pixel by a whole-image search, the protocol of ``data_tools/yardstick/yardstick.py``) and
+within one pixel by a whole-image search, the localization yardstick's protocol) and
 ``localization_z/<held-out set>/<method>`` (the mean z-score of the true shift's score among the others: the margin)
 for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_true``, synthetic data) and the
 uniform controls (``*_uniform``: the learned mask's mean; ``enmi_best_uniform``: the best of the mean times

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from enmi_torch.cli.fit_mask import HELP_COLUMNS, QUICK_REFERENCE, quick_answer
+from enmi_torch.cli.fit_mask_quick import HELP_COLUMNS, QUICK_REFERENCE, quick_answer
 from enmi_torch.training.fit_mask import fit_mask, quick_reference
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_the_quick_reference_is_that_of_the_full_parser():
     written = json.loads(QUICK_REFERENCE.read_text())
     assert written == json.loads(json.dumps(quick_reference(HELP_COLUMNS))), (
-        "regenerate it: PYTHONPATH=. python -m enmi_torch.cli.fit_mask"
+        "regenerate it: PYTHONPATH=. python -m enmi_torch.cli.fit_mask_quick"
     )
 
 

@@ -10,7 +10,7 @@ TOOL = [sys.executable, "-m", "data_tools.experiments.yardstick.localization_ben
 
 
 def test_command_line_example_names_the_files_the_example_writer_makes(tmp_path):
-    from enmi_torch.localization.cli import _EPILOG
+    from enmi_torch.cli.localize import _EPILOG
 
     completed = subprocess.run(
         [*TOOL, "--example", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300

@@ -60,7 +60,7 @@ from enmi_torch.localization import NoCandidateError
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
 from enmi_torch.scores.ecr import MISFITS
-from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, calibrate_temperature, default_score
+from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, TrackerSettings, calibrate_temperature, default_score
 from enmi_torch.tracking.belief import check_mismatch_probability, finite_floor
 from enmi_torch.tracking.health import peak_z_score
 from enmi_torch.utils.checks import value_checks
@@ -327,10 +327,12 @@ def run_filter(
         shifts=SHIFTS,
         yaw_bins=YAW_BINS,
         yaw_step=YAW_STEP,
-        motion_noise=drive.motion_noise,
-        coasting=coasting,
-        refine=refine and method != "nmi",
-        mismatch_probability=mismatch_probability,
+        settings=TrackerSettings(
+            motion_noise=drive.motion_noise,
+            coasting=coasting,
+            refine=refine and method != "nmi",
+            mismatch_probability=mismatch_probability,
+        ),
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []

@@ -1,4 +1,7 @@
-"""How every command parses, helps and fails: one-line errors with exit code 2, "did you mean", defaults in help."""
+"""How every command parses, helps and fails: one-line errors with exit code 2, "did you mean", defaults in help.
+
+Shared by the commands of :mod:`enmi_torch.cli` and the training command's parser; the standard library only.
+"""
 
 from __future__ import annotations
 

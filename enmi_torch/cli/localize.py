@@ -1,4 +1,4 @@
-"""``enmi-localize`` (``python -m enmi_torch.localization``): localize a local image file in a map file."""
+"""``enmi-localize`` (``python -m enmi_torch.cli.localize``): localize a local image file in a map file."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import RESAMPLING, localize
 from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.scores import Score, as_score, score_names
+from enmi_torch.utils.command import ArgumentParser, run_command
 
 
 def _read_array(path: str, name: str):
@@ -72,12 +73,10 @@ output: one JSON line, for example
 
 
 def _parser() -> argparse.ArgumentParser:
-    from enmi_torch.cli._command import ArgumentParser
-
     parser = ArgumentParser(
         prog=_PROG,
         description="Find the pose (shift and yaw) of a local image in a prior map with ECR, ENMI, mixture, NMI or\n"
-        "NCC score surfaces, and print it as JSON (also runs as python -m enmi_torch.localization).",
+        "NCC score surfaces, and print it as JSON (also runs as python -m enmi_torch.cli.localize).",
         epilog=_EPILOG,
     )
     parser.add_argument("--map", required=True, help="prior map, .npy (2-D) or .png (read as grey levels)")
@@ -172,9 +171,7 @@ def _check_finite_file(name: str, values: Tensor, valid: Tensor | None) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Console entry point (``enmi-localize``, ``python -m enmi_torch.localization``): one-line errors, exit code 2."""
-    from enmi_torch.cli._command import run_command
-
+    """Console entry point (``enmi-localize``, ``python -m enmi_torch.cli.localize``): one-line errors, exit code 2."""
     run_command(_PROG, _command, argv)
 
 

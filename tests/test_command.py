@@ -1,6 +1,6 @@
 import pytest
 
-from enmi_torch.cli._command import ArgumentParser, dashed_aliases, plain_parser_message, plain_text, run_command
+from enmi_torch.utils.command import ArgumentParser, dashed_aliases, plain_parser_message, plain_text, run_command
 
 
 def parser() -> ArgumentParser:

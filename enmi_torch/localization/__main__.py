@@ -1,5 +1,0 @@
-"""``python -m enmi_torch.localization``: the ``enmi-localize`` command."""
-
-from enmi_torch.localization.cli import main
-
-main()
