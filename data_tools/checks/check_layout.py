@@ -1,17 +1,20 @@
 """The library's shape, checked: imports point down, no private name crosses a module, limits on files and signatures.
 
-Run by ``.ci/run`` (``python .ci/check_layout.py``); prints one line per finding and exits 1 if there is any.
+Run by ``.ci/run`` (``python -m data_tools.checks.check_layout``) from the repository root; prints one line per
+finding and exits 1 if there is any. ``--root DIR`` checks another checkout.
 """
 
 from __future__ import annotations
 
+import argparse
 import ast
-import importlib
+import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-PACKAGE = ROOT / "enmi_torch"
+ROOT = Path(__file__).resolve().parents[2]
 MAX_FILE_LINES = 600
 MAX_PARAMETERS = 15
 MAX_TOP_LEVEL_NAMES = 25
@@ -26,9 +29,9 @@ FAMILIES = {
 }
 
 
-def module_name(path: Path) -> str:
+def module_name(path: Path, root: Path) -> str:
     """The dotted module a file of the package holds."""
-    parts = path.relative_to(ROOT).with_suffix("").parts
+    parts = path.relative_to(root).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
@@ -97,17 +100,34 @@ def count_parameters(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
     return len(names) + bool(arguments.vararg) + bool(arguments.kwarg)
 
 
-def main() -> int:
-    """Print every finding; 1 if there is any."""
+def top_level_names(root: Path) -> tuple[list[str], list[str]]:
+    """``enmi_torch.__all__`` of the checkout at ``root`` and its names that do not import, read in a fresh process."""
+    code = (
+        "import enmi_torch, json\n"
+        "missing = [n for n in enmi_torch.__all__ if not hasattr(enmi_torch, n)]\n"
+        "print(json.dumps([list(enmi_torch.__all__), missing]))"
+    )
+    environment = {**os.environ, "PYTHONPATH": str(root)}
+    completed = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, env=environment)
+    if completed.returncode:
+        raise RuntimeError(f"import enmi_torch failed in {root}: {completed.stderr.strip().splitlines()[-1]}")
+    names, missing = json.loads(completed.stdout)
+    return names, missing
+
+
+def findings_of(root: Path) -> list[str]:
+    """Every finding of the checkout at ``root``, one line each."""
     findings = []
     graph: dict[str, set[str]] = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        relative = path.relative_to(PACKAGE).with_suffix("").as_posix()
-        module = module_name(path)
+    package = root / "enmi_torch"
+    for path in sorted(package.rglob("*.py")):
+        relative = path.relative_to(package).with_suffix("").as_posix()
+        module = module_name(path, root)
+        shown = path.relative_to(root)
         text = path.read_text()
         lines = text.count("\n")
         if lines > MAX_FILE_LINES:
-            findings.append(f"{path.relative_to(ROOT)}: {lines} lines (at most {MAX_FILE_LINES})")
+            findings.append(f"{shown}: {lines} lines (at most {MAX_FILE_LINES})")
         tree = ast.parse(text)
         annotation_only = type_checking_lines(tree)
         for node in ast.walk(tree):
@@ -119,41 +139,43 @@ def main() -> int:
                     for alias in node.names:
                         private = alias.name.startswith("_") and not alias.name.startswith("__")
                         if private and target != module:
-                            where = f"{path.relative_to(ROOT)}:{node.lineno}"
-                            findings.append(f"{where}: private name {alias.name} imported from {target}")
+                            findings.append(f"{shown}:{node.lineno}: private name {alias.name} imported from {target}")
             elif isinstance(node, ast.Import) and node.lineno not in annotation_only:
                 for alias in node.names:
                     if alias.name.startswith("enmi_torch") and room(alias.name) != room(module):
                         graph.setdefault(room(module), set()).add(room(alias.name))
             elif isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("isinstance", "issubclass"):
                 named = {getattr(n, "id", getattr(n, "attr", None)) for n in ast.walk(node.args[1])}
-                for family in named & set(FAMILIES):
+                for family in sorted(named & set(FAMILIES)):
                     if relative != FAMILIES[family]:
                         findings.append(
-                            f"{path.relative_to(ROOT)}:{node.lineno}: isinstance on the score family {family} outside "
+                            f"{shown}:{node.lineno}: isinstance on the score family {family} outside "
                             f"enmi_torch/{FAMILIES[family]}.py (ask the score instead)"
                         )
             elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not node.name.startswith("_"):
                 count = count_parameters(node)
                 if count > MAX_PARAMETERS:
                     findings.append(
-                        f"{path.relative_to(ROOT)}:{node.lineno}: {node.name} takes {count} parameters "
-                        f"(at most {MAX_PARAMETERS})"
+                        f"{shown}:{node.lineno}: {node.name} takes {count} parameters (at most {MAX_PARAMETERS})"
                     )
     for component in find_cycle(graph):
         findings.append(f"import cycle among {', '.join(component)}")
-    sys.path.insert(0, str(ROOT))
-    package = importlib.import_module("enmi_torch")
-    if len(package.__all__) > MAX_TOP_LEVEL_NAMES:
-        findings.append(f"enmi_torch.__all__ holds {len(package.__all__)} names (at most {MAX_TOP_LEVEL_NAMES})")
-    for name in package.__all__:
-        try:
-            getattr(package, name)
-        except AttributeError:
-            findings.append(f"enmi_torch.__all__ names {name}, which does not import")
-    readme_lines = (ROOT / "README.md").read_text().count("\n")
+    names, missing = top_level_names(root)
+    if len(names) > MAX_TOP_LEVEL_NAMES:
+        findings.append(f"enmi_torch.__all__ holds {len(names)} names (at most {MAX_TOP_LEVEL_NAMES})")
+    findings += [f"enmi_torch.__all__ names {name}, which does not import" for name in missing]
+    readme_lines = (root / "README.md").read_text().count("\n")
     if readme_lines > MAX_README_LINES:
         findings.append(f"README.md: {readme_lines} lines (at most {MAX_README_LINES})")
+    return findings
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print every finding; 1 if there is any."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--root", type=Path, default=ROOT, help="the checkout to check (default: this one)")
+    arguments = parser.parse_args(argv)
+    findings = findings_of(arguments.root.resolve())
     for line in findings:
         print(line)
     print(f"check_layout: {len(findings)} finding(s)")
