@@ -213,25 +213,28 @@ class CandidateSurfaces:
         result[kept] = torch.where(enough, surface.score, -math.inf).to(result.dtype)
         return result
 
-    def exhaustive(self, min_overlap: float) -> Tensor:
-        """``(B, Y, 2 ry + 1, 2 rx + 1)`` surface over every shift and yaw."""
+    def _full_windows(self):
+        """Per sample, in order: ``(sample, (window, window_valid), (captured, variance, valid))``.
+
+        The map window that holds every shift of the search and the sample's rotations for every yaw.
+        """
         height, width = self.captured.shape[2:]
         rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
-        surfaces = []
         for sample in range(self.captured.shape[0]):
-            window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
-            captured, variance, valid = self._rotations(sample, self.yaws)
-            surfaces.append(self._surface(sample, captured, variance, valid, window, window_valid, min_overlap))
+            window = self._window(sample, *self.origins[sample].tolist(), rows, cols)
+            yield sample, window, self._rotations(sample, self.yaws)
+
+    def exhaustive(self, min_overlap: float) -> Tensor:
+        """``(B, Y, 2 ry + 1, 2 rx + 1)`` surface over every shift and yaw."""
+        surfaces = []
+        for sample, window, rotations in self._full_windows():
+            surfaces.append(self._surface(sample, *rotations, *window, min_overlap))
         return torch.stack(surfaces)
 
     def two_stage(self, min_overlap: float, cheap_bins: int) -> Tensor:
         """``(B, Y, 2 ry + 1, 2 rx + 1)``: a rough surface over every shift and yaw, exact scores around its peaks."""
-        height, width = self.captured.shape[2:]
-        rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
         surfaces = []
-        for sample in range(self.captured.shape[0]):
-            window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
-            captured, variance, valid = self._rotations(sample, self.yaws)
+        for sample, (window, window_valid), (captured, variance, valid) in self._full_windows():
             exact = self.samples[sample]
             rough_of = exact.rough_score(cheap_bins, window, window_valid).rough_surface
             cheap = self._surface(sample, captured, variance, valid, window, window_valid, min_overlap, rough_of)
