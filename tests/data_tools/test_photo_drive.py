@@ -68,7 +68,7 @@ def test_the_photograph_drive_runs_the_filter_at_each_temperature_it_is_given(tm
 
     class Recording(tool.Tracker):
         def __init__(self, *args, **kwargs):
-            given.append(kwargs["temperature"])
+            given.append(kwargs["settings"].temperature)
             super().__init__(*args, **kwargs)
 
     monkeypatch.setattr(tool, "Tracker", Recording)

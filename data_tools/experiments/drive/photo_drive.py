@@ -12,7 +12,7 @@ moved by the odometry and takes the best candidate. ``--oracle`` adds a referenc
 gating: each frame is searched in the window centred on the truth, its best candidate taken where it is within one cell
 of the truth, the odometry dead-reckoned through the other frames. It measures how much of a drive the frames and the
 odometry leave to be lost even by a filter that never takes a wrong match. ``--temperatures auto 5 10 30`` adds the
-filter with hand-set temperatures (``Tracker(..., temperature=T)``) beside README's automatic one: a grid of controls, a
+filter with hand-set temperatures (``Tracker(..., settings=TrackerSettings(temperature=T))``) beside README's automatic one: a grid of controls, a
 row "filter, temperature T" each; the best of them, chosen on these same drives, is what tuning the temperature could
 reach.
 
