@@ -57,7 +57,8 @@ _MAX_YAWS = 36_000  # a full turn in steps of 0.01 degree
 
 
 _PROG = "enmi-localize"
-_EPILOG = f"""example (files from python data_tools/yardstick/localization_benchmark.py --example runs/example):
+_EPILOG = f"""example (files from, in a clone, python -m data_tools.experiments.yardstick.localization_benchmark \\
+         --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
       --local-mask runs/example/local_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
 
