@@ -19,7 +19,7 @@ from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
