@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from enmi_torch.localization.peak import _quadratic_peak
+from enmi_torch.localization.peak import Localization, _quadratic_peak
 
 
 def test_subcell_peak_of_an_exact_quadratic_and_its_covariance():
@@ -80,3 +80,11 @@ def test_a_peak_on_the_left_or_right_edge_has_no_fit(col):
     plane = -((rows - 4) ** 2) - (cols - col) ** 2
     offset, covariance = _quadratic_peak(plane, 4, col)
     assert offset.tolist() == [0.0, 0.0] and torch.isinf(covariance.diagonal()).all()
+
+
+def test_local_to_map_names_a_wrong_center_or_shape():
+    result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
+    with pytest.raises(ValueError, match=r"center must be \(row, col\) or a \(1, 2\) tensor of them, got \(5,\)"):
+        result.local_to_map((5,), (5, 5))
+    with pytest.raises(ValueError, match=r"local_shape must be \(H, W\), two positive ints, got \(5,\)"):
+        result.local_to_map((10, 20), (5,))

@@ -10,7 +10,16 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch import ECR, ENMI, NCC, Mixture, NoCandidateError, as_score, direct_surface, ecr_surface
+from enmi_torch import (
+    ECR,
+    ENMI,
+    NCC,
+    Mixture,
+    NoCandidateError,
+    as_score,
+    direct_surface,
+    ecr_surface,
+)
 from enmi_torch.cli.localize import _command, main
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
@@ -701,3 +710,37 @@ def test_command_line_refuses_a_one_pixel_image_and_an_output_folder_before_sear
     _command([*files, "--shifts", "4", "--output", str(tmp_path / "surface")])  # no suffix: written as named
     assert (tmp_path / "surface").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert capsys.readouterr().err.strip() == f"wrote {tmp_path / 'surface'}"
+
+
+def _scene():
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
+    return reference[..., 14:30, 19:35].clone(), reference
+
+
+def test_an_off_map_window_is_told_it_lies_off_the_map():
+    captured, reference = _scene()
+    with pytest.raises(NoCandidateError, match=r"the search window lies off the map in sample\(s\) \[0\]"):
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, center=(500, 500))
+
+
+def test_huge_yaws_are_refused_by_name_and_turns_are_taken_modulo_360():
+    captured, reference = _scene()
+    with pytest.raises(ValueError, match=r"yaws must be angles within \+-1e\+06 degrees .* got 1e\+300"):
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[1e300])
+    turned = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[-720.0, 5.0 - 720.0])
+    assert turned.pose[0, :2].tolist() == [3.0, -2.0]
+
+
+@pytest.mark.parametrize(
+    ("yaws", "message"),
+    [
+        ("0:1e12:1", "gives 1e+12 yaws, more than the 36000 searched at most"),
+        ("0:inf:1", "needs three finite numbers"),
+    ],
+)
+def test_yaw_ranges_without_a_bound_end_in_one_line(capsys, yaws, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--map", "map.npy", "--local", "local.npy", "--yaws", yaws])
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and error.count("\n") == 1 and message in error
