@@ -25,22 +25,35 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-SURFACE_TESTS = ["tests/test_score_surface.py", "tests/scores/test_score_objects.py"]
+SURFACE_TESTS = ["tests/placement/test_surfaces.py", "tests/scores/test_score_objects.py"]
+LOCALIZATION_TESTS = [
+    "tests/localization/test_search.py",
+    "tests/localization/test_peak.py",
+    "tests/localization/test_candidates.py",
+]
+TRACKING_TESTS = [
+    "tests/tracking/test_belief.py",
+    "tests/tracking/test_calibration.py",
+    "tests/tracking/test_health.py",
+    "tests/tracking/test_settings.py",
+    "tests/tracking/test_step.py",
+    "tests/tracking/test_tracker.py",
+]
 ECR_TESTS = [
-    "tests/test_correlation_ratio.py",
+    "tests/scores/test_ecr.py",
     "tests/scores/test_ecr_model_variance.py",
     "tests/scores/test_ecr_correlated_misfit.py",
     "tests/scores/test_ecr_shrunk_response.py",
     "tests/scores/test_score_seams.py",
     *SURFACE_TESTS,
     "tests/test_losses.py",
-    "tests/test_localize.py",
+    *LOCALIZATION_TESTS,
 ]
 # Each module's tests: those of the code it holds (the functional losses live with their scores, ECR's two-stage
 # pieces with ECR, NMI's choice between its two exact paths with NMI).
 MODULES = {
     "binning": ["tests/test_binning.py"],
-    "histogram": ["tests/test_histogram.py", "tests/test_histogram_candidates.py", "tests/test_budget.py"],
+    "histogram": ["tests/test_histogram.py", "tests/test_histogram_candidates.py", "tests/utils/test_budget.py"],
     "information": ["tests/test_information.py"],
     "placement/inputs": SURFACE_TESTS,
     "placement/fft": SURFACE_TESTS,
@@ -50,32 +63,37 @@ MODULES = {
     "scores/ecr": ECR_TESTS,
     "scores/ecr_statistics": ECR_TESTS,
     "scores/ecr_model_variance": ECR_TESTS,
-    "scores/ecr_placements": [*ECR_TESTS, "tests/test_mixture.py"],
-    "scores/shrunk_response": ["tests/scores/test_ecr_shrunk_response.py", "tests/test_correlation_ratio.py"],
-    "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/test_budget.py"],
+    "scores/ecr_placements": [*ECR_TESTS, "tests/scores/test_mixture.py"],
+    "scores/shrunk_response": ["tests/scores/test_ecr_shrunk_response.py", "tests/scores/test_ecr.py"],
+    "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/utils/test_budget.py"],
     "scores/nmi": [
         "tests/test_information.py",
         *SURFACE_TESTS,
         "tests/test_losses.py",
-        "tests/test_budget.py",
+        "tests/utils/test_budget.py",
         "tests/test_histogram_candidates.py",
     ],
-    "scores/ncc": [*SURFACE_TESTS, "tests/scores/test_score_seams.py", "tests/registration/test_register.py"],
-    "localization/search": ["tests/test_localize.py"],
-    "localization/strategy": ["tests/test_localize.py", "tests/test_checks.py"],
-    "localization/candidates": ["tests/test_localize.py"],
-    "localization/peak": ["tests/test_localize.py"],
+    "scores/ncc": [
+        *SURFACE_TESTS,
+        "tests/scores/test_ncc.py",
+        "tests/scores/test_score_seams.py",
+        "tests/registration/test_register.py",
+    ],
+    "localization/search": LOCALIZATION_TESTS,
+    "localization/strategy": [*LOCALIZATION_TESTS, "tests/utils/test_checks.py"],
+    "localization/candidates": LOCALIZATION_TESTS,
+    "localization/peak": LOCALIZATION_TESTS,
     "variance/empirical": ["tests/variance/test_empirical.py"],
     "variance/perspective": ["tests/variance/test_perspective.py"],
     "registration/refine": ["tests/registration/test_register.py"],
     "registration/response_fit": ["tests/registration/test_register.py"],
-    "tracking/calibration": ["tests/test_track.py"],
-    "tracking/tracker": ["tests/test_track.py"],
-    "tracking/step": ["tests/test_track.py"],
-    "tracking/search": ["tests/test_track.py"],
-    "tracking/settings": ["tests/test_track.py"],
-    "tracking/belief": ["tests/test_track.py"],
-    "utils/checks": ["tests/test_checks.py", "tests/registration/test_register.py", "tests/test_budget.py"],
+    "tracking/calibration": TRACKING_TESTS,
+    "tracking/tracker": TRACKING_TESTS,
+    "tracking/step": TRACKING_TESTS,
+    "tracking/search": TRACKING_TESTS,
+    "tracking/settings": TRACKING_TESTS,
+    "tracking/belief": TRACKING_TESTS,
+    "utils/checks": ["tests/utils/test_checks.py", "tests/registration/test_register.py", "tests/utils/test_budget.py"],
 }
 
 # Where a module's code lived in older checkouts, newest first, for --root: before the scores package (337d306 and

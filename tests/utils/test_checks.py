@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from enmi_torch import (
+    ECR,
     ENMILoss,
     NMILoss,
     direct_surface,
@@ -12,8 +13,10 @@ from enmi_torch import (
     enmi_surface,
     joint_histogram,
     mixture_information,
+    ncc,
     ncc_surface,
     nmi,
+    nmi_from_joint_histogram,
     nmi_surface,
 )
 from enmi_torch.data import match_intensity
@@ -292,3 +295,99 @@ def test_the_number_checks_hold_at_their_edges():
     with pytest.raises(ValueError, match=r"counts must be finite counts >= 0, got 1 value\(s\) outside"):
         check_counts("counts", torch.tensor([1.0, -1.0]))
     assert check_captured_in_reference(torch.zeros(1, 1, 4, 6), torch.zeros(1, 1, 4, 6), "H, W") == (1, 4, 6)
+
+
+def _scene():
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
+    return reference[..., 14:30, 19:35].clone(), reference
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda x: nmi(x, x.to("meta")), "reference must hold data, got a meta tensor"),
+        (lambda x: nmi(x.to("meta"), x.to("meta")), "captured must hold data, got a meta tensor"),
+        (lambda x: enmi(x, x.to("meta"), variance=4.0), "reference must hold data, got a meta tensor"),
+        (lambda x: enmi(x, x, variance=torch.ones_like(x, device="meta")), "variance must hold data"),
+        (lambda x: localize(x[..., :8, :8], x.to("meta"), 64.0, shifts=2), "reference must hold data"),
+        (lambda x: ecr(x, x.to("meta"), 4.0), "reference must hold data, got a meta tensor"),
+        (lambda x: ecr(x, x, torch.ones_like(x, device="meta")), "variance must hold data"),
+        (lambda x: ncc(x, x.to("meta")), "reference must hold data, got a meta tensor"),
+    ],
+)
+def test_a_reference_without_data_on_the_device_is_named(call, message):
+    with pytest.raises(ValueError, match=message):
+        call(torch.rand(1, 1, 16, 16) * 255)
+
+
+def test_a_log_prior_that_rules_out_every_bin_is_refused():
+    x = torch.rand(1, 1, 16, 16, generator=torch.Generator().manual_seed(0)) * 255
+    with pytest.raises(ValueError, match="log_prior must allow at least one bin"):
+        enmi(x, x + 1, variance=4.0, log_prior=torch.full((32,), -torch.inf))
+
+
+@pytest.mark.parametrize("count", [float("nan"), -0.5, float("inf")])
+def test_nmi_from_a_histogram_of_bad_counts_is_refused(count):
+    counts = torch.ones(1, 4, 4)
+    counts[0, 0, 0] = count
+    with pytest.raises(ValueError, match="counts must be finite counts >= 0"):
+        nmi_from_joint_histogram(counts)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda x, r: nmi(x, r, value_range=(0.0, 1.0)),
+        lambda x, r: enmi(x, r, variance=4.0, value_range=(0.0, 1.0)),
+        lambda x, r: ecr(x, r, 4.0, value_range=(0.0, 1.0)),
+    ],
+)
+def test_images_mostly_far_outside_value_range_are_refused(call):
+    # 0-255 images against value_range=(0, 1), with a few pixels below 1 so that not all fall in one bin: the score
+    # of the few pixels inside was returned (nmi gave 1.0006).
+    generator = torch.Generator().manual_seed(3)
+    captured = torch.rand(1, 1, 24, 20, generator=generator) * 255
+    captured[..., :2, :] = torch.rand(1, 1, 2, 20, generator=generator)
+    far = r"lies far outside value_range=\(0\.0, 1\.0\): [89]\d% of its valid pixels .* more than 8 range widths"
+    with pytest.raises(
+        ValueError,
+        match=far,
+    ):
+        call(captured, captured.flip(-1))
+
+
+def test_noise_spilling_past_value_range_is_still_scored():
+    generator = torch.Generator().manual_seed(4)
+    reference = torch.rand(1, 1, 24, 20, generator=generator, dtype=torch.float64) * 256
+    # std 640: the paper's simulation at its largest noise power, on its farthest tiles
+    captured = reference + 640.0 * torch.randn(reference.shape, generator=generator, dtype=torch.float64)
+    assert ((captured < 0) | (captured > 256)).double().mean() > 0.7
+    assert torch.isfinite(nmi(captured, reference)).all()
+
+
+def test_float32_surfaces_refuse_values_whose_squares_overflow_and_float64_scores_them():
+    from enmi_torch import ecr_surface
+
+    captured, reference = _scene()
+    captured[..., 3, 3] = 1e30  # one wild pixel: float32 squares overflowed into a NaN surface
+    with pytest.raises(ValueError, match=r"captured holds 1 value\(s\) beyond \+-1e\+18 where captured_mask is True"):
+        ecr_surface(captured, reference, 4.0, bins=16)
+    with pytest.raises(ValueError, match=r"captured holds 1 value\(s\) beyond"):  # was 'no candidate passes'
+        localize(captured, reference, 4.0, score=ECR(bins=16), shifts=3)
+    surface = ecr_surface(captured.double(), reference.double(), 4.0, bins=16)
+    assert torch.isfinite(surface.score).all()
+
+
+@pytest.mark.parametrize(("scale", "variance", "shown"), [(1e-20, 4.0, "4e-40"), (1e19, 4.0, r"4e\+38")])
+def test_a_variance_float32_cannot_hold_is_refused_and_float64_scores_it(scale, variance, shown):
+    from enmi_torch import ecr_surface
+
+    captured, reference = _scene()
+    captured, reference = (captured * scale).double(), (reference * scale).double()
+    options = {"bins": 16, "value_range": (0.0, 256 * scale)}
+    wide = ecr_surface(captured, reference, variance * scale**2, **options)
+    assert torch.isfinite(wide.score).all() and divmod(int(wide.score[0].argmax()), 33) == (14, 19)
+    for given in (variance * scale**2, torch.full_like(captured, variance * scale**2)):
+        with pytest.raises(ValueError, match=rf"variance must lie within 1.18e-38 to 3.4e\+35 .* got {shown}"):
+            enmi(captured.float(), captured.float(), variance=given, value_range=options["value_range"])

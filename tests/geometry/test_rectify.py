@@ -23,7 +23,7 @@ from enmi_torch.geometry.rectify import (
     visible_cells,
 )
 
-PAPER_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "camera" / "paper.yaml"
+PAPER_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "camera" / "paper.yaml"
 TILES = GroundGrid((-150.0, 150.0), (40.0, 200.0), 20.0)
 
 

@@ -10,16 +10,24 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch import ECR, ENMI, NCC, Mixture, NoCandidateError, as_score, direct_surface, ecr_surface
+from enmi_torch import (
+    ECR,
+    ENMI,
+    NCC,
+    Mixture,
+    NoCandidateError,
+    as_score,
+    direct_surface,
+    ecr_surface,
+)
 from enmi_torch.cli.localize import _command, main
-from enmi_torch.localization.candidates import rotate_captured
-from enmi_torch.localization.peak import Localization, _quadratic_peak
+from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.placement.peaks import rescore_peaks
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -133,18 +141,6 @@ def test_candidates_off_the_map_are_scored_on_their_overlap(gravel_map):
     tight = localize(local, gravel_map, 4.0, shifts=8, center=(16, 16), min_overlap=1.0)
     assert not torch.isfinite(tight.surface[0, 0, 0, 0])
     assert torch.isfinite(tight.surface[0, 0, 8:, 8:]).all()
-
-
-def test_subcell_peak_of_an_exact_quadratic_and_its_covariance():
-    rows, cols = torch.meshgrid(torch.arange(7.0).double(), torch.arange(9.0).double(), indexing="ij")
-    curvature = torch.tensor([[2.0, 0.6], [0.6, 1.2]], dtype=torch.float64)
-    offset = torch.stack([cols - 4.3, rows - 2.8], dim=-1)
-    plane = 5 - 0.5 * torch.einsum("...i,ij,...j->...", offset, curvature, offset)
-    sub_cell, covariance = _quadratic_peak(plane, 3, 4)
-    torch.testing.assert_close(sub_cell, torch.tensor([0.3, -0.2], dtype=torch.float64))
-    torch.testing.assert_close(covariance, torch.linalg.inv(curvature))
-    _, on_edge = _quadratic_peak(plane, 0, 4)
-    assert torch.isinf(on_edge.diagonal()).all()
 
 
 def test_fractional_shift_is_refined_below_one_cell():
@@ -374,34 +370,6 @@ def test_invalid_inputs_raise_clear_errors(gravel_map, index):
         localize(**arguments)
 
 
-def test_nearest_rotation_keeps_each_pixel_and_its_variance():
-    generator = torch.Generator().manual_seed(3)
-    local = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 256
-    variance = torch.rand(1, 1, 20, 20, generator=generator, dtype=torch.float64) * 50 + 1
-    valid = torch.ones(1, 1, 20, 20, dtype=torch.bool)
-    turned, turned_variance, turned_valid = rotate_captured(local, variance, valid, [0.0, 17.0, -40.0], "nearest")
-    assert torch.equal(turned[0], local[0]) and torch.equal(turned_variance[0], variance[0])
-    pairs = {(value, noise) for value, noise in zip(local.flatten().tolist(), variance.flatten().tolist(), strict=True)}
-    for yaw in (1, 2):
-        kept = turned_valid[yaw, 0]
-        assert 0.6 * 400 < kept.sum() < 400
-        moved = zip(turned[yaw, 0][kept].tolist(), turned_variance[yaw, 0][kept].tolist(), strict=True)
-        assert set(moved) <= pairs
-
-
-def test_bilinear_rotation_propagates_the_noise_variance():
-    generator = torch.Generator().manual_seed(4)
-    sigma2 = torch.full((1, 1, 16, 16), 9.0, dtype=torch.float64)
-    valid = torch.ones(1, 1, 16, 16, dtype=torch.bool)
-    _, predicted, kept = rotate_captured(torch.zeros_like(sigma2), sigma2, valid, [23.0], "bilinear")
-    noise = 3.0 * torch.randn(4000, 1, 16, 16, generator=generator, dtype=torch.float64)
-    empirical = rotate(noise, torch.full((4000,), -23.0, dtype=torch.float64)).var(0)
-    ratio = empirical[kept[0]] / predicted[0][kept[0]]
-    # 4000 draws: each variance estimate is within about 3 * sqrt(2 / 4000) = 7 % of the truth.
-    assert ratio.sub(1).abs().max() < 0.1
-    assert predicted[0][kept[0]].min() < 0.6 * 9.0
-
-
 def test_ecr_search_with_unequal_radii_and_a_noisy_far_half_equals_the_direct_loop(gravel_map):
     # A camera-like variance: the top rows are 100 times noisier than the bottom rows.
     local = _cut(gravel_map, 83, 78, size=24)[..., :, :20]
@@ -430,27 +398,6 @@ def test_mixture_search_rescores_its_best_shifts_exactly_and_finds_the_pose(grav
     assert 9 <= int(rescored.sum()) < 63
     torch.testing.assert_close(result.surface[:, 0][rescored], expected[rescored], rtol=0, atol=1e-9)
     assert int(expected.flatten().argmax()) == int(result.surface[:, 0].flatten().argmax())
-
-
-def test_subcell_fit_recentres_when_the_vertex_leaves_the_peak_cell():
-    # An elongated quadratic whose grid maximum (row 4, col 3) is not the cell nearest its vertex (x 3.3, y 3.4).
-    rows, cols = torch.meshgrid(torch.arange(7.0), torch.arange(8.0), indexing="ij")
-    dx, dy = cols.double() - 3.3, rows.double() - 3.4
-    plane = -(dx**2 + 1.8 * dx * dy + dy**2)
-    assert divmod(int(plane.argmax()), 8) == (4, 3)
-    offset, covariance = _quadratic_peak(plane, 4, 3)
-    assert (3 + offset[0].item(), 4 + offset[1].item()) == pytest.approx((3.3, 3.4), abs=1e-9)
-    torch.testing.assert_close(
-        covariance, torch.linalg.inv(torch.tensor([[2.0, 1.8], [1.8, 2.0]], dtype=torch.float64))
-    )
-
-
-def test_subcell_fit_that_fails_is_reported_not_clamped():
-    plane = torch.zeros(5, 5, dtype=torch.float64)
-    plane[1:4, 1:4] = torch.tensor([[68.0, 75.0, 23.0], [81.0, 93.0, 20.0], [15.0, 48.0, 92.0]], dtype=torch.float64)
-    offset, covariance = _quadratic_peak(plane, 2, 2)
-    assert offset.tolist() == [0.0, 0.0]
-    assert torch.isinf(covariance.diagonal()).all()
 
 
 @pytest.mark.parametrize("yaws", [[0.0], [-2.0, 2.0]])
@@ -638,49 +585,6 @@ def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_mas
     torch.testing.assert_close(cheap.overlap, expected.overlap, rtol=0, atol=0)
 
 
-def test_parabola_offset_is_clamped_on_both_sides_and_zero_without_curvature():
-    from enmi_torch.localization.peak import _parabola_offset
-
-    assert _parabola_offset(torch.tensor([1.0, 1.0, 0.0])).item() == -0.5
-    assert _parabola_offset(torch.tensor([0.0, 1.0, 1.0])).item() == 0.5
-    assert _parabola_offset(torch.tensor([3.0, 2.0, 0.0])).item() == -0.5  # the vertex lies 1.5 steps left
-    assert _parabola_offset(torch.tensor([0.0, 2.0, 3.0])).item() == 0.5
-    assert _parabola_offset(torch.tensor([1.0, 1.0, 1.0])).item() == 0.0  # flat: no vertex
-
-
-def test_separated_peaks_exclude_the_same_reach_on_every_side():
-    from enmi_torch.localization.peak import separated_peaks
-
-    surface = torch.zeros(1, 9, 11, dtype=torch.float64)
-    surface[0, 4, 5] = 10.0
-    # Each just outside a radius of 2 around the best one: left, right, up, down.
-    for (row, col), value in {(4, 2): 6.0, (4, 8): 7.0, (1, 5): 8.0, (7, 5): 9.0}.items():
-        surface[0, row, col] = value
-    peaks = separated_peaks(surface, 5, 2)
-    assert peaks == [(0, 4, 5), (0, 7, 5), (0, 1, 5), (0, 4, 8), (0, 4, 2)]
-
-
-@pytest.mark.parametrize(("row", "col"), [(4, 8), (4, 2), (1, 5), (7, 5)])
-def test_margin_looks_just_outside_the_exclusion_radius_on_every_side(row, col):
-    from enmi_torch.localization.peak import read_peak
-
-    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
-    surface = (-((rows - 4) ** 2) - (cols - 5) ** 2).double()[None, None] * 0.1 + 10.0  # one smooth peak
-    surface[0, 0, row, col] = 9.9  # the runner-up, 3 cells away along one axis
-    result = read_peak(surface, torch.zeros(1, dtype=torch.float64), (4, 5), exclusion_radius=2)
-    assert result.margin.item() == pytest.approx(0.1)
-
-
-@pytest.mark.parametrize("col", [0, 10])
-def test_a_peak_on_the_left_or_right_edge_has_no_fit(col):
-    from enmi_torch.localization.peak import _quadratic_peak
-
-    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
-    plane = -((rows - 4) ** 2) - (cols - col) ** 2
-    offset, covariance = _quadratic_peak(plane, 4, col)
-    assert offset.tolist() == [0.0, 0.0] and torch.isinf(covariance.diagonal()).all()
-
-
 def test_two_stage_search_keeps_candidates_with_exactly_the_required_overlap(gravel_map):
     local = _cut(gravel_map, 82, 77)
     # With min_overlap 1 every candidate inside the map needs all its pixels: the overlap equals the requirement.
@@ -806,3 +710,37 @@ def test_command_line_refuses_a_one_pixel_image_and_an_output_folder_before_sear
     _command([*files, "--shifts", "4", "--output", str(tmp_path / "surface")])  # no suffix: written as named
     assert (tmp_path / "surface").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert capsys.readouterr().err.strip() == f"wrote {tmp_path / 'surface'}"
+
+
+def _scene():
+    generator = torch.Generator().manual_seed(0)
+    reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
+    return reference[..., 14:30, 19:35].clone(), reference
+
+
+def test_an_off_map_window_is_told_it_lies_off_the_map():
+    captured, reference = _scene()
+    with pytest.raises(NoCandidateError, match=r"the search window lies off the map in sample\(s\) \[0\]"):
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, center=(500, 500))
+
+
+def test_huge_yaws_are_refused_by_name_and_turns_are_taken_modulo_360():
+    captured, reference = _scene()
+    with pytest.raises(ValueError, match=r"yaws must be angles within \+-1e\+06 degrees .* got 1e\+300"):
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[1e300])
+    turned = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[-720.0, 5.0 - 720.0])
+    assert turned.pose[0, :2].tolist() == [3.0, -2.0]
+
+
+@pytest.mark.parametrize(
+    ("yaws", "message"),
+    [
+        ("0:1e12:1", "gives 1e+12 yaws, more than the 36000 searched at most"),
+        ("0:inf:1", "needs three finite numbers"),
+    ],
+)
+def test_yaw_ranges_without_a_bound_end_in_one_line(capsys, yaws, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--map", "map.npy", "--local", "local.npy", "--yaws", yaws])
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and error.count("\n") == 1 and message in error

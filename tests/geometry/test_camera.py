@@ -27,7 +27,7 @@ from enmi_torch.geometry.camera import (
 )
 from enmi_torch.geometry.rectify import GroundGrid
 
-PAPER_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "camera" / "paper.yaml"
+PAPER_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "camera" / "paper.yaml"
 RECTANGLES = [  # (x_l, x_u, d_near, d_far): a paper tile, a wide slab, a thin strip far away, a tile off-axis
     (-10.0, 10.0, 40.0, 60.0),
     (-80.0, 30.0, 45.0, 170.0),

@@ -7,10 +7,14 @@ import re
 import numpy as np
 import pytest
 
-from enmi_torch import LearnedVariance, MemoryBudgetError, memory_budget
+from enmi_torch import (
+    LearnedVariance,
+    MemoryBudgetError,
+    memory_budget,
+)
 from enmi_torch.cli.localize import main
 from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
-from enmi_torch.utils.files import read_npy
+from enmi_torch.utils.files import read_image, read_npy
 
 TRUNCATED = (
     r"is truncated or its header is wrong: the header states a \(100000, 100000\) float64 array of 74\.5 GiB, "
@@ -180,3 +184,9 @@ def test_sixteen_bit_png_keeps_its_values_for_the_pairs_and_the_command(tmp_path
     )
     report = json.loads(capsys.readouterr().out)
     assert (round(report["dx"]), round(report["dy"])) == (0, 0)
+
+
+def test_a_complex_map_is_refused(tmp_path):
+    np.save(tmp_path / "map.npy", np.ones((4, 4), dtype=np.complex64))
+    with pytest.raises(ValueError, match=r"--map '.*map\.npy' must hold real values, got complex dtype complex64"):
+        read_image(tmp_path / "map.npy", "--map")

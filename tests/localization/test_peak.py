@@ -1,0 +1,90 @@
+"""The peak read-out: the sub-cell quadratic fit, the yaw parabola, separated peaks, the margin."""
+
+import pytest
+import torch
+
+from enmi_torch.localization.peak import Localization, _quadratic_peak
+
+
+def test_subcell_peak_of_an_exact_quadratic_and_its_covariance():
+    rows, cols = torch.meshgrid(torch.arange(7.0).double(), torch.arange(9.0).double(), indexing="ij")
+    curvature = torch.tensor([[2.0, 0.6], [0.6, 1.2]], dtype=torch.float64)
+    offset = torch.stack([cols - 4.3, rows - 2.8], dim=-1)
+    plane = 5 - 0.5 * torch.einsum("...i,ij,...j->...", offset, curvature, offset)
+    sub_cell, covariance = _quadratic_peak(plane, 3, 4)
+    torch.testing.assert_close(sub_cell, torch.tensor([0.3, -0.2], dtype=torch.float64))
+    torch.testing.assert_close(covariance, torch.linalg.inv(curvature))
+    _, on_edge = _quadratic_peak(plane, 0, 4)
+    assert torch.isinf(on_edge.diagonal()).all()
+
+
+def test_subcell_fit_recentres_when_the_vertex_leaves_the_peak_cell():
+    # An elongated quadratic whose grid maximum (row 4, col 3) is not the cell nearest its vertex (x 3.3, y 3.4).
+    rows, cols = torch.meshgrid(torch.arange(7.0), torch.arange(8.0), indexing="ij")
+    dx, dy = cols.double() - 3.3, rows.double() - 3.4
+    plane = -(dx**2 + 1.8 * dx * dy + dy**2)
+    assert divmod(int(plane.argmax()), 8) == (4, 3)
+    offset, covariance = _quadratic_peak(plane, 4, 3)
+    assert (3 + offset[0].item(), 4 + offset[1].item()) == pytest.approx((3.3, 3.4), abs=1e-9)
+    torch.testing.assert_close(
+        covariance, torch.linalg.inv(torch.tensor([[2.0, 1.8], [1.8, 2.0]], dtype=torch.float64))
+    )
+
+
+def test_subcell_fit_that_fails_is_reported_not_clamped():
+    plane = torch.zeros(5, 5, dtype=torch.float64)
+    plane[1:4, 1:4] = torch.tensor([[68.0, 75.0, 23.0], [81.0, 93.0, 20.0], [15.0, 48.0, 92.0]], dtype=torch.float64)
+    offset, covariance = _quadratic_peak(plane, 2, 2)
+    assert offset.tolist() == [0.0, 0.0]
+    assert torch.isinf(covariance.diagonal()).all()
+
+
+def test_parabola_offset_is_clamped_on_both_sides_and_zero_without_curvature():
+    from enmi_torch.localization.peak import _parabola_offset
+
+    assert _parabola_offset(torch.tensor([1.0, 1.0, 0.0])).item() == -0.5
+    assert _parabola_offset(torch.tensor([0.0, 1.0, 1.0])).item() == 0.5
+    assert _parabola_offset(torch.tensor([3.0, 2.0, 0.0])).item() == -0.5  # the vertex lies 1.5 steps left
+    assert _parabola_offset(torch.tensor([0.0, 2.0, 3.0])).item() == 0.5
+    assert _parabola_offset(torch.tensor([1.0, 1.0, 1.0])).item() == 0.0  # flat: no vertex
+
+
+def test_separated_peaks_exclude_the_same_reach_on_every_side():
+    from enmi_torch.localization.peak import separated_peaks
+
+    surface = torch.zeros(1, 9, 11, dtype=torch.float64)
+    surface[0, 4, 5] = 10.0
+    # Each just outside a radius of 2 around the best one: left, right, up, down.
+    for (row, col), value in {(4, 2): 6.0, (4, 8): 7.0, (1, 5): 8.0, (7, 5): 9.0}.items():
+        surface[0, row, col] = value
+    peaks = separated_peaks(surface, 5, 2)
+    assert peaks == [(0, 4, 5), (0, 7, 5), (0, 1, 5), (0, 4, 8), (0, 4, 2)]
+
+
+@pytest.mark.parametrize(("row", "col"), [(4, 8), (4, 2), (1, 5), (7, 5)])
+def test_margin_looks_just_outside_the_exclusion_radius_on_every_side(row, col):
+    from enmi_torch.localization.peak import read_peak
+
+    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
+    surface = (-((rows - 4) ** 2) - (cols - 5) ** 2).double()[None, None] * 0.1 + 10.0  # one smooth peak
+    surface[0, 0, row, col] = 9.9  # the runner-up, 3 cells away along one axis
+    result = read_peak(surface, torch.zeros(1, dtype=torch.float64), (4, 5), exclusion_radius=2)
+    assert result.margin.item() == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("col", [0, 10])
+def test_a_peak_on_the_left_or_right_edge_has_no_fit(col):
+    from enmi_torch.localization.peak import _quadratic_peak
+
+    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
+    plane = -((rows - 4) ** 2) - (cols - col) ** 2
+    offset, covariance = _quadratic_peak(plane, 4, col)
+    assert offset.tolist() == [0.0, 0.0] and torch.isinf(covariance.diagonal()).all()
+
+
+def test_local_to_map_names_a_wrong_center_or_shape():
+    result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
+    with pytest.raises(ValueError, match=r"center must be \(row, col\) or a \(1, 2\) tensor of them, got \(5,\)"):
+        result.local_to_map((5,), (5, 5))
+    with pytest.raises(ValueError, match=r"local_shape must be \(H, W\), two positive ints, got \(5,\)"):
+        result.local_to_map((10, 20), (5,))
