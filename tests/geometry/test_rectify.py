@@ -10,7 +10,6 @@ from _geometry import pinhole_pixels
 from kornia.geometry.linalg import transform_points
 from kornia.geometry.transform import get_perspective_transform
 
-from enmi_torch import MemoryBudgetError
 from enmi_torch.geometry.camera import RoadCamera, ground_to_pixel, pixel_to_ground, projected_area
 from enmi_torch.geometry.rectify import (
     GroundGrid,
@@ -22,6 +21,7 @@ from enmi_torch.geometry.rectify import (
     unrectify,
     visible_cells,
 )
+from enmi_torch.utils.budget import MemoryBudgetError
 
 PAPER_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "camera" / "paper.yaml"
 TILES = GroundGrid((-150.0, 150.0), (40.0, 200.0), 20.0)

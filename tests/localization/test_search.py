@@ -10,21 +10,15 @@ import torch
 from kornia.geometry.transform import rotate
 from skimage import data
 
-from enmi_torch import (
-    ECR,
-    ENMI,
-    NCC,
-    Mixture,
-    NoCandidateError,
-    as_score,
-    direct_surface,
-    ecr_surface,
-)
+from enmi_torch import ECR, ENMI, NCC, Mixture
 from enmi_torch.cli.localize import _command, main
+from enmi_torch.functional import ecr_surface
+from enmi_torch.localization import NoCandidateError
 from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.scores import as_score, direct_surface
 from enmi_torch.variance import ConstantVariance, VarianceModel
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -402,7 +396,7 @@ def test_mixture_search_rescores_its_best_shifts_exactly_and_finds_the_pose(grav
 
 @pytest.mark.parametrize("yaws", [[0.0], [-2.0, 2.0]])
 def test_a_log_prior_per_sample_applies_to_that_sample_at_every_yaw(gravel_map, yaws):
-    from enmi_torch import gaussian_log_prior
+    from enmi_torch.functional import gaussian_log_prior
 
     local = torch.cat([_noisy(_cut(gravel_map, 78, 83), 6.0, 1), _noisy(_cut(gravel_map, 84, 77), 6.0, 2)])
     priors = torch.stack(

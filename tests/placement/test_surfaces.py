@@ -5,22 +5,11 @@ import pytest
 import torch
 from skimage import data
 
-from enmi_torch import (
-    ECR,
-    ENMI,
-    NCC,
-    NMI,
-    direct_surface,
-    ecr_surface,
-    enmi,
-    enmi_surface,
-    gaussian_log_prior,
-    ncc_surface,
-    nmi,
-    nmi_surface,
-)
+from enmi_torch import ECR, ENMI, NCC, NMI
+from enmi_torch.functional import ecr_surface, enmi, enmi_surface, gaussian_log_prior, ncc_surface, nmi, nmi_surface
 from enmi_torch.placement import Surface, fft_size
 from enmi_torch.placement import fft as placement_fft
+from enmi_torch.scores import direct_surface
 
 FAMILIES = {"ecr": ECR, "enmi": ENMI, "nmi": NMI, "ncc": NCC}
 

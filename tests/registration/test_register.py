@@ -326,7 +326,7 @@ def test_nan_map_cells_count_as_unobserved_like_a_mask_says(generator):
     ],
 )
 def test_what_would_not_fit_the_memory_budget_is_refused_before_allocating(generator, call, match):
-    from enmi_torch import MemoryBudgetError
+    from enmi_torch.utils.budget import MemoryBudgetError
 
     captured, reference, pose = _inputs(generator)
     with pytest.raises(MemoryBudgetError, match=match):
@@ -447,8 +447,7 @@ def test_the_blur_is_normalised_over_the_pixels_that_count():
 
 
 def test_the_blur_budget_counts_the_taps_and_the_padded_map(generator):
-    from enmi_torch import MemoryBudgetError, memory_budget
-    from enmi_torch.utils.budget import format_bytes
+    from enmi_torch.utils.budget import MemoryBudgetError, format_bytes, memory_budget
 
     captured, reference, pose = _inputs(generator)  # a 64 x 64 map, 16 x 16 captured
     radius = 300  # sigma 100: 3 sigma, the padded map a sixth of the total

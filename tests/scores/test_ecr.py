@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import ECR, BinSums, ECRLoss, ecr, ecr_from_bin_sums, ecr_surface, localize
-from enmi_torch.scores.ecr import ecr_surface_model_variance
+from enmi_torch import ECR, ECRLoss, localize
+from enmi_torch.functional import ecr, ecr_from_bin_sums, ecr_surface
+from enmi_torch.scores.ecr import BinSums, ecr_surface_model_variance
 from enmi_torch.scores.ecr_model_variance import default_model_variance
 from enmi_torch.variance import ConstantVariance
 

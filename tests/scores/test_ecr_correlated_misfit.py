@@ -6,8 +6,9 @@ import math
 import pytest
 import torch
 
-from enmi_torch import ECR, ecr, localize
+from enmi_torch import ECR, localize
 from enmi_torch.binning import hard_bin_index
+from enmi_torch.functional import ecr
 from enmi_torch.scores.ecr import ecr_model_variance, ecr_surface_model_variance
 from enmi_torch.scores.ecr_model_variance import MISFIT_REACH, misfit_extent
 

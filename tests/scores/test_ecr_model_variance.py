@@ -8,8 +8,10 @@ import pytest
 import torch
 from scipy.optimize import minimize_scalar
 
-from enmi_torch import ECR, direct_surface, ecr, ecr_surface, localize
+from enmi_torch import ECR, localize
 from enmi_torch.binning import hard_bin_index
+from enmi_torch.functional import ecr, ecr_surface
+from enmi_torch.scores import direct_surface
 from enmi_torch.scores.ecr import ecr_model_variance, ecr_surface_model_variance
 from enmi_torch.scores.ecr_model_variance import default_model_variance
 from enmi_torch.scores.ecr_placements import cheap_value_range

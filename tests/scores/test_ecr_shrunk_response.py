@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from enmi_torch import ECR, ecr, ecr_from_bin_sums, ecr_surface, register
+from enmi_torch import ECR, register
+from enmi_torch.functional import ecr, ecr_from_bin_sums, ecr_surface
 from enmi_torch.registration import warp_reference
 from enmi_torch.scores.base import direct_surface
 from enmi_torch.scores.ecr_statistics import bin_sums

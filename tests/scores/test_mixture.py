@@ -6,11 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import MemoryBudgetError, Mixture, MixtureLoss, direct_surface, mixture_information, mixture_surface
+from enmi_torch import Mixture
 from enmi_torch.binning import _log_bin_masses, _LowerLogNdtr, likelihood_weights, truncated_likelihood_weights
+from enmi_torch.functional import mixture_information, mixture_surface
+from enmi_torch.losses import MixtureLoss
 from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.scores import direct_surface
 from enmi_torch.scores.ecr import ecr_surface
 from enmi_torch.scores.mixture import _mixture_log_likelihoods
+from enmi_torch.utils.budget import MemoryBudgetError
 
 
 def _numpy_weights(values, variance, bins, value_range):

@@ -2,7 +2,7 @@
 
 import torch
 
-from enmi_torch import ncc
+from enmi_torch.functional import ncc
 
 
 def test_float32_ncc_of_a_wild_pixel_equals_float64():

@@ -6,20 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from enmi_torch import (
-    ECR,
-    ENMI,
-    NCC,
-    NMI,
-    ECRLoss,
-    ENMILoss,
-    Mixture,
-    MixtureLoss,
-    NMILoss,
-    Score,
-    ScoreLoss,
-    as_score,
-    direct_surface,
+from enmi_torch import ECR, ENMI, NCC, NMI, ECRLoss, ENMILoss, Mixture, NMILoss, ScoreLoss
+from enmi_torch.functional import (
     ecr,
     ecr_loss,
     ecr_surface,
@@ -37,6 +25,8 @@ from enmi_torch import (
     nmi_loss,
     nmi_surface,
 )
+from enmi_torch.losses import MixtureLoss
+from enmi_torch.scores import Score, as_score, direct_surface
 from enmi_torch.variance import ConstantVariance
 
 RANGE = (10.0, 250.0)  # not the default, so that a dropped option shows

@@ -9,9 +9,9 @@ import pytest
 import torch
 from _tracking import cut, map_move, texture
 
-from enmi_torch import MemoryBudgetError
 from enmi_torch.tracking import Belief, TrackerSettings, belief_pose, initial_belief, predict, track_step, update
 from enmi_torch.tracking.belief import mixed_with_mismatch
+from enmi_torch.utils.budget import MemoryBudgetError
 
 
 @pytest.mark.parametrize("yaw", [0.0, 30.0, -75.0])
@@ -182,8 +182,7 @@ def test_a_flat_beliefs_covariance_is_its_second_moment_plus_a_bin_spread_unifor
 
 
 def test_the_belief_budget_counts_every_cell_of_the_window():
-    from enmi_torch import memory_budget
-    from enmi_torch.utils.budget import format_bytes
+    from enmi_torch.utils.budget import format_bytes, memory_budget
 
     expected = 8 * 8 * 4 * 3 * (2 * 300 + 1) * (2 * 200 + 1)  # 8 float64 copies of (4, 3, 601, 401)
     with memory_budget(1000), pytest.raises(MemoryBudgetError, match=rf"needs about {format_bytes(expected)} "):

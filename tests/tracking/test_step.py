@@ -8,7 +8,8 @@ import pytest
 import torch
 from _tracking import cut, texture
 
-from enmi_torch import ECR, NoCandidateError, localize
+from enmi_torch import ECR, localize
+from enmi_torch.localization import NoCandidateError
 from enmi_torch.tracking import Tracker, TrackerSettings, initial_belief, predict, track_step
 from enmi_torch.tracking.belief import mixed_with_mismatch, normalized
 

@@ -8,7 +8,9 @@ import pytest
 import torch
 from _tracking import FRAME, cut, texture
 
-from enmi_torch import ECR, NMI, ConstantVariance, MemoryBudgetError, as_score, warp_reference
+from enmi_torch import ECR, NMI, ConstantVariance
+from enmi_torch.registration import warp_reference
+from enmi_torch.scores import as_score
 from enmi_torch.tracking import (
     Belief,
     Calibration,
@@ -20,6 +22,7 @@ from enmi_torch.tracking import (
     track_step,
 )
 from enmi_torch.tracking.belief import grid_poses, normalized
+from enmi_torch.utils.budget import MemoryBudgetError
 
 
 def _edge_drive(generator, steps: int, frame_of, start_x: float = 45.0) -> list:

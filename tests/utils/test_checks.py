@@ -3,11 +3,9 @@
 import pytest
 import torch
 
-from enmi_torch import (
-    ECR,
-    ENMILoss,
-    NMILoss,
-    direct_surface,
+from enmi_torch import ECR, ENMILoss, NMILoss
+from enmi_torch.data import match_intensity
+from enmi_torch.functional import (
     ecr,
     enmi,
     enmi_surface,
@@ -19,9 +17,9 @@ from enmi_torch import (
     nmi_from_joint_histogram,
     nmi_surface,
 )
-from enmi_torch.data import match_intensity
 from enmi_torch.histogram import hard_entropies
 from enmi_torch.localization.search import localize
+from enmi_torch.scores import direct_surface
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance, empirical_variance, gaussian_nll
 
 EMPTY = torch.zeros(0, 1, 4, 4)
@@ -58,17 +56,17 @@ def test_an_empty_batch_is_refused_the_same_way_everywhere(name, call):
 
 def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
     import enmi_torch
-    from enmi_torch import enmi_surface, nmi_surface
+    from enmi_torch.functional import enmi_surface, nmi_surface
 
     unit = torch.rand(2, 1, 12, 10, generator=torch.Generator().manual_seed(0))
     message = r"captured varies .* but all its valid pixels fall in one of the 32 bins of value_range=\(0.0, 256.0\)"
     calls = [
-        lambda: enmi_torch.nmi(unit, unit),
-        lambda: enmi_torch.enmi(unit, unit, 0.01),
-        lambda: enmi_torch.joint_histogram(unit, unit),
+        lambda: enmi_torch.functional.nmi(unit, unit),
+        lambda: enmi_torch.functional.enmi(unit, unit, 0.01),
+        lambda: enmi_torch.functional.joint_histogram(unit, unit),
         lambda: enmi_torch.NMILoss()(unit, unit),
         lambda: enmi_torch.ENMILoss()(unit, unit, variance=0.01),
-        lambda: enmi_torch.mixture_information(unit, unit, 0.01),
+        lambda: enmi_torch.functional.mixture_information(unit, unit, 0.01),
     ]
     for call in calls:
         with pytest.raises(ValueError, match=message):
@@ -82,10 +80,14 @@ def test_images_in_unit_range_against_the_default_bins_are_refused_everywhere():
         with pytest.raises(ValueError, match=local_message):
             call()
     # The right range scores them; a constant image is still a valid (uninformative) input.
-    assert enmi_torch.nmi(unit, unit, value_range=(0.0, 1.0), kernel="hard").tolist() == pytest.approx([2.0, 2.0])
-    assert enmi_torch.nmi(torch.full_like(unit, 0.5), unit * 255).tolist() == pytest.approx([1.0, 1.0], abs=1e-6)
+    assert enmi_torch.functional.nmi(unit, unit, value_range=(0.0, 1.0), kernel="hard").tolist() == pytest.approx(
+        [2.0, 2.0]
+    )
+    assert enmi_torch.functional.nmi(torch.full_like(unit, 0.5), unit * 255).tolist() == pytest.approx(
+        [1.0, 1.0], abs=1e-6
+    )
     # ECR models the captured values themselves (any units); only its reference is binned.
-    assert torch.isfinite(enmi_torch.ecr(unit, unit * 255, 0.01)).all()
+    assert torch.isfinite(enmi_torch.functional.ecr(unit, unit * 255, 0.01)).all()
 
 
 def test_value_checks_switch_turns_value_checks_off_and_on_everywhere():
@@ -93,11 +95,11 @@ def test_value_checks_switch_turns_value_checks_off_and_on_everywhere():
 
     unit = torch.rand(1, 1, 6, 6, generator=torch.Generator().manual_seed(1))
     with enmi_torch.value_checks(False):
-        assert enmi_torch.nmi(unit, unit).tolist() == [1.0]  # unchecked: the caller's responsibility
+        assert enmi_torch.functional.nmi(unit, unit).tolist() == [1.0]  # unchecked: the caller's responsibility
     with pytest.raises(ValueError, match="captured varies"):
-        enmi_torch.nmi(unit, unit)
+        enmi_torch.functional.nmi(unit, unit)
     with enmi_torch.value_checks(True), pytest.raises(ValueError, match="captured varies"):
-        enmi_torch.nmi(unit, unit)
+        enmi_torch.functional.nmi(unit, unit)
     with pytest.raises(TypeError, match="enabled must be True, False or None"):
         with enmi_torch.value_checks("off"):
             pass
@@ -129,8 +131,8 @@ def test_a_switch_takes_a_bool_only_so_a_truthy_string_does_not_switch_it_on():
 
 
 def test_cheap_bins_are_checked_under_their_own_name():
-    from enmi_torch import ECR, Localizer
-    from enmi_torch.localization import SearchStrategy
+    from enmi_torch import ECR
+    from enmi_torch.localization import Localizer, SearchStrategy
 
     for cheap_bins, error in ((1, ValueError), (2.5, TypeError), (2**25, ValueError)):
         with pytest.raises(error, match="cheap_bins must be"):
@@ -224,7 +226,7 @@ def test_a_2d_tensor_is_refused_naming_both_readings_not_scored_per_row(call):
 
 
 def test_flat_samples_are_one_row_of_pixels_each_and_take_their_maps_flat():
-    from enmi_torch import ncc
+    from enmi_torch.functional import ncc
 
     generator = torch.Generator().manual_seed(4)
     captured = torch.rand(3, 1, 40, generator=generator, dtype=torch.float64) * 255
@@ -367,7 +369,7 @@ def test_noise_spilling_past_value_range_is_still_scored():
 
 
 def test_float32_surfaces_refuse_values_whose_squares_overflow_and_float64_scores_them():
-    from enmi_torch import ecr_surface
+    from enmi_torch.functional import ecr_surface
 
     captured, reference = _scene()
     captured[..., 3, 3] = 1e30  # one wild pixel: float32 squares overflowed into a NaN surface
@@ -381,7 +383,7 @@ def test_float32_surfaces_refuse_values_whose_squares_overflow_and_float64_score
 
 @pytest.mark.parametrize(("scale", "variance", "shown"), [(1e-20, 4.0, "4e-40"), (1e19, 4.0, r"4e\+38")])
 def test_a_variance_float32_cannot_hold_is_refused_and_float64_scores_it(scale, variance, shown):
-    from enmi_torch import ecr_surface
+    from enmi_torch.functional import ecr_surface
 
     captured, reference = _scene()
     captured, reference = (captured * scale).double(), (reference * scale).double()

@@ -7,13 +7,10 @@ import re
 import numpy as np
 import pytest
 
-from enmi_torch import (
-    LearnedVariance,
-    MemoryBudgetError,
-    memory_budget,
-)
+from enmi_torch import LearnedVariance
 from enmi_torch.cli.localize import main
 from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
+from enmi_torch.utils.budget import MemoryBudgetError, memory_budget
 from enmi_torch.utils.files import read_image, read_npy
 
 TRUNCATED = (

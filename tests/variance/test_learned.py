@@ -6,8 +6,10 @@ import torch
 import torch.nn.functional as F
 from _pickle_payload import EXECUTED, Payload
 
-from enmi_torch import ENMILoss, MemoryBudgetError, enmi, memory_budget
+from enmi_torch import ENMILoss
 from enmi_torch.data import SyntheticPairs, camera_truth, lidar_truth
+from enmi_torch.functional import enmi
+from enmi_torch.utils.budget import MemoryBudgetError, memory_budget
 from enmi_torch.variance import (
     LearnedVariance,
     empirical_variance,

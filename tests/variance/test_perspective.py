@@ -3,7 +3,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from enmi_torch import ENMILoss, enmi
+from enmi_torch import ENMILoss
+from enmi_torch.functional import enmi
 from enmi_torch.geometry.camera import RoadCamera, camera_depth, projected_area, visible_projected_area
 from enmi_torch.geometry.rectify import GroundGrid, ground_to_image_homography, visible_cells
 from enmi_torch.variance import (

@@ -7,14 +7,14 @@ yaw 0); each frame is the 64 x 64 cut of the other date's photograph centred on 
 whose standard deviation grows tenfold from the near (bottom) row to the far (top) row, so the far rows are 100 times
 noisier in variance; its mean over the rows is ``--sigma`` grey levels. The odometry over-reads each move by 6 % and
 adds white noise of 0.3 cells. The filter runs as README shows it (``Tracker(map, shifts=8, yaw_bins=3,
-motion_noise=(0.5, 0.5, 0.3))``, no calibration); per-frame argmax searches the same window around the previous estimate
-moved by the odometry and takes the best candidate. ``--oracle`` adds a reference that no tracker can run, oracle
-gating: each frame is searched in the window centred on the truth, its best candidate taken where it is within one cell
-of the truth, the odometry dead-reckoned through the other frames. It measures how much of a drive the frames and the
-odometry leave to be lost even by a filter that never takes a wrong match. ``--temperatures auto 5 10 30`` adds the
-filter with hand-set temperatures (``Tracker(..., settings=TrackerSettings(temperature=T))``) beside README's automatic one: a grid of controls, a
-row "filter, temperature T" each; the best of them, chosen on these same drives, is what tuning the temperature could
-reach.
+settings=TrackerSettings(motion_noise=(0.5, 0.5, 0.3)))``, no calibration); per-frame argmax searches the same window
+around the previous estimate moved by the odometry and takes the best candidate. ``--oracle`` adds a reference that no
+tracker can run, oracle gating: each frame is searched in the window centred on the truth, its best candidate taken
+where it is within one cell of the truth, the odometry dead-reckoned through the other frames. It measures how much of a
+drive the frames and the odometry leave to be lost even by a filter that never takes a wrong match. ``--temperatures
+auto 5 10 30`` adds the filter with hand-set temperatures (``Tracker(..., settings=TrackerSettings(temperature=T))``)
+beside README's automatic one: a grid of controls, a row "filter, temperature T" each; the best of them, chosen on these
+same drives, is what tuning the temperature could reach.
 
 Methods: ECR (the tracker's default score) with the true per-row variance and with a uniform variance
 (``--uniform-scales`` times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
