@@ -92,7 +92,7 @@ __all__ = [
 def _aligned_inputs(captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit):
     """The checked inputs of :func:`ecr` and :func:`ecr_model_variance`, the model variance option checked, and more.
 
-    The last of the three is the captured images' ``(H, W)`` for a correlated misfit (``None`` for an independent one).
+    The last of the three is the captured images' ``(H, W)`` for a correlated or regional misfit (``None`` otherwise).
     """
     check_variance_given(variance)
     check_floating("captured", captured)
@@ -103,7 +103,7 @@ def _aligned_inputs(captured, reference, variance, bins, value_range, model_vari
     check_option("response", response, RESPONSES)
     check_option("misfit", misfit, MISFITS)
     # Flat samples (B, 1, N) are images of one row; a 2-D captured was refused above.
-    image_shape = tuple(captured.shape[-2:]) if misfit == "correlated" else None
+    image_shape = tuple(captured.shape[-2:]) if misfit != "independent" else None
     return inputs, tau2, image_shape
 
 
@@ -142,8 +142,9 @@ def ecr(
         misfit: how an estimated ``tau^2`` treats the misfit's spatial correlation: ``"independent"`` (the
             default: pixel by pixel) or ``"correlated"`` (its excess over ``bin_width^2 / 12`` times the pixels per
             independent misfit, :func:`~enmi_torch.scores.ecr_model_variance.misfit_extent` of the residuals: see
-            :mod:`~enmi_torch.scores.ecr_model_variance`; captured must be images). A fixed ``model_variance`` is used
-            as it is.
+            :mod:`~enmi_torch.scores.ecr_model_variance`; captured must be images) or ``"regional"`` (a ``tau^2(x)``
+            per captured pixel, read from the residuals around it: :mod:`~enmi_torch.scores.ecr_regional_misfit`).
+            A fixed ``model_variance`` is used as it is.
         response_variance: the shrunk response's ``delta^2``, how far the bin means may leave the line:
             ``"estimate"`` (the default: each pair its own, where its profile likelihood is largest, held fixed in
             the gradient; see :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the
@@ -170,7 +171,8 @@ def ecr(
         captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
     )
     if tau2 == MODEL_VARIANCE_ESTIMATE:
-        tau2 = aligned_model_variance(inputs, response, image_shape)[..., None]
+        tau2 = aligned_model_variance(inputs, response, image_shape, misfit)
+        tau2 = tau2 if misfit == "regional" else tau2[..., None]
     # The sums run in float64 whatever the input: weights 1 / sigma^2 of float32 variances reach 1e45 and squared
     # weighted values of float32 values overflow float32 (NaN from inf - inf); they are a few sums per pixel.
     captured, reference, noise = (
@@ -184,7 +186,7 @@ def ecr(
         sums = bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range)
         delta2 = check_response_variance(response_variance)
         if response == "shrunk" and delta2 == RESPONSE_VARIANCE_ESTIMATE:
-            delta2 = aligned_response_variance(inputs, tau2[..., 0] if isinstance(tau2, Tensor) else tau2)
+            delta2 = aligned_response_variance(inputs, tau2)
         score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range, response_variance=delta2)
     remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
     return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
@@ -205,7 +207,8 @@ def ecr_model_variance(
     """The model variance ``tau^2`` :func:`ecr` adds with these arguments, ``(B,)`` (``(C, B)`` for candidates).
 
     ``"estimate"``: the REML estimate of each pair at its alignment (see the module docstring); a number or ``None``:
-    that number (``bin_width^2 / 12``) for every pair. Arguments as :func:`ecr`'s; float64, without gradient.
+    that number (``bin_width^2 / 12``) for every pair. Arguments as :func:`ecr`'s; float64, without gradient. An
+    estimate with ``misfit="regional"`` is the map ``tau^2(x)`` over each captured image, ``(B, H, W)``.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -219,7 +222,8 @@ def ecr_model_variance(
         captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
     )
     if tau2 == MODEL_VARIANCE_ESTIMATE:
-        tau2 = aligned_model_variance(inputs, response, image_shape)
+        tau2 = aligned_model_variance(inputs, response, image_shape, misfit)
+        tau2 = tau2.unflatten(-1, image_shape) if misfit == "regional" else tau2
     else:
         tau2 = torch.full(inputs.reference.shape[:-1], tau2, dtype=torch.float64, device=inputs.captured.device)
     return tau2 if inputs.with_candidates else tau2[0]
@@ -260,7 +264,8 @@ def ecr_surface(
         reference_mask: bool ``(Hw, Ww)``, ``(1, 1, Hw, Ww)`` or one per reference; ``False`` cells are left out.
         response: ``"shrunk"``, ``"binned"`` or ``"linear"`` (see :func:`ecr`; the linear response
             takes nine correlations of captured and reference planes, whatever ``bins``).
-        misfit: ``"independent"`` or ``"correlated"`` (see :func:`ecr`): for the estimate at the first pass's peak.
+        misfit: ``"independent"``, ``"correlated"`` or ``"regional"`` (see :func:`ecr`): for the estimate at the
+            first pass's peak (a regional map in the captured image's coordinates, held at every placement).
         response_variance: the shrunk response's ``delta^2`` (see :func:`ecr`); ``"estimate"`` (the default): one per
             captured image, the maximum of its profile at the first pass's best placement, with that image's
             ``tau^2``, held at every placement.
@@ -318,7 +323,8 @@ def ecr_surface_model_variance(
 
     ``"estimate"``: per captured image, the REML estimate at the best placement of the cheap first pass (see the module
     docstring); a number or ``None``: that number (``bin_width^2 / 12``) for every image. Arguments as
-    :func:`ecr_surface`'s.
+    :func:`ecr_surface`'s. An estimate with ``misfit="regional"`` is the map ``tau^2(x)`` ``(B, h, w)`` over each
+    captured image.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -343,7 +349,7 @@ def ecr_surface_model_variance(
     with torch.no_grad():
         tau2 = surface_variances(inputs, model_variance, None, bins, value_range, response, misfit)[0]
     if isinstance(tau2, Tensor):
-        return tau2.to(torch.float64).flatten()
+        return tau2.to(torch.float64) if misfit == "regional" else tau2.to(torch.float64).flatten()
     return torch.full((inputs.captured.shape[0],), tau2, dtype=torch.float64, device=inputs.captured.device)
 
 
@@ -379,9 +385,10 @@ class ECR(Score):
             ``None`` for ``bin_width^2 / 12``.
         response: ``"shrunk"`` (the default: bin means shrunk toward an increasing line as far as the data allow),
             ``"binned"`` (one free mean per reference bin, any response) or ``"linear"`` (increasing affine).
-        misfit: ``"independent"`` (the default) or ``"correlated"``: an estimated ``tau^2``'s excess over the
-            quantisation floor times the pixels per independent misfit
-            (:func:`~enmi_torch.scores.ecr_model_variance.misfit_extent`; see :func:`ecr`).
+        misfit: ``"independent"`` (the default), ``"correlated"`` (an estimated ``tau^2``'s excess over the
+            quantisation floor times the pixels per independent misfit,
+            :func:`~enmi_torch.scores.ecr_model_variance.misfit_extent`) or ``"regional"`` (a ``tau^2(x)`` per
+            captured pixel, :mod:`~enmi_torch.scores.ecr_regional_misfit`); see :func:`ecr`.
         response_variance: the shrunk response's ``delta^2``: ``"estimate"`` (the default: per aligned pair; per
             captured image for a surface, at the first pass's best placement) or a number >= 0 (see :func:`ecr`).
 
@@ -436,7 +443,7 @@ class ECR(Score):
     def model_variance_of(
         self, captured: Tensor, reference: Tensor, variance: Tensor | float, *, valid_mask: Tensor | None = None
     ) -> Tensor:
-        """The ``tau^2`` added on aligned pairs, ``(B,)`` or ``(C, B)`` float64: :func:`ecr_model_variance`."""
+        """The ``tau^2`` added on aligned pairs, ``(B,)`` or ``(C, B)`` float64 (a regional map: ``(..., H, W)``)."""
         return ecr_model_variance(captured, reference, variance, valid_mask=valid_mask, **self._model_variance_options)
 
     def surface_model_variance(
@@ -448,7 +455,7 @@ class ECR(Score):
         captured_mask: Tensor | None = None,
         reference_mask: Tensor | None = None,
     ) -> Tensor:
-        """The ``tau^2`` this score's surface adds, ``(B,)`` float64: :func:`ecr_surface_model_variance`."""
+        """The ``tau^2`` this score's surface adds, ``(B,)`` (a regional map: ``(B, h, w)``) float64."""
         masks = {"captured_mask": captured_mask, "reference_mask": reference_mask}
         return ecr_surface_model_variance(captured, reference, variance, **masks, **self._model_variance_options)
 
@@ -468,7 +475,7 @@ class ECR(Score):
             delta2 = torch.full(shape, value, dtype=torch.float64, device=device)
         else:
             if tau2 == MODEL_VARIANCE_ESTIMATE:
-                tau2 = aligned_model_variance(inputs, self.response, image_shape)
+                tau2 = aligned_model_variance(inputs, self.response, image_shape, self.misfit)
             delta2 = aligned_response_variance(inputs, tau2)
         return delta2 if inputs.with_candidates else delta2[0]
 
@@ -502,14 +509,8 @@ class ECR(Score):
 
     def _pair_scorer(self, inputs: SurfaceInputs):
         """:func:`~enmi_torch.scores.direct_surface`'s pair score: ECR with the surface's ``tau^2`` and ``delta^2``."""
-        samples = scores_with_surface_variances(self, inputs)
-        if samples is None:
-            return super()._pair_scorer(inputs)
-
-        def pair_score(sample: int, captured: Tensor, section: Tensor, variance: Tensor | None, valid: Tensor):
-            return samples[sample](captured, section, variance, valid_mask=valid)[0]
-
-        return pair_score
+        scorer = scores_with_surface_variances(self, inputs)
+        return super()._pair_scorer(inputs) if scorer is None else scorer
 
     @property
     def supports_two_stage(self) -> bool:
@@ -586,7 +587,7 @@ class ECR(Score):
                 fixed = default_model_variance(self.bins, self.value_range)
             tau2 = torch.full((batch,), fixed, dtype=torch.float64, device=captured.device)
         mask = valid.reshape(batch, -1).to(captured.dtype)
-        total = noise.reshape(batch, -1) + tau2.to(captured.dtype)[:, None]
+        total = noise.reshape(batch, -1) + tau2.to(captured.dtype).reshape(batch, -1)  # (B, 1) or a regional map
         weights = torch.where(mask > 0, mask / total.clamp_min(torch.finfo(captured.dtype).tiny), 0.0)
         if self.response != "shrunk":
             return LeastSquaresFit(weights)

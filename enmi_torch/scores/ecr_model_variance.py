@@ -29,6 +29,10 @@ per pixel as in the independent model (a smooth map's within-bin variation is co
 resolution, not a change of the scene). Where the misfit outweighs the noise the weights are nearly uniform, and the
 log-likelihood ratio is about ``m`` times smaller: evidence counted per independent patch instead of per pixel.
 
+``misfit="regional"`` lets ``tau^2`` vary over the captured image, read from the residuals around each pixel and
+shrunk toward the image's REML ``tau^2`` (:mod:`~enmi_torch.scores.ecr_regional_misfit`): a changed part of the scene
+gets the misfit it shows instead of the image's average.
+
 The shrunk response's ``delta^2`` (:mod:`~enmi_torch.scores.shrunk_response`) is estimated where its profile
 likelihood is largest, with the pair's ``tau^2`` (:func:`estimated_response_variance`).
 """
@@ -41,9 +45,10 @@ import torch
 from torch import Tensor
 
 from enmi_torch.binning import bin_width, hard_bin_index
+from enmi_torch.scores.ecr_regional_misfit import REGIONAL_STEPS, regional_model_variance
 from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
 
-MISFITS = ("independent", "correlated")
+MISFITS = ("independent", "correlated", "regional")
 MODEL_VARIANCE_ESTIMATE = "estimate"
 RESPONSE_VARIANCE_ESTIMATE = "estimate"
 # misfit="correlated" sums the residuals' autocovariance over lags up to this fraction of the image's smaller side.
@@ -231,13 +236,19 @@ def estimated_model_variance(
     value_range: tuple[float, float],
     response: str,
     image_shape: tuple[int, int] | None = None,
+    misfit: str | None = None,
 ) -> Tensor:
     """REML ``tau^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: values, reference, ``sigma^2``, bool valid.
 
-    ``image_shape``: ``(H, W)`` of the ``N = H W`` pixels for ``misfit="correlated"`` (the floor ``bin_width^2 / 12``
-    plus the estimate's excess over it times :func:`misfit_extent` of the residuals); ``None`` for an independent
-    misfit.
+    ``image_shape``: ``(H, W)`` of the ``N = H W`` pixels, for a correlated or regional misfit. ``misfit``:
+    ``"independent"``; ``"correlated"`` (the floor ``bin_width^2 / 12`` plus the estimate's excess over it times
+    :func:`misfit_extent` of the residuals); ``"regional"`` (a map ``(S, N)``: the per-pixel ``tau^2(x)`` of
+    :func:`~enmi_torch.scores.ecr_regional_misfit.regional_model_variance`, refitted
+    :data:`~enmi_torch.scores.ecr_regional_misfit.REGIONAL_STEPS` times); ``None``: correlated with an
+    ``image_shape``, independent without.
     """
+    if misfit is None:
+        misfit = "independent" if image_shape is None else "correlated"
     with torch.no_grad():
         values, reference, noise = (part.detach().to(torch.float64) for part in (captured, reference, noise))
         # Centred values keep the sums of squares free of cancellation; the residuals do not depend on it.
@@ -248,22 +259,32 @@ def estimated_model_variance(
             fit = _binned_fit(hard_bin_index(reference, bins, value_range), bins)
         floor = default_model_variance(bins, value_range)
         tau2 = _reml_model_variance(values, noise, valid, fit, floor)
-        if image_shape is None:
+        if misfit == "independent":
             return tau2
-        residual, _, _ = fit(values, valid / (noise + tau2[:, None]))
         shape = (-1, *image_shape)
+        if misfit == "regional":
+            regional = tau2[:, None].expand(noise.shape)
+            for _ in range(REGIONAL_STEPS):
+                residual, _, _ = fit(values, valid / (noise + regional))
+                pixels = (part.view(shape) for part in (residual, noise, valid))
+                regional = regional_model_variance(*pixels, tau2, floor, regional.view(shape)).reshape(noise.shape)
+            return regional
+        residual, _, _ = fit(values, valid / (noise + tau2[:, None]))
         # The quantisation floor stays per pixel, as in the independent model; the misfit beyond it is correlated.
         return floor + (tau2 - floor) * misfit_extent(residual.view(shape), valid.view(shape), tau2)
 
 
-def aligned_model_variance(inputs, response: str, image_shape: tuple[int, int] | None = None) -> Tensor:
+def aligned_model_variance(
+    inputs, response: str, image_shape: tuple[int, int] | None = None, misfit: str | None = None
+) -> Tensor:
     """The estimated ``tau^2`` ``(C, B)`` of ECR's checked inputs on aligned pairs, one per candidate and sample.
 
-    ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them. ``image_shape``: the captured images' ``(H, W)``
-    for a correlated misfit, ``None`` for an independent one.
+    ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them. ``image_shape``: the captured images' ``(H, W)``;
+    ``misfit`` as :func:`estimated_model_variance`'s. A regional misfit gives a map per pair, ``(C, B, N)``.
     """
-    tau2 = estimated_model_variance(*_flat_pairs(inputs), inputs.bins, inputs.value_range, response, image_shape)
-    return tau2.view(inputs.reference.shape[:-1])
+    options = (inputs.bins, inputs.value_range, response, image_shape, misfit)
+    tau2 = estimated_model_variance(*_flat_pairs(inputs), *options)
+    return tau2.view(inputs.reference.shape if misfit == "regional" else inputs.reference.shape[:-1])
 
 
 def _flat_pairs(inputs) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -287,14 +308,15 @@ def estimated_response_variance(
 ) -> Tensor:
     """The shrunk response's ``delta^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: its profile's maximum.
 
-    ``noise`` is ``sigma^2``, ``valid`` bool, ``tau2`` ``(S,)`` the score's model variance. A pair without a valid
-    pixel gets 0.
+    ``noise`` is ``sigma^2``, ``valid`` bool, ``tau2`` ``(S,)`` the score's model variance (``(S, N)`` for a
+    regional misfit). A pair without a valid pixel gets 0.
     """
     with torch.no_grad():
         values = torch.where(valid, captured.detach().to(torch.float64), 0.0)  # an invalid pixel may hold NaN
         noise = torch.where(valid, noise.detach().to(torch.float64), 1.0)
         cells = hard_bin_index(torch.where(valid, reference.detach(), value_range[0]), bins, value_range)
-        weight = valid / (noise + tau2.to(torch.float64)[:, None])
+        tau2 = tau2.to(torch.float64)
+        weight = valid / (noise + (tau2 if tau2.dim() == 2 else tau2[:, None]))
         centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(1e-300)
         # Each row's occupied bins, numbered 0, 1, ... in its column of a (most occupied, S) layout: O(N), any bins.
         occupied = _OccupiedBins(cells, bins)
@@ -313,9 +335,14 @@ def estimated_response_variance(
 def aligned_response_variance(inputs, tau2) -> Tensor:
     """The shrunk response's estimated ``delta^2`` ``(C, B)`` of ECR's checked inputs on aligned pairs.
 
-    ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them; ``tau2``: ``(C, B)`` or a number.
+    ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them; ``tau2``: ``(C, B)``, a regional map
+    ``(C, B, N)`` or a number.
     """
     shape = inputs.reference.shape[:-1]
-    tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device).expand(shape).reshape(-1)
+    tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=inputs.captured.device)
+    if tau2.dim() == len(inputs.reference.shape):
+        tau2 = tau2.expand(inputs.reference.shape).reshape(-1, inputs.reference.shape[-1])
+    else:
+        tau2 = tau2.expand(shape).reshape(-1)
     delta2 = estimated_response_variance(*_flat_pairs(inputs), tau2, inputs.bins, inputs.value_range)
     return delta2.view(shape)

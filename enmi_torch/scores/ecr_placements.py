@@ -110,7 +110,8 @@ def variances_at_peaks(
     """``tau^2`` and ``delta^2`` ``(B,)`` float64 at each captured image's best placement in ``scores`` ``(B, Sy, Sx)``.
 
     ``tau^2``: the estimate there (``model_variance="estimate"``) or the fixed number; a captured image without a
-    finite score gets the floor, ``bin_width^2 / 12``, with either misfit. ``delta^2``: the shrunk response's
+    finite score gets the floor, ``bin_width^2 / 12``, with any misfit (a regional misfit: a map ``(B, h w)``, the
+    floor at every pixel). ``delta^2``: the shrunk response's
     (:func:`~enmi_torch.scores.ecr_model_variance.estimated_response_variance`) with that ``tau^2``; 0 without a
     finite score.
     """
@@ -124,9 +125,8 @@ def variances_at_peaks(
     found = torch.isfinite(scores.flatten(1).amax(1))[:, None, None]
     valid = inputs.captured_valid & inputs.reference_valid[under] & found
     flat = [part.reshape(batch, -1) for part in (inputs.captured, inputs.reference[under], inputs.variance, valid)]
-    image_shape = (height, width) if misfit == "correlated" else None
     if model_variance == MODEL_VARIANCE_ESTIMATE:
-        tau2 = estimated_model_variance(*flat, bins, value_range, response, image_shape)
+        tau2 = estimated_model_variance(*flat, bins, value_range, response, (height, width), misfit)
     else:
         tau2 = torch.full((batch,), float(model_variance), dtype=torch.float64, device=device)
     return tau2, estimated_response_variance(*flat, tau2, bins, value_range)
@@ -143,6 +143,7 @@ def surface_variances(
 ) -> tuple[float | Tensor, float | Tensor | None]:
     """A surface's ``tau^2`` and ``delta^2``: each the fixed number or the estimate per captured image ``(B, 1, 1)``.
 
+    A regional misfit's ``tau^2`` estimate is a map over each captured image, ``(B, h, w)``.
     Both estimates are read at the best placement of one cheap first pass; ``delta^2`` is ``None`` unless the
     response is shrunk and ``response_variance`` given (it is then checked).
     """
@@ -154,7 +155,9 @@ def surface_variances(
     tau2_at, delta2_at = variances_at_peaks(inputs, _first_pass(inputs), bins, value_range, response, misfit, tau2)
     dtype = inputs.captured.dtype
     if tau2 == MODEL_VARIANCE_ESTIMATE:
-        tau2 = tau2_at.to(dtype)[:, None, None]
+        tau2 = (
+            tau2_at.to(dtype).view(inputs.captured.shape) if misfit == "regional" else tau2_at.to(dtype)[:, None, None]
+        )
     if delta2 == RESPONSE_VARIANCE_ESTIMATE:
         delta2 = delta2_at.to(dtype)[:, None, None]
     return tau2, delta2
@@ -171,7 +174,8 @@ def ecr_surface_from_inputs(
 ) -> Surface:
     """ECR at every placement from the per-bin correlations of the captured count, weight and weighted-value planes.
 
-    ``model_variance``: a number, or one per captured image ``(B, 1, 1)``; ``response_variance``: the shrunk response's
+    ``model_variance``: a number, one per captured image ``(B, 1, 1)`` or one per captured pixel ``(B, h, w)``;
+    ``response_variance``: the shrunk response's
     ``delta^2``, a number or one per captured image ``(B, 1, 1)`` (``None``: the binned response).
 
     With ``exact_counts=False`` (the two-stage search's cheap stage) and a reference without masked cells the per-bin
@@ -286,7 +290,7 @@ def ecr_placement_scores(
             rotated, rough[yaws], bins, value_range, options["response"], options["misfit"], tau2
         )
         if tau2 == MODEL_VARIANCE_ESTIMATE:
-            tau2 = tau2_at.to(dtype)[:, None]
+            tau2 = tau2_at.to(dtype) if options["misfit"] == "regional" else tau2_at.to(dtype)[:, None]
         if delta2 == RESPONSE_VARIANCE_ESTIMATE:
             delta2 = delta2_at.to(dtype)[yaw_index]
     valid = valid[yaws, 0].flatten(1).to(dtype)
@@ -314,23 +318,33 @@ def ecr_placement_scores(
     return torch.where((count >= needed - 0.5) & (needed > 0), score, -math.inf)
 
 
-def scores_with_surface_variances(score, inputs: SurfaceInputs) -> list | None:
-    """An :class:`~enmi_torch.ECR` per captured image, with the ``tau^2`` and ``delta^2`` its surface estimates fixed.
+def scores_with_surface_variances(score, inputs: SurfaceInputs):
+    """The direct surface's pair score with the ``tau^2`` and ``delta^2`` each captured image's surface estimates.
 
-    These score the direct surface's aligned pairs; ``None`` when both are fixed numbers already.
+    An :class:`~enmi_torch.ECR` per captured image with them fixed (a regional ``tau^2`` map added to the image's
+    noise variance, with a model variance of 0); ``None`` when both are fixed numbers already.
     """
     names = ("model_variance", "response_variance", "bins", "value_range", "response", "misfit")
     tau2, delta2 = surface_variances(inputs, *(score.options[name] for name in names))
     if not isinstance(tau2, Tensor) and not isinstance(delta2, Tensor):
         return None
     batch = inputs.captured.shape[0]
+    regional = isinstance(tau2, Tensor) and score.options["misfit"] == "regional"
 
     def per_sample(value) -> list:
         return torch.as_tensor(value, dtype=torch.float64).flatten().expand(batch).tolist()
 
     fixed = {"misfit": "independent"}
     shrinks = [None] * batch if delta2 is None else per_sample(delta2)
-    return [
+    models = [0.0] * batch if regional else per_sample(tau2)
+    samples = [
         score.replace(model_variance=model, **fixed, **({} if shrink is None else {"response_variance": shrink}))
-        for model, shrink in zip(per_sample(tau2), shrinks, strict=True)
+        for model, shrink in zip(models, shrinks, strict=True)
     ]
+
+    def pair_score(sample: int, captured: Tensor, section: Tensor, variance: Tensor | None, valid: Tensor):
+        if regional:
+            variance = variance + tau2[sample].to(variance.dtype)
+        return samples[sample](captured, section, variance, valid_mask=valid)[0]
+
+    return pair_score
