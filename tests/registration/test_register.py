@@ -38,7 +38,11 @@ def test_warp_reference_follows_localization_local_to_map(generator):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("score", [ECR(bins=16), ECR(response="linear"), NCC()], ids=["ecr", "ecr-linear", "ncc"])
+@pytest.mark.parametrize(
+    "score",
+    [ECR(bins=16), ECR(response="linear"), ECR(bins=16, misfit="regional"), NCC()],
+    ids=["ecr", "ecr-linear", "ecr-regional", "ncc"],
+)
 def test_a_noiseless_sub_cell_pose_is_recovered(generator, dtype, score):
     reference = _map(generator)
     truth = torch.tensor([[44.37, 33.81, 2.63], [40.9, 36.2, -3.4]], dtype=torch.float64)
