@@ -44,6 +44,7 @@ ECR_TESTS = [
     "tests/scores/test_ecr_model_variance.py",
     "tests/scores/test_ecr_correlated_misfit.py",
     "tests/scores/test_ecr_shrunk_response.py",
+    "tests/scores/test_ecr_regional_misfit.py",
     "tests/scores/test_score_seams.py",
     *SURFACE_TESTS,
     "tests/test_losses.py",
@@ -64,6 +65,7 @@ MODULES = {
     "scores/ecr_statistics": ECR_TESTS,
     "scores/ecr_model_variance": ECR_TESTS,
     "scores/ecr_placements": [*ECR_TESTS, "tests/scores/test_mixture.py"],
+    "scores/ecr_regional_misfit": ["tests/scores/test_ecr_regional_misfit.py"],
     "scores/shrunk_response": ["tests/scores/test_ecr_shrunk_response.py", "tests/scores/test_ecr.py"],
     "scores/enmi": ["tests/test_information.py", *SURFACE_TESTS, "tests/test_losses.py", "tests/utils/test_budget.py"],
     "scores/nmi": [
