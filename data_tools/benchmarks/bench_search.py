@@ -168,7 +168,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (default 5)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--trials", type=int, default=4, help="random cases per row of the miss-rate table")
+    parser.add_argument("--trials", type=int, default=4, help="random cases per miss-rate row (0: skip it)")
     parser.add_argument("--cheap-bins", type=int, default=4, help="bins of the two-stage search's first stage")
     parser.add_argument("--miss-only", action="store_true", help="skip the timings, measure the miss rate only")
     args = parser.parse_args(argv)
@@ -223,7 +223,8 @@ def main(argv=None) -> None:
     exhaustive, two_stage = times["localize, ECR, 36 yaws"], times["localize, ECR, 36 yaws, two-stage"]
     ratios = [slow / fast for slow, fast in zip(exhaustive, two_stage, strict=True)]
     print(f"36 yaws: exhaustive / two-stage = {statistics.median(ratios):.2f}x (median of per-round ratios)")
-    miss_rate(args.trials, args.cheap_bins)
+    if args.trials > 0:
+        miss_rate(args.trials, args.cheap_bins)
 
 
 if __name__ == "__main__":

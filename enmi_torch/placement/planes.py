@@ -29,11 +29,16 @@ class ReferencePlanes:
         self, correlator: Correlator, window_bins: Tensor, reference_valid: Tensor, bins: int, dtype: torch.dtype
     ) -> None:
         present = torch.bincount(window_bins.flatten(), minlength=bins + 1)[:bins].nonzero()[:, 0]
-        planes = window_bins == present[:, None, None]
         self.complete = bool(reference_valid.all())
+        # One scatter of ones into zeroed planes: far cheaper than comparing every cell with every bin.
+        plane_of_bin = torch.full((bins + 1,), present.shape[0], dtype=torch.int64, device=window_bins.device)
+        plane_of_bin[present] = torch.arange(present.shape[0], device=window_bins.device)
+        cells = plane_of_bin[window_bins].view(1, -1)
+        planes = torch.zeros(present.shape[0] + 1, cells.shape[1], dtype=dtype, device=window_bins.device)
+        planes = planes.scatter_(0, cells, 1.0)[:-1].view(-1, *window_bins.shape)  # the last row took masked cells
         if not self.complete:
-            planes = torch.cat([planes, reference_valid[None]])
-        self.spectra = correlator.spectra(planes.to(dtype), captured=False)
+            planes = torch.cat([planes, reference_valid[None].to(dtype)])
+        self.spectra = correlator.spectra(planes, captured=False)
         self.bin_count = present.shape[0]
         self.present_bins = present  # the bin index of each indicator plane
         self._labels = torch.cat([present, present.new_tensor([bins])])
