@@ -102,13 +102,7 @@ class _OccupiedBins:
 
     def __init__(self, cells: Tensor, bins: int) -> None:
         rows = torch.arange(cells.shape[0], device=cells.device)[:, None]
-        flat = cells + bins * rows
-        if bins * cells.shape[0] <= flat.numel():
-            # A count per possible label and a running number of the occupied ones: unique's result, without a sort.
-            occupied = torch.bincount(flat.flatten(), minlength=bins * cells.shape[0]) > 0
-            labels, label = occupied.nonzero()[:, 0], (occupied.cumsum(0) - 1)[flat]
-        else:
-            labels, label = torch.unique(flat, return_inverse=True)
+        labels, label = torch.unique(cells + bins * rows, return_inverse=True)
         self.label, self.row, self.bin, self.rows = label, labels // bins, labels % bins, cells.shape[0]
 
     def sums(self, values: Tensor) -> Tensor:

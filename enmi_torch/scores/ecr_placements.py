@@ -52,21 +52,8 @@ def cheap_value_range(window: Tensor, window_valid: Tensor) -> tuple[float, floa
     values = window[window_valid].float()
     if values.numel() == 0:
         return (0.0, 1.0)
-    low, high = _quantiles(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
+    low, high = torch.quantile(values[:: max(1, values.numel() // 65536)], values.new_tensor([0.02, 0.98])).tolist()
     return (low, high) if high > low else (low, low + 1.0)
-
-
-def _quantiles(values: Tensor, fractions: Tensor) -> Tensor:
-    """``torch.quantile(values, fractions)`` of flat values by selection: its linear interpolation, without a sort."""
-    if bool(values.isnan().any()):
-        return torch.quantile(values, fractions)
-    # The ranks and the interpolation exactly as torch.quantile computes them, so the results agree bit for bit.
-    ranks = fractions * (values.numel() - 1)
-    below, above = ranks.floor().long(), ranks.ceil().long()
-    order = {rank: torch.kthvalue(values, rank + 1).values for rank in set(below.tolist() + above.tolist())}
-    values_below = torch.stack([order[rank] for rank in below.tolist()])
-    values_above = torch.stack([order[rank] for rank in above.tolist()])
-    return values_below.lerp(values_above, ranks - below)
 
 
 def check_surface_inputs(
