@@ -32,12 +32,14 @@ Methods (32 bins; :data:`METHODS` says which score with which variance): ``ECR t
 variance ``tau^2`` estimated from the data, with the true per-pixel variance); ``ECR regional true``
 (``ECR(misfit="regional")``: a model variance per captured pixel, issue 33); ``ECR binned true``
 (``response="binned"``, the default before issue 33, its control); ``ECR today`` (``tau^2`` fixed at ``bin_width^2 /
-12``, the default before the estimate); ``ECR tau 1024`` / ``4096``; ECR and ENMI with one uniform variance, the true
-map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best uniform`` the best of the five per cell, an
-oracle); ``ECR linear true`` and ``ECR linear uniform`` (``response="linear"`` with the true variance and with its
-mean); ENMI true; NMI; NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask`` (a ``(64, 64)``
-``.npy`` variance map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the pairs of
-``data_tools/experiments/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
+12``, the default before the estimate); ``ECR tau 1024`` / ``4096`` (``tau^2`` fixed); ``ECR correlated true``
+(``ECR(misfit="correlated")``: the misfit counted per independent patch); ``ECR capped true`` (the true variance capped
+at a quarter of the clipping range squared, the most a clipped grey level can vary); ECR and ENMI with one uniform
+variance, the true map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best uniform`` the best of the five
+per cell, an oracle); ``ECR linear true`` and ``ECR linear uniform`` (``response="linear"`` with the true variance
+and with its mean); ENMI true; NMI; NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask``
+(a ``(64, 64)`` ``.npy`` variance map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the
+pairs of ``data_tools/experiments/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
 
 The report gives each method's success, and each method minus ``ECR true`` paired per trial with its SE.
 
@@ -120,8 +122,9 @@ def _factor_name(factor: float) -> str:
     return f"x{factor:g}"
 
 
-# Which score with which variance: "true" (the sensor's map), "learned" (--learned-mask), a factor of the true map's
-# mean (one uniform variance), or None (a score without a variance).
+# Which score with which variance: "true" (the sensor's map), "capped" (the true map capped at what a clipped grey
+# level can vary), "learned" (--learned-mask), a factor of the true map's mean (one uniform variance), or None (a score
+# without a variance).
 METHODS: dict[str, tuple] = {
     "ECR true": (ECR(bins=BINS), "true"),
     "ECR today": (ECR(bins=BINS, model_variance=TODAY), "true"),
@@ -137,6 +140,8 @@ METHODS: dict[str, tuple] = {
     "NCC": (NCC(), None),
     "ECR tau 1024": (ECR(bins=BINS, model_variance=1024.0), "true"),
     "ECR tau 4096": (ECR(bins=BINS, model_variance=4096.0), "true"),
+    "ECR correlated true": (ECR(bins=BINS, misfit="correlated"), "true"),
+    "ECR capped true": (ECR(bins=BINS), "capped"),
 }
 DEFAULT_METHODS = tuple(method for method in METHODS if method != "ECR learned")
 # Methods whose estimated tau^2 is recorded per trial.
@@ -171,6 +176,8 @@ SHOWN = (
     "NCC",
     "ECR tau 1024",
     "ECR tau 4096",
+    "ECR correlated true",
+    "ECR capped true",
 )
 
 
@@ -348,6 +355,8 @@ def _variance(context: Context, kind):
     """The variance a method gives its score: the true map, the learned mask, a uniform one or none."""
     if kind == "true":
         return context.variance
+    if kind == "capped":  # no variable within the clipping range varies more (Popoviciu's inequality)
+        return context.variance.clamp_max((CLIP_RANGE[1] - CLIP_RANGE[0]) ** 2 / 4)
     if kind == "learned":
         if context.learned is None:
             raise ValueError("method 'ECR learned' needs --learned-mask")
