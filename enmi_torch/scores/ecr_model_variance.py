@@ -33,6 +33,12 @@ log-likelihood ratio is about ``m`` times smaller: evidence counted per independ
 shrunk toward the image's REML ``tau^2`` (:mod:`~enmi_torch.scores.ecr_regional_misfit`): a changed part of the scene
 gets the misfit it shows instead of the image's average.
 
+A sensor that saturates biases the estimate low: a clipped grey level varies far less than its noise variance says,
+and the estimate reads that as a pair without misfit. On other-date photographs with two fifths of the pixels
+clipped it gave the floor instead of 240 to 313; with a tenth to a third clipped, 275 to 470 instead of about 740
+(``docs/results/scores.md``). Where many pixels saturate, read the estimate as a lower bound; a fixed
+``model_variance`` of the misfit you expect avoids the bias.
+
 The shrunk response's ``delta^2`` (:mod:`~enmi_torch.scores.shrunk_response`) is estimated where its profile
 likelihood is largest, with the pair's ``tau^2`` (:func:`estimated_response_variance`).
 """

@@ -1,0 +1,148 @@
+"""Draw where the default score wins and loses: each control minus ``ECR()``, paired per trial, per cell of real pairs.
+
+    python -m data_tools.experiments.yardstick.figure_default --figure docs/images/default_vs_controls.png
+
+Reads the ``results.csv`` files that ``scene_change.py`` writes (one outcome bit per trial and method; the committed
+ones are in ``data_tools/results/``), pairs every method with ``ECR true`` (the default ``ECR()`` with the sensor's
+variance) trial by trial, and draws the mean difference with one standard error per cell: left, the controls a user
+would try (a uniform variance, the linear response, NCC, the former binned default); right, what would change the
+other-date cells (a fixed large ``tau^2``, the misfit counted per patch, the variance capped at the clipping range).
+A point right of zero is a control ahead of the default. Prints the same numbers as a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parents[2] / "results"
+DEFAULT_INPUTS = (RESULTS / "scene_change_default.csv", RESULTS / "scene_change_default_heldout.csv")
+DEFAULT = "ECR true"
+PANELS = {
+    "controls a user would try": ("ECR uniform x1", "ECR linear true", "NCC", "ECR binned true"),
+    "what would change the other-date cells": ("ECR tau 4096", "ECR correlated true", "ECR capped true"),
+}
+LABELS = {
+    "ECR uniform x1": "uniform variance (its mean)",
+    "ECR linear true": 'ECR(response="linear"), true variance',
+    "NCC": "NCC",
+    "ECR binned true": 'ECR(response="binned") (former default)',
+    "ECR tau 4096": "tau^2 fixed at 4096",
+    "ECR correlated true": 'ECR(misfit="correlated")',
+    "ECR capped true": "variance capped at (clip range)^2 / 4",
+}
+
+
+def paired_difference(first: str, second: str) -> tuple[float, float]:
+    """Mean and standard error of ``first - second`` over paired trials given as strings of outcome bits."""
+    if len(first) != len(second) or len(first) < 2:
+        raise ValueError(f"paired outcomes must have the same length >= 2, got {len(first)} and {len(second)}")
+    differences = [int(a) - int(b) for a, b in zip(first, second, strict=True)]
+    mean = sum(differences) / len(differences)
+    variance = sum((value - mean) ** 2 for value in differences) / (len(differences) - 1)
+    return mean, math.sqrt(variance / len(differences))
+
+
+def read_cells(paths: list[Path], held_out: list[bool]) -> dict[str, dict[str, str]]:
+    """Per cell label (``case, sensor, sigma``, marked held-out), each method's outcome bits."""
+    cells: dict[str, dict[str, str]] = {}
+    for path, is_held_out in zip(paths, held_out, strict=True):
+        with path.open(newline="") as handle:
+            for row in csv.DictReader(handle):
+                label = f"{row['case']}, {row['sensor']}, sigma {float(row['mean_sigma']):g}"
+                cells.setdefault(label + (" (held out)" if is_held_out else ""), {})[row["method"]] = row["outcomes"]
+    for label, methods in cells.items():
+        if DEFAULT not in methods:
+            raise ValueError(f"cell {label!r} has no {DEFAULT!r} outcomes to pair with")
+    return cells
+
+
+def differences(cells: dict[str, dict[str, str]]) -> dict[str, dict[str, tuple[float, float]]]:
+    """Per method, per cell: the method minus the default, mean and standard error."""
+    table: dict[str, dict[str, tuple[float, float]]] = {}
+    for label, methods in cells.items():
+        for method, outcomes in methods.items():
+            if method != DEFAULT:
+                table.setdefault(method, {})[label] = paired_difference(outcomes, methods[DEFAULT])
+    return table
+
+
+def draw(cells: dict[str, dict[str, str]], table: dict, path: Path) -> None:
+    """Two panels of per-cell points with one-SE bars, cells as rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(cells)
+    figure, axes = plt.subplots(1, len(PANELS), figsize=(13, 0.5 * len(labels) + 1.8), sharey=True)
+    for axis, (title, methods) in zip(axes, PANELS.items(), strict=True):
+        shown = [method for method in methods if method in table]
+        for offset, method in enumerate(shown):
+            rows = [(index, *table[method][label]) for index, label in enumerate(labels) if label in table[method]]
+            position = [len(labels) - 1 - index + 0.5 - (offset + 1) / (len(shown) + 1) for index, _, _ in rows]
+            axis.errorbar(
+                [mean for _, mean, _ in rows],
+                position,
+                xerr=[se for _, _, se in rows],
+                fmt="o",
+                markersize=4,
+                capsize=2,
+                label=LABELS.get(method, method),
+            )
+        axis.axvline(0, color="black", linewidth=0.8)
+        axis.set_title(title, fontsize=10)
+        axis.set_xlabel("success minus the default's (paired, one SE)")
+        axis.legend(fontsize=7, loc="lower left")
+        for boundary in range(1, len(labels)):
+            axis.axhline(boundary - 0.5, color="0.9", linewidth=0.5)
+    axes[0].set_yticks([len(labels) - 1 - index for index in range(len(labels))], labels, fontsize=7)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=80)
+    plt.close(figure)
+
+
+def print_table(cells: dict[str, dict[str, str]], table: dict) -> None:
+    methods = [method for panel in PANELS.values() for method in panel if method in table]
+    print("| cell | ECR() | " + " | ".join(f"{LABELS.get(method, method)} - ECR()" for method in methods) + " |")
+    print("|---" * (len(methods) + 2) + "|")
+    for label, outcomes in cells.items():
+        rate = outcomes[DEFAULT].count("1") / len(outcomes[DEFAULT])
+        parts = []
+        for method in methods:
+            mean, se = table[method].get(label, (math.nan, math.nan))
+            parts.append(f"{mean:+.3f} ± {se:.3f}" + (" **" if abs(mean) > 2 * se else ""))
+        print(f"| {label} | {rate:.2f} | " + " | ".join(parts) + " |")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__
+    )
+    parser.add_argument("--results", type=Path, nargs="+", default=list(DEFAULT_INPUTS), help="results.csv files")
+    parser.add_argument(
+        "--held-out", type=int, nargs="*", default=[1], help="indices of --results that are held-out sets (default 1)"
+    )
+    parser.add_argument("--figure", type=Path, default=Path("runs/default_vs_controls.png"), help="PNG to write")
+    args = parser.parse_args(argv)
+    for path in args.results:
+        if not path.is_file():
+            parser.error(f"--results: {path} is not a file")
+    if any(not 0 <= index < len(args.results) for index in args.held_out):
+        parser.error(f"--held-out: indices must lie in 0..{len(args.results) - 1}, got {args.held_out}")
+    held_out = [index in args.held_out for index in range(len(args.results))]
+    try:
+        cells = read_cells(args.results, held_out)
+    except (KeyError, ValueError) as error:
+        parser.error(f"--results: {error}")
+    table = differences(cells)
+    print_table(cells, table)
+    draw(cells, table, args.figure)
+    print(f"\nwrote {args.figure}")
+
+
+if __name__ == "__main__":
+    main()
