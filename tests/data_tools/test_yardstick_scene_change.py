@@ -218,3 +218,28 @@ def test_the_report_pairs_every_method_with_ecr_true(yardstick, tmp_path, capsys
     assert "| ECR binned true | ECR linear uniform | NCC |" in section.splitlines()[2]
     assert "| same | lidar-like | 40 | " in section and "| all, pooled | 1 cells |" in section
     capsys.readouterr()
+
+
+def test_the_capped_and_regional_variances_are_what_they_say(yardstick):
+    from enmi_torch.scores.ecr import ecr_model_variance
+
+    trials = yardstick.make_trials("occluders@0.5", 3, 4)
+    context = next(yardstick._contexts(trials, "lidar-like", 150.0))
+    capped = yardstick._variance(context, "capped")
+    assert float(capped.max()) == pytest.approx(255.999**2 / 4)
+    assert torch.equal(capped[context.variance < 255.999**2 / 4], context.variance[context.variance < 255.999**2 / 4])
+    # Read at the truth, the map is the regional misfit of each captured image against its own section, by a loop.
+    at_truth = yardstick._variance(context, "regional at truth")
+    assert at_truth.shape == (3, 1, 64, 64)
+    for index in range(3):
+        row, col = trials.truth[index].tolist()
+        section = context.window[index : index + 1, :, row : row + 64, col : col + 64]
+        misfit = ecr_model_variance(context.local[index : index + 1], section, context.variance, misfit="regional")
+        torch.testing.assert_close(at_truth[index, 0], context.variance[0, 0] + misfit[0].float())
+    # Read at the default surface's peak: the same map wherever that peak is the truth.
+    at_peak = yardstick._variance(context, "regional at peak")
+    surface = yardstick.METHODS["ECR true"][0].surface(context.local, context.window, context.variance).score
+    peak = surface.flatten(1).argmax(1)
+    found = (peak // surface.shape[-1] == trials.truth[:, 0]) & (peak % surface.shape[-1] == trials.truth[:, 1])
+    assert bool(found.any()), "the fixture needs a trial the default finds"
+    torch.testing.assert_close(at_peak[found], at_truth[found])

@@ -6,7 +6,8 @@ Reads the ``results.csv`` files that ``scene_change.py`` writes (one outcome bit
 ones are in ``data_tools/results/``), pairs every method with ``ECR true`` (the default ``ECR()`` with the sensor's
 variance) trial by trial, and draws the mean difference with one standard error per cell: left, the controls a user
 would try (a uniform variance, the linear response, NCC, the former binned default); right, what would change the
-other-date cells (a fixed large ``tau^2``, the misfit counted per patch, the variance capped at the clipping range).
+other-date cells (a fixed large ``tau^2``, the misfit counted per patch, the variance capped at the clipping range,
+the regional misfit read at the first pass's peak and, an oracle, at the true placement).
 A point right of zero is a control ahead of the default. Prints the same numbers as a table.
 """
 
@@ -22,7 +23,13 @@ DEFAULT_INPUTS = (RESULTS / "scene_change_default.csv", RESULTS / "scene_change_
 DEFAULT = "ECR true"
 PANELS = {
     "controls a user would try": ("ECR uniform x1", "ECR linear true", "NCC", "ECR binned true"),
-    "what would change the other-date cells": ("ECR tau 4096", "ECR correlated true", "ECR capped true"),
+    "what would change the other-date cells": (
+        "ECR tau 4096",
+        "ECR correlated true",
+        "ECR capped true",
+        "ECR regional true",
+        "ECR regional at truth",
+    ),
 }
 LABELS = {
     "ECR uniform x1": "uniform variance (its mean)",
@@ -32,6 +39,8 @@ LABELS = {
     "ECR tau 4096": "tau^2 fixed at 4096",
     "ECR correlated true": 'ECR(misfit="correlated")',
     "ECR capped true": "variance capped at (clip range)^2 / 4",
+    "ECR regional true": 'ECR(misfit="regional")',
+    "ECR regional at truth": "regional misfit read at the truth (oracle)",
 }
 
 

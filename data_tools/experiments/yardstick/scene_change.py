@@ -34,9 +34,11 @@ variance ``tau^2`` estimated from the data, with the true per-pixel variance); `
 (``response="binned"``, the default before issue 33, its control); ``ECR today`` (``tau^2`` fixed at ``bin_width^2 /
 12``, the default before the estimate); ``ECR tau 1024`` / ``4096`` (``tau^2`` fixed); ``ECR correlated true``
 (``ECR(misfit="correlated")``: the misfit counted per independent patch); ``ECR capped true`` (the true variance capped
-at a quarter of the clipping range squared, the most a clipped grey level can vary); ECR and ENMI with one uniform
-variance, the true map's mean times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best uniform`` the best of the five
-per cell, an oracle); ``ECR linear true`` and ``ECR linear uniform`` (``response="linear"`` with the true variance
+at a quarter of the clipping range squared, the most a clipped grey level can vary); ``ECR regional at truth`` and
+``ECR regional at its peak`` (the regional misfit map read at the true placement, an oracle, and at the best placement
+of the default's surface, added to the true variance); ECR and ENMI with one uniform variance, the true map's mean
+times 1/16, 1/4, 1, 4, 16 (``uniform mean`` is x1, ``best uniform`` the best of the five per cell, an oracle); ``ECR
+linear true`` and ``ECR linear uniform`` (``response="linear"`` with the true variance
 and with its mean); ENMI true; NMI; NCC; and ``ECR learned``: ``ECR()`` with the variance mask of ``--learned-mask``
 (a ``(64, 64)`` ``.npy`` variance map, e.g. the ``mask/variance_mask.npy`` that ``train/fit_mask.py`` writes from the
 pairs of ``data_tools/experiments/mask/scene_change_pairs.py``), for runs at the level that mask was learned at.
@@ -71,7 +73,7 @@ import torch
 from data_tools.experiments.yardstick import yardstick
 from enmi_torch import ECR, ENMI, NCC, NMI
 from enmi_torch.data.scene_change import CHANGES, scene_change
-from enmi_torch.scores.ecr import default_model_variance
+from enmi_torch.scores.ecr import default_model_variance, ecr_model_variance
 from enmi_torch.utils.files import read_npy
 
 NOISE_ONLY = yardstick  # the noise-only yardstick: maps, profiles, response, success rule
@@ -142,6 +144,10 @@ METHODS: dict[str, tuple] = {
     "ECR tau 4096": (ECR(bins=BINS, model_variance=4096.0), "true"),
     "ECR correlated true": (ECR(bins=BINS, misfit="correlated"), "true"),
     "ECR capped true": (ECR(bins=BINS), "capped"),
+    # The regional misfit map read with the captured image at the true placement (an oracle no search has), and at the
+    # best placement of the default's surface; added to the true variance (model variance 0), held at every placement.
+    "ECR regional at truth": (ECR(bins=BINS, model_variance=0.0), "regional at truth"),
+    "ECR regional at its peak": (ECR(bins=BINS, model_variance=0.0), "regional at peak"),
 }
 DEFAULT_METHODS = tuple(method for method in METHODS if method != "ECR learned")
 # Methods whose estimated tau^2 is recorded per trial.
@@ -178,6 +184,8 @@ SHOWN = (
     "ECR tau 4096",
     "ECR correlated true",
     "ECR capped true",
+    "ECR regional at truth",
+    "ECR regional at its peak",
 )
 
 
@@ -351,12 +359,36 @@ def _contexts(trials: Trials, sensor: str, level: float, learned: torch.Tensor |
         yield Context(local[part], window, variance.float(), mean, trials.truth[part], mask, learned)
 
 
+def _with_regional_misfit(context: Context, placements: torch.Tensor) -> torch.Tensor:
+    """``(T, 1, h, w)``: the true variance plus ``ECR(misfit="regional")``'s map, read at ``placements`` ``(T, 2)``."""
+    size = context.local.shape[-1]
+    sections = torch.stack(
+        [
+            context.window[index, :, row : row + size, col : col + size]
+            for index, (row, col) in enumerate(placements.tolist())
+        ]
+    )
+    misfit = ecr_model_variance(
+        context.local, sections, context.variance, bins=BINS, valid_mask=context.mask, misfit="regional"
+    )
+    return context.variance + misfit[:, None].to(context.variance.dtype)
+
+
 def _variance(context: Context, kind):
     """The variance a method gives its score: the true map, the learned mask, a uniform one or none."""
     if kind == "true":
         return context.variance
     if kind == "capped":  # no variable within the clipping range varies more (Popoviciu's inequality)
         return context.variance.clamp_max((CLIP_RANGE[1] - CLIP_RANGE[0]) ** 2 / 4)
+    if kind == "regional at truth":
+        return _with_regional_misfit(context, context.truth)
+    if kind == "regional at peak":
+        score = METHODS["ECR true"][0].surface(
+            context.local, context.window, context.variance, captured_mask=context.mask
+        )
+        columns = score.score.shape[-1]
+        peak = score.score.flatten(1).argmax(1)
+        return _with_regional_misfit(context, torch.stack([peak // columns, peak % columns], 1))
     if kind == "learned":
         if context.learned is None:
             raise ValueError("method 'ECR learned' needs --learned-mask")
