@@ -5,15 +5,24 @@ import math
 
 import pytest
 
-from data_tools.experiments.yardstick import figure_default
+from data_tools.experiments.yardstick import figure_default, scene_change
+
+COLUMNS = ["case", "sensor", "mean_sigma", "method", "successes", "trials", "outcomes", "tau2"]
 
 
 def _write(path, rows):
+    """A results.csv as scene_change.py writes it."""
     with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=["case", "sensor", "mean_sigma", "method", "outcomes"])
+        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
         writer.writeheader()
-        writer.writerows(rows)
+        for row in rows:
+            bits = row["outcomes"]
+            writer.writerow({**row, "successes": bits.count("1"), "trials": len(bits), "tau2": ""})
     return path
+
+
+def _paired(first: str, second: str) -> tuple[float, float]:
+    return scene_change.paired_difference(scene_change.outcome_bits(first), scene_change.outcome_bits(second))
 
 
 def test_paired_difference_is_the_mean_and_standard_error_of_the_per_trial_differences():
@@ -21,14 +30,14 @@ def test_paired_difference_is_the_mean_and_standard_error_of_the_per_trial_diffe
     differences = [int(a) - int(b) for a, b in zip(first, second, strict=True)]  # +1 0 -1 ... asymmetric
     mean = sum(differences) / 10
     se = math.sqrt(sum((d - mean) ** 2 for d in differences) / 9 / 10)
-    assert figure_default.paired_difference(first, second) == pytest.approx((mean, se))
+    assert _paired(first, second) == pytest.approx((mean, se))
     # Swapping the arguments flips the sign only: pairing, not two separate rates.
-    assert figure_default.paired_difference(second, first) == pytest.approx((-mean, se))
+    assert _paired(second, first) == pytest.approx((-mean, se))
 
 
 def test_paired_difference_refuses_unpaired_outcomes():
     with pytest.raises(ValueError, match="same length"):
-        figure_default.paired_difference("101", "10")
+        _paired("101", "10")
 
 
 def test_cells_are_kept_apart_by_case_sensor_level_and_set(tmp_path):
@@ -50,7 +59,7 @@ def test_cells_are_kept_apart_by_case_sensor_level_and_set(tmp_path):
     )
     cells = figure_default.read_cells([main, held], [False, True])
     table = figure_default.differences(cells)["NCC"]
-    assert table["same, camera-like, sigma 690"] == pytest.approx(figure_default.paired_difference("0111", "1100"))
+    assert table["same, camera-like, sigma 690"] == pytest.approx(_paired("0111", "1100"))
     assert table["same, lidar-like, sigma 450"] == (1.0, 0.0)
     assert table["same, camera-like, sigma 690 (held out)"] == (0.0, 0.0)
 

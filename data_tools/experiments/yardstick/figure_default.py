@@ -14,9 +14,12 @@ A point right of zero is a control ahead of the default. Prints the same numbers
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 from pathlib import Path
+
+import numpy as np
+
+from data_tools.experiments.yardstick import scene_change
 
 RESULTS = Path(__file__).resolve().parents[2] / "results"
 DEFAULT_INPUTS = (RESULTS / "scene_change_default.csv", RESULTS / "scene_change_default_heldout.csv")
@@ -44,41 +47,30 @@ LABELS = {
 }
 
 
-def paired_difference(first: str, second: str) -> tuple[float, float]:
-    """Mean and standard error of ``first - second`` over paired trials given as strings of outcome bits."""
-    if len(first) != len(second) or len(first) < 2:
-        raise ValueError(f"paired outcomes must have the same length >= 2, got {len(first)} and {len(second)}")
-    differences = [int(a) - int(b) for a, b in zip(first, second, strict=True)]
-    mean = sum(differences) / len(differences)
-    variance = sum((value - mean) ** 2 for value in differences) / (len(differences) - 1)
-    return mean, math.sqrt(variance / len(differences))
-
-
-def read_cells(paths: list[Path], held_out: list[bool]) -> dict[str, dict[str, str]]:
-    """Per cell label (``case, sensor, sigma``, marked held-out), each method's outcome bits."""
-    cells: dict[str, dict[str, str]] = {}
+def read_cells(paths: list[Path], held_out: list[bool]) -> dict[str, dict[str, np.ndarray]]:
+    """Per cell label (``case, sensor, sigma``, marked held-out), each method's outcomes per trial."""
+    cells: dict[str, dict[str, np.ndarray]] = {}
     for path, is_held_out in zip(paths, held_out, strict=True):
-        with path.open(newline="") as handle:
-            for row in csv.DictReader(handle):
-                label = f"{row['case']}, {row['sensor']}, sigma {float(row['mean_sigma']):g}"
-                cells.setdefault(label + (" (held out)" if is_held_out else ""), {})[row["method"]] = row["outcomes"]
+        for case, sensor, level, method, _, _, bits, _ in scene_change.read_rows(path):
+            label = f"{case}, {sensor}, sigma {level:g}" + (" (held out)" if is_held_out else "")
+            cells.setdefault(label, {})[method] = scene_change.outcome_bits(bits)
     for label, methods in cells.items():
         if DEFAULT not in methods:
             raise ValueError(f"cell {label!r} has no {DEFAULT!r} outcomes to pair with")
     return cells
 
 
-def differences(cells: dict[str, dict[str, str]]) -> dict[str, dict[str, tuple[float, float]]]:
+def differences(cells: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, tuple[float, float]]]:
     """Per method, per cell: the method minus the default, mean and standard error."""
     table: dict[str, dict[str, tuple[float, float]]] = {}
     for label, methods in cells.items():
         for method, outcomes in methods.items():
             if method != DEFAULT:
-                table.setdefault(method, {})[label] = paired_difference(outcomes, methods[DEFAULT])
+                table.setdefault(method, {})[label] = scene_change.paired_difference(outcomes, methods[DEFAULT])
     return table
 
 
-def draw(cells: dict[str, dict[str, str]], table: dict, path: Path) -> None:
+def draw(cells: dict[str, dict[str, np.ndarray]], table: dict, path: Path) -> None:
     """Two panels of per-cell points with one-SE bars, cells as rows."""
     import matplotlib
 
@@ -114,12 +106,12 @@ def draw(cells: dict[str, dict[str, str]], table: dict, path: Path) -> None:
     plt.close(figure)
 
 
-def print_table(cells: dict[str, dict[str, str]], table: dict) -> None:
+def print_table(cells: dict[str, dict[str, np.ndarray]], table: dict) -> None:
     methods = [method for panel in PANELS.values() for method in panel if method in table]
     print("| cell | ECR() | " + " | ".join(f"{LABELS.get(method, method)} - ECR()" for method in methods) + " |")
     print("|---" * (len(methods) + 2) + "|")
     for label, outcomes in cells.items():
-        rate = outcomes[DEFAULT].count("1") / len(outcomes[DEFAULT])
+        rate = float(outcomes[DEFAULT].mean())
         parts = []
         for method in methods:
             mean, se = table[method].get(label, (math.nan, math.nan))
@@ -145,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
     held_out = [index in args.held_out for index in range(len(args.results))]
     try:
         cells = read_cells(args.results, held_out)
-    except (KeyError, ValueError) as error:
+    except (IndexError, ValueError) as error:
         parser.error(f"--results: {error}")
     table = differences(cells)
     print_table(cells, table)

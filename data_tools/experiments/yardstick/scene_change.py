@@ -482,11 +482,15 @@ def run_cell(case, sensor, levels, trials, seed, data, methods, half="all", lear
     return rows
 
 
-def _bits(text: str) -> np.ndarray:
+def outcome_bits(text: str) -> np.ndarray:
+    """A ``results.csv`` outcomes string (one ``0``/``1`` per trial) as an integer array."""
     return np.array([int(bit) for bit in text])
 
 
-def _paired(first: np.ndarray, second: np.ndarray) -> tuple[float, float]:
+def paired_difference(first: np.ndarray, second: np.ndarray) -> tuple[float, float]:
+    """Mean and standard error of ``first - second`` over paired trials (standard error 0 for a single trial)."""
+    if len(first) != len(second):
+        raise ValueError(f"paired outcomes must have the same length, got {len(first)} and {len(second)}")
     difference = first - second
     error = difference.std(ddof=1) / math.sqrt(len(difference)) if len(difference) > 1 else 0.0
     return float(difference.mean()), float(error)
@@ -496,7 +500,7 @@ def cell_outcomes(rows: list) -> dict:
     """``{(case, sensor, level): {method: outcomes}}`` with the derived columns (uniform mean, best uniform)."""
     cells: dict = {}
     for case, sensor, level, method, _, _, bits, _ in rows:
-        cells.setdefault((case, sensor, float(level)), {})[method] = _bits(bits)
+        cells.setdefault((case, sensor, float(level)), {})[method] = outcome_bits(bits)
     for outcomes in cells.values():
         for name, source in DERIVED.items():
             if source in outcomes:
@@ -535,7 +539,7 @@ def _against_default(cells: dict, keys: list, shown: list, base: str = "ECR true
         judged = [key for key in members if method in cells[key] and base in cells[key]]
         if not judged:
             return ""
-        mean, error = _paired(
+        mean, error = paired_difference(
             np.concatenate([cells[key][method] for key in judged]),
             np.concatenate([cells[key][base] for key in judged]),
         )
@@ -614,7 +618,9 @@ def report(rows: list, calibration: list) -> str:
         members = [key for key in keys if group == "all" or group_of(key[0]) == group]
         pairs = [(cells[key]["ECR true"], cells[key]["ECR today"]) for key in members if "ECR today" in cells[key]]
         if pairs and all("ECR true" in cells[key] for key in members):
-            mean, error = _paired(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]))
+            mean, error = paired_difference(
+                np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs])
+            )
             lines.append(f"- {group} ({len(pairs)} cells): {mean:+.4f} ± {error:.4f}")
     lines += ["", "## Paired differences: cells where a candidate is more than 1 SE below a control", ""]
     lines += ["| candidate | cells | " + " | ".join(CONTROLS) + " |", "|---|---|" + "---|" * len(CONTROLS)]
@@ -631,7 +637,7 @@ def report(rows: list, calibration: list) -> str:
                 judged = [key for key in judged_keys if control in cells[key]]
                 failures = []
                 for key in judged:
-                    mean, error = _paired(cells[key][candidate], cells[key][control])
+                    mean, error = paired_difference(cells[key][candidate], cells[key][control])
                     if mean < -error - 1e-12:
                         mark = " (> 2 SE)" if mean < -2 * error - 1e-12 else ""
                         failures.append(f"{key[0]}/{key[1]}/{key[2]:g}: {mean:+.2f} ± {error:.2f}{mark}")
@@ -648,10 +654,10 @@ def report(rows: list, calibration: list) -> str:
                 continue  # that control was not run
             below = []
             for key in judged:
-                mean, error = _paired(cells[key]["ECR learned"], cells[key][control])
+                mean, error = paired_difference(cells[key]["ECR learned"], cells[key][control])
                 if mean < -error - 1e-12:
                     below.append(f"{key[0]}/{key[1]}/{key[2]:g}: {mean:+.2f} ± {error:.2f}")
-            everything = _paired(
+            everything = paired_difference(
                 np.concatenate([cells[key]["ECR learned"] for key in judged]),
                 np.concatenate([cells[key][control] for key in judged]),
             )
@@ -665,7 +671,7 @@ def report(rows: list, calibration: list) -> str:
         if is_noise_only(key[0]) and key[1] == "camera-like":
             for candidate in ("ECR true", "ECR today"):
                 if candidate in cells[key] and "ECR uniform mean" in cells[key]:
-                    mean, error = _paired(cells[key][candidate], cells[key]["ECR uniform mean"])
+                    mean, error = paired_difference(cells[key][candidate], cells[key]["ECR uniform mean"])
                     verdict = "yes" if mean > 0 and mean >= 2 * error else "no"
                     lines.append(
                         f"- {key[0]}, sigma {key[2]:g}, {candidate}: {mean:+.2f} ± {error:.2f} "
