@@ -18,9 +18,9 @@ import torch
 from kornia.geometry.transform import rotate
 from torch import Tensor
 
-from enmi_torch.localization.peak import NoCandidateError, separated_peaks
+from enmi_torch.localization.peak import Finalists, NoCandidateError, separated_peaks
 from enmi_torch.localization.strategy import SearchStrategy
-from enmi_torch.placement.peaks import rescore_peaks
+from enmi_torch.placement.peaks import local_maxima, rescore_peaks
 from enmi_torch.utils.checks import check_mask_not_empty
 from enmi_torch.utils.layout import mask_map, variance_map
 from enmi_torch.variance.base import VarianceModel
@@ -247,6 +247,39 @@ class CandidateSurfaces:
             )
             surfaces.append(rescore_peaks(cheap, scorer, _CANDIDATES, _MAX_CANDIDATES, complete_best=True))
         return torch.stack(surfaces)
+
+    def finalists(self, surface: Tensor, count: int) -> Finalists:
+        """The best ``count`` local maxima of each sample's ``(Y, Sy, Sx)`` surface, scored exactly by its score.
+
+        Each sample's rotations for the yaws of its finalists and its full map window go to the score's
+        :meth:`~enmi_torch.scores.Score.finalists`; the chosen finalist is the best exact score (the best-ranked one
+        of equal scores).
+        """
+        batch = surface.shape[0]
+        placements = torch.full((batch, count, 3), -1, dtype=torch.int64, device=surface.device)
+        scores = surface.new_full((batch, count), -math.inf, dtype=torch.float64)
+        height, width = self.captured.shape[2:]
+        rows, cols = height + 2 * self.radius[0], width + 2 * self.radius[1]
+        for sample in range(batch):
+            peaks = local_maxima(surface[sample])[:count]
+            if peaks.numel() == 0:
+                continue
+            _, size_y, size_x = surface.shape[1:]
+            found = torch.stack([peaks // (size_y * size_x), peaks // size_x % size_y, peaks % size_x], 1)
+            yaw_indices, index = torch.unique(found[:, 0], return_inverse=True)
+            captured, variance, valid = self._rotations(sample, [self.yaws[k] for k in yaw_indices.tolist()])
+            window, window_valid = self._window(sample, *self.origins[sample].tolist(), rows, cols)
+            exact = self.samples[sample].finalists(
+                captured,
+                window,
+                torch.cat([index[:, None], found[:, 1:]], 1),
+                variance,
+                captured_mask=valid,
+                window_mask=window_valid,
+            )
+            placements[sample, : len(found)] = found
+            scores[sample, : len(found)] = exact.to(torch.float64)
+        return Finalists(placements, scores, scores.argmax(1))
 
     def coarse_to_fine(self, min_overlap: float, factor: int, peaks: int, exclusion_radius: int) -> Tensor:
         """Coarse surface on ``factor``-pooled images, then full-resolution surfaces around its best peaks."""

@@ -14,6 +14,29 @@ from torch import Tensor
 from enmi_torch.utils.checks import check_image_shape
 
 
+class Finalists(NamedTuple):
+    """A search's finalists: the best local maxima of its surface, each scored exactly (:meth:`Score.finalists`).
+
+    The surface ranks every placement with a model fitted once (ECR's model variance and response, read at a cheap
+    first pass's peak, every reading a Gaussian value); each finalist is scored by the score on its aligned pair,
+    with its own fit, and the best one is the search's answer.
+
+    Attributes:
+        placements: ``(B, K, 3)`` int64 ``(yaw index, row, col)`` of each finalist in the surface (``surface[b, k,
+            row, col]``), best surface value first; ``-1`` where a sample has fewer than ``K`` local maxima.
+        scores: ``(B, K)`` their exact scores, ``-inf`` for the padding.
+        chosen: ``(B,)`` int64 index of the best finalist (the pose's placement).
+    """
+
+    placements: Tensor
+    scores: Tensor
+    chosen: Tensor
+
+    def best(self) -> Tensor:
+        """``(B, 3)`` the chosen finalist's ``(yaw index, row, col)``."""
+        return self.placements[torch.arange(self.chosen.shape[0], device=self.chosen.device), self.chosen]
+
+
 class Localization(NamedTuple):
     """The result of :func:`~enmi_torch.localize`: the pose found, its score surface and how sure it is.
 
@@ -34,6 +57,10 @@ class Localization(NamedTuple):
         margin: ``(B,)`` best score minus the best score farther than ``exclusion_radius`` cells (both axes) from
             the peak (over all yaws); ``inf`` when no such candidate exists. Small margins mean ambiguous maps.
         yaws: ``(Y,)`` the yaws searched, in degrees.
+        finalists: the :class:`Finalists` the pose was chosen among (``None`` where the score's surface is exact,
+            :attr:`~enmi_torch.scores.Score.surface_is_exact`, or the strategy scores none). The pose, score,
+            covariance and margin are read from the surface at the chosen finalist's placement, which need not be
+            the surface's maximum: ``margin`` is then negative.
     """
 
     pose: Tensor
@@ -42,6 +69,7 @@ class Localization(NamedTuple):
     covariance: Tensor
     margin: Tensor
     yaws: Tensor
+    finalists: Finalists | None = None
 
     @property
     def dx(self) -> Tensor:
@@ -140,12 +168,22 @@ _DESIGN = torch.stack(
 _FIT = torch.linalg.pinv(_DESIGN)
 
 
-def read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int) -> Localization:
-    """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces."""
+def read_peak(
+    surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int, finalists: Finalists | None = None
+) -> Localization:
+    """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces.
+
+    The best candidate is the surface's maximum, or the chosen one of ``finalists`` (carried into the result).
+    """
     device, surface = surface.device, surface.cpu()
     batch, yaw_count, rows, cols = surface.shape
     flat = surface.flatten(1)
     best, index = flat.max(1)
+    if finalists is not None:
+        chosen = finalists.best().cpu()
+        found = (chosen >= 0).all(1)  # a sample without a finite candidate has no finalist: it is refused below
+        index = torch.where(found, (chosen[:, 0] * rows + chosen[:, 1]) * cols + chosen[:, 2], index)
+        best = flat.gather(1, index[:, None])[:, 0]
     lost = ~torch.isfinite(best)
     if bool(lost.any()):
         raise NoCandidateError(
@@ -180,6 +218,7 @@ def read_peak(surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_
         torch.stack(covariances).to(device, surface.dtype),
         torch.stack(margins).to(device),
         yaws.to(device),
+        finalists,
     )
 
 

@@ -145,8 +145,12 @@ def localize(
             captured, reference, variance, captured_mask, reference_mask, centers, radius, yaw_list, samples, resample
         )
         surface = candidates.run(strategy, min_overlap, exclusion_radius)
+        finalists = None
+        if strategy.finalists and not all(sample.surface_is_exact for sample in samples):
+            finalists = candidates.finalists(surface, strategy.finalists)
         try:
-            found = read_peak(surface, torch.tensor(yaw_list, dtype=surface.dtype), radius, exclusion_radius)
+            yaw_tensor = torch.tensor(yaw_list, dtype=surface.dtype)
+            found = read_peak(surface, yaw_tensor, radius, exclusion_radius, finalists)
         except NoCandidateError as error:
             off_map = _windows_off_map(centers, radius, tuple(captured.shape[2:]), tuple(reference.shape[2:]))
             if off_map:
@@ -191,11 +195,7 @@ def _check_strategy_fits_score(strategy: SearchStrategy, score: Score) -> None:
     """A two-stage search ranks by the score's rough surface: the score must have one, with more bins than it."""
     if strategy.method != "two_stage":
         return
-    if not score.supports_two_stage:
-        raise ValueError(
-            f"search='two_stage' needs a score that supports it (ECR with response='shrunk' or 'binned'), got "
-            f"score={score!r}"
-        )
+    score.require("two_stage", "search='two_stage'")
     if strategy.cheap_bins > score.bins:
         raise ValueError(f"cheap_bins must be at most bins ({score.bins}), got {strategy.cheap_bins}")
 

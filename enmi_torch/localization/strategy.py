@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from enmi_torch.utils.checks import check_bins, check_option, check_positive_int
+from enmi_torch.utils.checks import check_bins, check_non_negative_int, check_option, check_positive_int
 
 SEARCHES = ("exhaustive", "two_stage")
 # Keyword arguments of localize and Localizer that are fields of SearchStrategy.
@@ -42,10 +42,15 @@ class SearchStrategy:
             own window.
         coarse_peaks: coarse candidates refined when ``coarse_factor > 1``.
         cheap_bins: bins of the first stage of the two-stage search, ``2 <= cheap_bins <= bins`` of the score.
+        finalists: how many of the surface's best local maxima (over shifts and yaws) are rescored exactly, each with
+            its own fit (:meth:`~enmi_torch.scores.Score.finalists`), when the score's surface holds a model fitted
+            once (not :attr:`~enmi_torch.scores.Score.surface_is_exact`: ECR's default); the pose is the best of
+            them (:class:`~enmi_torch.localization.Finalists`). ``0``: the surface's maximum as it is. The default
+            was chosen by measurement (``docs/results/scores.md``).
 
     Example:
         >>> SearchStrategy("two_stage", cheap_bins=8)
-        SearchStrategy(method='two_stage', coarse_factor=1, coarse_peaks=3, cheap_bins=8)
+        SearchStrategy(method='two_stage', coarse_factor=1, coarse_peaks=3, cheap_bins=8, finalists=8)
         >>> as_search_strategy("two_stage") == SearchStrategy("two_stage")
         True
     """
@@ -54,12 +59,14 @@ class SearchStrategy:
     coarse_factor: int = 1
     coarse_peaks: int = 3
     cheap_bins: int = 4
+    finalists: int = 8
 
     def __post_init__(self) -> None:
         check_option("search", self.method, SEARCHES)
         check_positive_int("coarse_factor", self.coarse_factor)
         check_positive_int("coarse_peaks", self.coarse_peaks)
         check_bins(self.cheap_bins, "cheap_bins")
+        check_non_negative_int("finalists", self.finalists)
         if self.method == "two_stage" and self.coarse_factor != 1:
             raise ValueError(f"search='two_stage' needs coarse_factor=1, got coarse_factor={self.coarse_factor!r}")
 

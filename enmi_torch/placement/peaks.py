@@ -10,6 +10,24 @@ import torch
 from torch import Tensor
 
 
+def local_maxima(surface: Tensor) -> Tensor:
+    """Flat indices of the finite maxima of their 3 x 3 (x 3) neighbourhood in ``surface``, best first (ties in order).
+
+    ``surface`` is ``(rows, cols)`` or ``(yaws, rows, cols)``; a plateau's cells all count.
+
+    Example:
+        >>> surface = torch.tensor([[0.0, 5.0, 0.0, 0.0], [0.0, 0.0, 0.0, 3.0], [-torch.inf, 1.0, 0.0, 0.0]])
+        >>> local_maxima(surface).tolist()  # 5 at (0, 1), 3 at (1, 3), 1 at (2, 1): two rows below the 5
+        [1, 7, 9]
+    """
+    pooled = surface
+    for axis in range(surface.ndim):  # separable 3 x 3 (x 3) maximum: max_pool3d is slow on the CPU
+        padded = torch.nn.functional.pad(pooled.movedim(axis, -1), (1, 1), value=-torch.inf)
+        pooled = torch.maximum(torch.maximum(padded[..., :-2], padded[..., 1:-1]), padded[..., 2:]).movedim(-1, axis)
+    peaks = ((surface >= pooled) & torch.isfinite(surface)).flatten().nonzero()[:, 0]
+    return peaks[surface.flatten()[peaks].argsort(descending=True, stable=True)]
+
+
 def rescore_peaks(cheap: Tensor, exact, candidates: int, max_candidates: int, *, complete_best: bool = False) -> Tensor:
     """Exact scores around the best peaks of ``cheap`` (``(rows, cols)`` or ``(yaws, rows, cols)``), ``-inf`` elsewhere.
 
@@ -20,12 +38,7 @@ def rescore_peaks(cheap: Tensor, exact, candidates: int, max_candidates: int, *,
     rescored too (and again while the best moves), for the sub-cell fit around it.
     """
     shape, device = cheap.shape, cheap.device
-    pooled = cheap
-    for axis in range(cheap.ndim):  # separable 3 x 3 (x 3) maximum: max_pool3d is slow on the CPU
-        padded = torch.nn.functional.pad(pooled.movedim(axis, -1), (1, 1), value=-torch.inf)
-        pooled = torch.maximum(torch.maximum(padded[..., :-2], padded[..., 1:-1]), padded[..., 2:]).movedim(-1, axis)
-    peaks = ((cheap >= pooled) & torch.isfinite(cheap)).flatten().nonzero()[:, 0]
-    peaks = peaks[cheap.flatten()[peaks].argsort(descending=True, stable=True)]
+    peaks = local_maxima(cheap)
     limit = min(max_candidates, peaks.numel())
     offsets = torch.cartesian_prod(*[torch.arange(-1, 2, device=device)] * cheap.ndim).reshape(-1, cheap.ndim)
     sizes = torch.tensor(shape, device=device)

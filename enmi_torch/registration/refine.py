@@ -179,7 +179,7 @@ def _sample(reference: Tensor, positions: Tensor, mode: str = "bilinear") -> Ten
 def check_registration_score(score: Score | str) -> Score:
     """``score`` as a :class:`~enmi_torch.scores.Score` that :func:`register` can fit (ECR or NCC), else ValueError."""
     score = as_score(score)
-    score.response_basis()  # refuses a score that is not a least-squares fit, by name
+    score.require("least_squares", "register")  # a weighted least-squares fit, smooth in the pose
     return score
 
 

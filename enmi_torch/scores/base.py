@@ -13,6 +13,7 @@ from __future__ import annotations
 import inspect
 from typing import Any, ClassVar, NamedTuple
 
+import torch
 from torch import Tensor
 
 from enmi_torch.placement.direct import PairScore, direct_placements
@@ -20,6 +21,15 @@ from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.utils.checks import check_option
 
 REDUCTIONS = ("none", "mean", "sum")
+# The optional capabilities a family may declare (Score.traits), with the methods each one means.
+TRAITS = {
+    "two_stage": "rough_score, rough_surface and placement_scores",
+    "least_squares": "response_basis and least_squares_fit",
+}
+TRAIT_NOTES = {
+    "two_stage": "ECR with response='shrunk' or 'binned'",
+    "least_squares": "a weighted least-squares fit, smooth in the pose; a histogram score has none",
+}
 # Each family registers itself here under its name (see Score.__init_subclass__), for as_score.
 _FAMILIES: dict[str, type[Score]] = {}
 
@@ -85,6 +95,8 @@ class Score:
 
     name: ClassVar[str]
     uses_variance: ClassVar[bool]
+    # The traits some instance of the family may have (for require's message); Score.traits says which one has.
+    trait_holders: ClassVar[frozenset[str]] = frozenset()
     empty_score: ClassVar[float] = 0.0
     higher_is_better: ClassVar[bool] = True
     # Whether the captured values are binned (they must then not all fall in one bin while varying).
@@ -222,71 +234,88 @@ class Score:
         return [self] * batch
 
     @property
-    def supports_two_stage(self) -> bool:
-        """Whether a search can rank placements by :meth:`rough_surface` and rescore a few by :meth:`placement_scores`.
+    def traits(self) -> frozenset[str]:
+        """The optional capabilities this score implements, of :data:`TRAITS` (none by default).
 
-        The default, ``False``: the score has no cheap form.
+        ``"two_stage"``: :meth:`rough_score`, :meth:`rough_surface` and :meth:`placement_scores`, for the two-stage
+        search; ``"least_squares"``: :meth:`response_basis` and :meth:`least_squares_fit`, for
+        :func:`~enmi_torch.register`. A family that has a trait for some options only says so per instance.
         """
-        return False
+        return frozenset()
 
-    def rough_score(self, bins: int, window: Tensor, window_mask: Tensor | None = None) -> Score:
-        """The two-stage search's first-stage score for a map ``window`` ``(1, 1, Hw, Ww)``: ``bins`` bins over it.
+    def require(self, trait: str, use: str) -> None:
+        """Raise ``ValueError`` naming ``use``, the trait and the scores that have it, unless this score has it."""
+        check_option("trait", trait, tuple(TRAITS))
+        if trait not in self.traits:
+            holders = [name for name, family in sorted(_FAMILIES.items()) if trait in family.trait_holders]
+            raise ValueError(
+                f"{use} needs a score with the {trait!r} trait ({TRAITS[trait]}), got score={self!r}; scores that "
+                f"have it: {', '.join(holders)} ({TRAIT_NOTES[trait]})"
+            )
 
-        Raises ``ValueError`` naming the score unless it :attr:`supports_two_stage`.
+    @property
+    def surface_is_exact(self) -> bool:
+        """Whether :meth:`surface` equals this score of each aligned pair (then a search has no finalist to rescore).
+
+        ``True`` for scores whose surface sums the same terms as their value; ``False`` where the surface holds a
+        model fitted once (ECR's estimated model variance and response, its censored readings): a search rescores
+        its finalists by :meth:`finalists`.
         """
-        raise self._refusal("first stage for a two-stage search")
+        return True
 
-    def rough_surface(
+    def finalists(
         self,
         captured: Tensor,
-        reference: Tensor,
-        variance: Tensor | float | None = None,
+        window: Tensor,
+        placements: Tensor,
+        variance: Tensor | None = None,
         *,
         captured_mask: Tensor | None = None,
-        reference_mask: Tensor | None = None,
-    ) -> Surface:
-        """A cheap :meth:`surface` that ranks the placements for a two-stage search; arguments as :meth:`surface`'s.
-
-        Raises ``ValueError`` naming the score unless it :attr:`supports_two_stage`.
-        """
-        raise self._refusal("rough surface for a two-stage search")
-
-    def placement_scores(
-        self, placements: Tensor, *, rotations: tuple, window: tuple, min_overlap: float, rough: Tensor
+        window_mask: Tensor | None = None,
     ) -> Tensor:
-        """The exact scores ``(P,)`` of rotated captured images at placements ``(P, 3)`` (yaw index, row, column).
+        """This score's exact value at a few placements of captured images in a map window, ``(P,)``.
 
-        ``rotations``: the captured images, variances and masks ``(Y, 1, h, w)``; ``window``: the reference window and
-        its mask ``(1, 1, Hw, Ww)``; ``min_overlap``: a placement scores ``-inf`` unless this fraction of the rotation's
-        valid pixels lands on valid cells; ``rough``: the :meth:`rough_surface` of the rotations ``(Y, Sy, Sx)``.
-        Raises ``ValueError`` naming the score unless it :attr:`supports_two_stage`.
+        The search's finalist stage (:class:`~enmi_torch.localization.SearchStrategy`'s ``finalists``): the
+        surface ranks every placement; its best local maxima are scored here, each with its own fit. The default
+        crops the window under each placement and scores the aligned pair (``score(captured, crop, variance)``,
+        the pixels valid in both): always right, and a new family gets it for free; a family overrides it only to
+        be faster.
+
+        Args:
+            captured: ``(Y, 1, h, w)`` captured images (a search's rotations of one image, one per yaw).
+            window: ``(1, 1, Hw, Ww)`` the map window of the surface.
+            placements: ``(P, 3)`` int64 ``(index into captured, row, col)``: ``captured[k]`` with its top-left pixel
+                on window cell ``(row, col)``, as ``surface[k, row, col]``.
+            variance: ``(Y, 1, h, w)`` for a score that uses one, else ``None``.
+            captured_mask: ``(Y, 1, h, w)`` bool, or ``None`` (all valid).
+            window_mask: ``(1, 1, Hw, Ww)`` bool, or ``None`` (all valid).
+
+        Returns:
+            ``(P,)`` scores, ``empty_score`` where no valid pixel of the placement lands on a valid cell.
+
+        Example:
+            >>> from enmi_torch import NMI
+            >>> window = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+            >>> score = NMI(bins=64, kernel="hard")
+            >>> score.finalists(window[..., 2:6, 1:5], window, torch.tensor([[0, 2, 1], [0, 0, 0]])).tolist()
+            [2.0, 2.0]
         """
-        raise self._refusal("exact rescoring for a two-stage search")
-
-    def response_basis(self) -> ResponseBasis:
-        """The response this score fits by weighted least squares, as :func:`~enmi_torch.register` fits it.
-
-        Raises ``ValueError`` naming the score if it is not a least-squares fit (a histogram score).
-        """
-        raise ValueError(
-            f"score must be ECR or NCC for register (a weighted least-squares fit, smooth in the pose), got "
-            f"{self.name!r}: register with ECR, then compare with {self.name!r} at the registered pose"
-        )
-
-    def least_squares_fit(
-        self, captured: Tensor, reference: Tensor, variance: Tensor | None, valid: Tensor
-    ) -> LeastSquaresFit:
-        """The weights and the response's pull of this least-squares score at one alignment.
-
-        ``captured``, ``reference`` (the map under the captured pixels) and ``valid`` (bool) are ``(B, 1, h, w)``;
-        ``variance`` the captured pixels' noise variance for a score that uses one, else ``None``. Raises
-        ``ValueError`` naming the score if it is not a least-squares fit (see :meth:`response_basis`).
-        """
-        self.response_basis()
-        raise NotImplementedError
-
-    def _refusal(self, what: str) -> ValueError:
-        return ValueError(f"score {self!r} has no {what}; ECR with response='shrunk' or 'binned' has one")
+        height, width = captured.shape[2:]
+        index, rows, cols = placements.unbind(1)
+        rows_at = rows[:, None, None] + torch.arange(height, device=window.device)[:, None]
+        cols_at = cols[:, None, None] + torch.arange(width, device=window.device)
+        crops = window[0, 0][rows_at, cols_at][:, None]
+        valid = torch.ones_like(crops, dtype=torch.bool)
+        if window_mask is not None:
+            valid = window_mask[0, 0][rows_at, cols_at][:, None]
+        if captured_mask is not None:
+            valid = valid & captured_mask[index]
+        scores = torch.full((placements.shape[0],), self.empty_score, dtype=window.dtype, device=window.device)
+        kept = valid.flatten(1).any(1)
+        if bool(kept.any()):
+            chosen = variance[index[kept]] if variance is not None else None
+            scores[kept] = self(captured[index[kept]], crops[kept], chosen, valid_mask=valid[kept]).to(scores.dtype)
+        return scores
 
     def _pair_scorer(self, inputs: SurfaceInputs) -> PairScore:
         """:func:`direct_surface`'s score of one aligned pair: the score itself, with each sample's options."""

@@ -40,6 +40,8 @@ from torch import Tensor
 from enmi_torch.histogram import prepare_inputs
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.scores.base import LeastSquaresFit, ResponseBasis, Score, reduce_loss
+from enmi_torch.scores.censoring import check_saturation, saturated_pixels
+from enmi_torch.scores.ecr_censored import censored_ecr
 from enmi_torch.scores.ecr_model_variance import (
     MISFITS,
     MODEL_VARIANCE_ESTIMATE,
@@ -89,10 +91,13 @@ __all__ = [
 ]
 
 
-def _aligned_inputs(captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit):
+def _aligned_inputs(
+    captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit, saturation
+):
     """The checked inputs of :func:`ecr` and :func:`ecr_model_variance`, the model variance option checked, and more.
 
-    The last of the three is the captured images' ``(H, W)`` for a correlated or regional misfit (``None`` otherwise).
+    The third is the captured images' ``(H, W)`` for a correlated or regional misfit (``None`` otherwise), the last
+    the saturated readings' sides ``(C B, N)`` float64 (:mod:`~enmi_torch.scores.censoring`), ``None`` without any.
     """
     check_variance_given(variance)
     check_floating("captured", captured)
@@ -102,9 +107,15 @@ def _aligned_inputs(captured, reference, variance, bins, value_range, model_vari
     tau2 = check_model_variance(model_variance, inputs.bins, inputs.value_range)
     check_option("response", response, RESPONSES)
     check_option("misfit", misfit, MISFITS)
+    saturation = check_saturation(saturation)
     # Flat samples (B, 1, N) are images of one row; a 2-D captured was refused above.
     image_shape = tuple(captured.shape[-2:]) if misfit != "independent" else None
-    return inputs, tau2, image_shape
+    readings = inputs.captured.detach().to(torch.float64)
+    valid = torch.ones_like(readings, dtype=torch.bool) if inputs.valid is None else inputs.valid.expand_as(readings)
+    saturated = saturated_pixels(readings, valid, saturation, inputs.value_range, inputs.bins)
+    rows = inputs.reference.shape[0]
+    side = saturated.side.expand(rows, *saturated.side.shape).reshape(-1, readings.shape[-1]) if saturated.any else None
+    return inputs, tau2, image_shape, side
 
 
 def ecr(
@@ -119,6 +130,7 @@ def ecr(
     response: str = "shrunk",
     misfit: str = "independent",
     response_variance: float | str = "estimate",
+    saturation: str | tuple[float | None, float | None] | None = "value_range",
 ) -> Tensor:
     """Enhanced correlation ratio: the noise-aware Gaussian log-likelihood ratio per valid pixel, in nats, ``(B,)``.
 
@@ -149,6 +161,11 @@ def ecr(
             ``"estimate"`` (the default: each pair its own, where its profile likelihood is largest, held fixed in
             the gradient; see :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the
             bin centres). The other responses do not use it.
+        saturation: which readings are saturated, scored as censored (a reading at a limit says only "this far or
+            beyond": :mod:`~enmi_torch.scores.censoring`, :mod:`~enmi_torch.scores.ecr_censored`): ``"value_range"``
+            (the default: readings at an end of ``value_range``, unless the image reads beyond that end), the sensor's
+            ``(low, high)`` levels (``None`` for no level at one end; an 8-bit camera: ``(0, 255)``), or ``None``
+            (every reading a Gaussian value). Without a saturated reading the value is the Gaussian model's.
 
     Returns:
         ECR ``(B,)`` (``(C, B)`` for candidates), same dtype as ``captured``: larger the better the reference bins
@@ -157,7 +174,7 @@ def ecr(
 
     Convention:
         Differentiable in ``captured`` and ``variance`` (the reference is hard-binned; an estimated ``tau^2`` is held
-        fixed).
+        fixed; a saturated reading carries no gradient to ``captured``).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -167,11 +184,11 @@ def ecr(
         tensor([[1.7019e+01],
                 [5.4228e-05]])
     """
-    inputs, tau2, image_shape = _aligned_inputs(
-        captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
+    inputs, tau2, image_shape, side = _aligned_inputs(
+        captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit, saturation
     )
     if tau2 == MODEL_VARIANCE_ESTIMATE:
-        tau2 = aligned_model_variance(inputs, response, image_shape, misfit)
+        tau2 = aligned_model_variance(inputs, response, image_shape, misfit, side)
         tau2 = tau2 if misfit == "regional" else tau2[..., None]
     # The sums run in float64 whatever the input: weights 1 / sigma^2 of float32 variances reach 1e45 and squared
     # weighted values of float32 values overflow float32 (NaN from inf - inf); they are a few sums per pixel.
@@ -180,7 +197,9 @@ def ecr(
     )
     total_variance = noise + tau2
     valid = None if inputs.pair_weight is None else inputs.pair_weight.to(torch.float64)
-    if response == "linear":
+    if side is not None:
+        score = _censored(captured, reference, total_variance, valid, side, inputs, response, response_variance)
+    elif response == "linear":
         score = linear_ecr(captured, reference, total_variance, valid)
     else:
         sums = bin_sums(captured, reference, total_variance, valid, inputs.bins, inputs.value_range)
@@ -190,6 +209,36 @@ def ecr(
         score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range, response_variance=delta2)
     remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
     return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
+
+
+def _censored(captured, reference, total_variance, valid, side, inputs, response, response_variance) -> Tensor:
+    """:func:`ecr` ``(C, B)``, saturated readings censored (:func:`~enmi_torch.scores.ecr_censored.censored_ecr`)."""
+    shape, pixels = reference.shape, reference.shape[-1]
+    rows = [
+        part.expand(shape).reshape(-1, pixels)
+        for part in (captured, reference, total_variance, torch.ones_like(captured) if valid is None else valid)
+    ]
+    delta2 = check_response_variance(response_variance)
+    score, _ = censored_ecr(*rows, side, inputs.bins, inputs.value_range, response, delta2)
+    return score.view(shape[:-1])
+
+
+def _censored_response_variance(inputs, tau2, side: Tensor) -> Tensor:
+    """The shrunk response's ``delta^2`` ``(C, B)`` with the saturated readings censored, at ``tau2`` ``(C, B)``."""
+    with torch.no_grad():
+        captured, reference, noise = (
+            part.detach().to(torch.float64) for part in (inputs.captured, inputs.reference, inputs.variance)
+        )
+        tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=captured.device)
+        total = noise + (tau2 if tau2.dim() == reference.dim() else tau2.expand(reference.shape[:-1])[..., None])
+        valid = None if inputs.pair_weight is None else inputs.pair_weight.detach().to(torch.float64)
+        shape, pixels = reference.shape, reference.shape[-1]
+        rows = [
+            part.expand(shape).reshape(-1, pixels)
+            for part in (captured, reference, total, torch.ones_like(captured) if valid is None else valid)
+        ]
+        _, delta2 = censored_ecr(*rows, side, inputs.bins, inputs.value_range, "shrunk", RESPONSE_VARIANCE_ESTIMATE)
+    return delta2.view(shape[:-1])
 
 
 def ecr_model_variance(
@@ -203,6 +252,7 @@ def ecr_model_variance(
     valid_mask: Tensor | None = None,
     response: str = "shrunk",
     misfit: str = "independent",
+    saturation: str | tuple[float | None, float | None] | None = "value_range",
 ) -> Tensor:
     """The model variance ``tau^2`` :func:`ecr` adds with these arguments, ``(B,)`` (``(C, B)`` for candidates).
 
@@ -218,11 +268,11 @@ def ecr_model_variance(
         >>> ecr_model_variance(captured, reference, 100.0, bins=64).round()
         tensor([403., 411.], dtype=torch.float64)
     """
-    inputs, tau2, image_shape = _aligned_inputs(
-        captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit
+    inputs, tau2, image_shape, side = _aligned_inputs(
+        captured, reference, variance, bins, value_range, model_variance, valid_mask, response, misfit, saturation
     )
     if tau2 == MODEL_VARIANCE_ESTIMATE:
-        tau2 = aligned_model_variance(inputs, response, image_shape, misfit)
+        tau2 = aligned_model_variance(inputs, response, image_shape, misfit, side)
         tau2 = tau2.unflatten(-1, image_shape) if misfit == "regional" else tau2
     else:
         tau2 = torch.full(inputs.reference.shape[:-1], tau2, dtype=torch.float64, device=inputs.captured.device)
@@ -242,6 +292,7 @@ def ecr_surface(
     response: str = "shrunk",
     misfit: str = "independent",
     response_variance: float | str = "estimate",
+    saturation: str | tuple[float | None, float | None] | None = "value_range",
 ) -> Surface:
     """ECR (:func:`ecr`) of ``captured`` at every placement inside ``reference``, by FFT.
 
@@ -269,13 +320,17 @@ def ecr_surface(
         response_variance: the shrunk response's ``delta^2`` (see :func:`ecr`); ``"estimate"`` (the default): one per
             captured image, the maximum of its profile at the first pass's best placement, with that image's
             ``tau^2``, held at every placement.
+        saturation: the readings the estimates of ``tau^2`` and ``delta^2`` treat as censored (see :func:`ecr`).
+            The placements' sums take every reading as a Gaussian value (a censored term is not a sum over the
+            placements); the searches rescore their finalists exactly (:meth:`ECR.finalists`).
 
     Returns:
         :class:`~enmi_torch.placement.Surface`; ``score[b, u, v]`` equals
         ``ecr(captured[b], reference[b, :, u:u + h, v:v + w], variance,
-        valid_mask=captured_mask & reference_mask[...], model_variance=tau2[b])``, ``tau2`` the fixed number or
-        :func:`ecr_surface_model_variance`'s estimate (one for every placement of an image); 0 where nothing
-        overlaps.
+        valid_mask=captured_mask & reference_mask[...], model_variance=tau2[b], response_variance=delta2[b],
+        saturation=None)``, ``tau2`` and ``delta2`` the fixed numbers or the estimates
+        (:func:`ecr_surface_model_variance`, :meth:`ECR.surface_response_variance`: one for every placement of an
+        image); 0 where nothing overlaps.
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -296,10 +351,11 @@ def ecr_surface(
         reference_mask,
         response,
         misfit,
+        saturation,
     )
     with torch.no_grad():
         model_variance, delta2 = surface_variances(
-            inputs, model_variance, response_variance, bins, value_range, response, misfit
+            inputs, model_variance, response_variance, bins, value_range, response, misfit, saturation
         )
         if response == "linear":
             return linear_ecr_surface_from_inputs(inputs, model_variance)
@@ -318,6 +374,7 @@ def ecr_surface_model_variance(
     reference_mask: Tensor | None = None,
     response: str = "shrunk",
     misfit: str = "independent",
+    saturation: str | tuple[float | None, float | None] | None = "value_range",
 ) -> Tensor:
     """The model variance ``tau^2`` :func:`ecr_surface` adds with these arguments, ``(B,)`` float64.
 
@@ -345,9 +402,10 @@ def ecr_surface_model_variance(
         reference_mask,
         response,
         misfit,
+        saturation,
     )
     with torch.no_grad():
-        tau2 = surface_variances(inputs, model_variance, None, bins, value_range, response, misfit)[0]
+        tau2 = surface_variances(inputs, model_variance, None, bins, value_range, response, misfit, saturation)[0]
     if isinstance(tau2, Tensor):
         return tau2.to(torch.float64) if misfit == "regional" else tau2.to(torch.float64).flatten()
     return torch.full((inputs.captured.shape[0],), tau2, dtype=torch.float64, device=inputs.captured.device)
@@ -391,6 +449,8 @@ class ECR(Score):
             captured pixel, :mod:`~enmi_torch.scores.ecr_regional_misfit`); see :func:`ecr`.
         response_variance: the shrunk response's ``delta^2``: ``"estimate"`` (the default: per aligned pair; per
             captured image for a surface, at the first pass's best placement) or a number >= 0 (see :func:`ecr`).
+        saturation: the readings scored as censored: ``"value_range"`` (the default: at an end of the range the
+            image does not read beyond), the sensor's ``(low, high)`` levels, or ``None`` (see :func:`ecr`).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)
@@ -403,6 +463,7 @@ class ECR(Score):
 
     name = "ecr"
     uses_variance = True
+    trait_holders = frozenset({"least_squares", "two_stage"})
 
     def __init__(
         self,
@@ -413,6 +474,7 @@ class ECR(Score):
         response: str = "shrunk",
         misfit: str = "independent",
         response_variance: float | str = "estimate",
+        saturation: str | tuple[float | None, float | None] | None = "value_range",
     ) -> None:
         bins = check_bins(bins)
         value_range = check_value_range(value_range)
@@ -421,6 +483,7 @@ class ECR(Score):
         check_option("response", response, RESPONSES)
         check_option("misfit", misfit, MISFITS)
         response_variance = check_response_variance(response_variance)
+        saturation = check_saturation(saturation)
         super().__init__(
             bins=bins,
             value_range=value_range,
@@ -428,6 +491,7 @@ class ECR(Score):
             response=response,
             misfit=misfit,
             response_variance=response_variance,
+            saturation=saturation,
         )
 
     def _value(self, captured, reference, variance, valid_mask) -> Tensor:
@@ -467,7 +531,7 @@ class ECR(Score):
         ``"estimate"``: each pair's, at its alignment, with its ``tau^2`` (see :func:`ecr`); a number: that number.
         """
         options = (self.bins, self.value_range, self.model_variance, valid_mask, self.response, self.misfit)
-        inputs, tau2, image_shape = _aligned_inputs(captured, reference, variance, *options)
+        inputs, tau2, image_shape, side = _aligned_inputs(captured, reference, variance, *options, self.saturation)
         shape = inputs.reference.shape[:-1]
         device = inputs.captured.device
         if self.response != "shrunk" or self.response_variance != RESPONSE_VARIANCE_ESTIMATE:
@@ -475,8 +539,11 @@ class ECR(Score):
             delta2 = torch.full(shape, value, dtype=torch.float64, device=device)
         else:
             if tau2 == MODEL_VARIANCE_ESTIMATE:
-                tau2 = aligned_model_variance(inputs, self.response, image_shape, self.misfit)
-            delta2 = aligned_response_variance(inputs, tau2)
+                tau2 = aligned_model_variance(inputs, self.response, image_shape, self.misfit, side)
+            if side is None:
+                delta2 = aligned_response_variance(inputs, tau2)
+            else:
+                delta2 = _censored_response_variance(inputs, tau2, side)
         return delta2 if inputs.with_candidates else delta2[0]
 
     def surface_response_variance(
@@ -494,11 +561,10 @@ class ECR(Score):
         that image's ``tau^2`` (see :mod:`~enmi_torch.scores.shrunk_response`); a number: that number.
         """
         options = (self.bins, self.value_range, self.model_variance, captured_mask, reference_mask, self.response)
-        inputs, bins, value_range = check_surface_inputs(captured, reference, variance, *options, self.misfit)
+        inputs, _, _ = check_surface_inputs(captured, reference, variance, *options, self.misfit, self.saturation)
         with torch.no_grad():
-            _, delta2 = surface_variances(
-                inputs, self.model_variance, self.response_variance, bins, value_range, self.response, self.misfit
-            )
+            names = ("model_variance", "response_variance", "bins", "value_range", "response", "misfit", "saturation")
+            _, delta2 = surface_variances(inputs, *(self._options[name] for name in names))
         delta2 = torch.as_tensor(0.0 if delta2 is None else delta2, dtype=torch.float64, device=inputs.captured.device)
         return delta2.flatten().expand(inputs.captured.shape[0]).clone()
 
@@ -509,13 +575,22 @@ class ECR(Score):
 
     def _pair_scorer(self, inputs: SurfaceInputs):
         """:func:`~enmi_torch.scores.direct_surface`'s pair score: ECR with the surface's ``tau^2`` and ``delta^2``."""
-        scorer = scores_with_surface_variances(self, inputs)
-        return super()._pair_scorer(inputs) if scorer is None else scorer
+        return scores_with_surface_variances(self, inputs)
 
     @property
-    def supports_two_stage(self) -> bool:
-        """Whether the two-stage search can rank by :meth:`rough_surface`: a binned or shrunk response."""
-        return self.response != "linear"
+    def traits(self) -> frozenset[str]:
+        """``"least_squares"`` (:func:`~enmi_torch.register`), and ``"two_stage"`` for a binned or shrunk response."""
+        return frozenset({"least_squares"} if self.response == "linear" else {"least_squares", "two_stage"})
+
+    @property
+    def surface_is_exact(self) -> bool:
+        """Whether the surface equals ECR on each aligned pair: ``tau^2`` and ``delta^2`` fixed, no reading censored.
+
+        By default the surface holds the model variance and response fitted at its first pass's peak and takes every
+        reading as a Gaussian value; a search rescores its finalists with :meth:`finalists`, each fitted anew.
+        """
+        fixed_response = self.response != "shrunk" or self.response_variance != RESPONSE_VARIANCE_ESTIMATE
+        return self.model_variance != MODEL_VARIANCE_ESTIMATE and fixed_response and self.saturation is None
 
     def rough_score(self, bins: int, window: Tensor, window_mask: Tensor | None = None) -> ECR:
         """This score with ``bins`` bins over the window's 2nd to 98th percentile and their default model variance.
@@ -560,8 +635,7 @@ class ECR(Score):
         return ecr_placement_scores(placements, rotations, window, min_overlap, rough, self._options)
 
     def _check_two_stage(self, what: str) -> None:  # the linear response has no bins to rank by
-        if not self.supports_two_stage:
-            raise ValueError(f"the {what} of a two-stage ECR search needs a binned or shrunk response, got 'linear'")
+        self.require("two_stage", f"the {what} of a two-stage search")
 
     def response_basis(self) -> ResponseBasis:
         """A knot on each bin centre over ``value_range`` (the binned and shrunk responses), or the affine response."""

@@ -51,6 +51,7 @@ import torch
 from torch import Tensor
 
 from enmi_torch.binning import bin_width, hard_bin_index
+from enmi_torch.scores.censoring import truncated_moments
 from enmi_torch.scores.ecr_regional_misfit import REGIONAL_STEPS, regional_model_variance
 from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
 
@@ -59,8 +60,9 @@ MODEL_VARIANCE_ESTIMATE = "estimate"
 RESPONSE_VARIANCE_ESTIMATE = "estimate"
 # misfit="correlated" sums the residuals' autocovariance over lags up to this fraction of the image's smaller side.
 MISFIT_REACH = 1 / 8
-# Fisher scoring stops when tau^2 moves by less than this fraction, or after this many steps (it takes a few).
-_FISHER_TOLERANCE, _FISHER_STEPS = 1e-10, 32
+# Fisher scoring stops when tau^2 moves by less than this fraction, or after this many steps (it takes a few; with
+# saturated readings, expectation-maximisation takes more: each step sees the completed values of the last).
+_FISHER_TOLERANCE, _FISHER_STEPS, _EM_STEPS = 1e-10, 32, 200
 
 
 def default_model_variance(bins: int, value_range: tuple[float, float]) -> float:
@@ -157,30 +159,43 @@ def _affine_fit(reference: Tensor):
     return fit
 
 
-def _reml_model_variance(values: Tensor, noise: Tensor, valid: Tensor, fit, floor: float) -> Tensor:
+def _reml_model_variance(
+    values: Tensor, noise: Tensor, valid: Tensor, fit, floor: float, side: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """REML ``tau^2`` ``(S,)`` of ``S`` rows of ``N`` pixels (float64): Fisher scoring, at least ``floor``.
 
     ``values``, ``noise`` (``sigma_n^2``) and ``valid`` (bool) are ``(S, N)``; ``fit(values, weight)`` gives the
     residuals about the weighted fit, ``tr((X' W X)^-1 X' W^2 X)`` and the number of fitted parameters, ``(S,)``
-    each. A row with no more valid pixels than fitted parameters gives ``floor``.
+    each. A row with no more valid pixels than fitted parameters gives ``floor``. ``side`` ``(S, N)`` (``+1`` / ``-1``
+    at saturated readings, :mod:`~enmi_torch.scores.censoring`): expectation-maximisation, each step replacing a
+    saturated reading by its mean beyond the limit under the current fit and adding its variance there to the squared
+    residual. Returns ``tau^2`` and the values the last fit saw (the readings, or their completed values).
     """
     mask = valid.to(values.dtype)
     count = mask.sum(1)
     residual, _, fitted = fit(values, mask)
     moment = (mask * residual.square()).sum(1) / (count - fitted).clamp_min(1)
     tau2 = (moment - (mask * noise).sum(1) / count.clamp_min(1)).clamp_min(floor)
-    for _ in range(_FISHER_STEPS):
-        weight = mask / (noise + tau2[:, None])
-        residual, trace, _ = fit(values, weight)
+    saturated = None if side is None else (side != 0) & valid
+    completed, extra, mean = values, 0.0, values - residual
+    for _ in range(_FISHER_STEPS if saturated is None else _EM_STEPS):
+        total = noise + tau2[:, None]
+        weight = mask / total
+        if saturated is not None:
+            expected, spread = truncated_moments(mean, total, values, side)
+            completed = torch.where(saturated, expected, values)
+            extra = torch.where(saturated, spread, 0.0)
+        residual, trace, _ = fit(completed, weight)
+        mean = completed - residual
         squared = weight.square()
-        score = 0.5 * ((squared * residual.square()).sum(1) - weight.sum(1) + trace)
+        score = 0.5 * ((squared * (residual.square() + extra)).sum(1) - weight.sum(1) + trace)
         information = 0.5 * squared.sum(1).clamp_min(torch.finfo(values.dtype).tiny)
         updated = (tau2 + score / information).clamp_min(floor)
         settled = bool(((updated - tau2).abs() <= _FISHER_TOLERANCE * updated).all())
         tau2 = updated
         if settled:
             break
-    return torch.where(count > fitted, tau2, floor)
+    return torch.where(count > fitted, tau2, floor), completed
 
 
 def misfit_extent(residual: Tensor, valid: Tensor, misfit_variance: Tensor) -> Tensor:
@@ -243,6 +258,7 @@ def estimated_model_variance(
     response: str,
     image_shape: tuple[int, int] | None = None,
     misfit: str | None = None,
+    side: Tensor | None = None,
 ) -> Tensor:
     """REML ``tau^2`` ``(S,)`` float64 of ``S`` aligned pairs ``(S, N)``: values, reference, ``sigma^2``, bool valid.
 
@@ -251,7 +267,9 @@ def estimated_model_variance(
     :func:`misfit_extent` of the residuals); ``"regional"`` (a map ``(S, N)``: the per-pixel ``tau^2(x)`` of
     :func:`~enmi_torch.scores.ecr_regional_misfit.regional_model_variance`, refitted
     :data:`~enmi_torch.scores.ecr_regional_misfit.REGIONAL_STEPS` times); ``None``: correlated with an
-    ``image_shape``, independent without.
+    ``image_shape``, independent without. ``side``: ``(S, N)`` ``+1`` / ``-1`` at saturated readings (censored,
+    :mod:`~enmi_torch.scores.censoring`; the misfit's spatial steps then read the residuals of the completed values),
+    ``None`` or all 0 for none.
     """
     if misfit is None:
         misfit = "independent" if image_shape is None else "correlated"
@@ -264,7 +282,9 @@ def estimated_model_variance(
         else:
             fit = _binned_fit(hard_bin_index(reference, bins, value_range), bins)
         floor = default_model_variance(bins, value_range)
-        tau2 = _reml_model_variance(values, noise, valid, fit, floor)
+        if side is not None and not bool((side != 0).any()):
+            side = None
+        tau2, values = _reml_model_variance(values, noise, valid, fit, floor, side)
         if misfit == "independent":
             return tau2
         shape = (-1, *image_shape)
@@ -281,14 +301,19 @@ def estimated_model_variance(
 
 
 def aligned_model_variance(
-    inputs, response: str, image_shape: tuple[int, int] | None = None, misfit: str | None = None
+    inputs,
+    response: str,
+    image_shape: tuple[int, int] | None = None,
+    misfit: str | None = None,
+    side: Tensor | None = None,
 ) -> Tensor:
     """The estimated ``tau^2`` ``(C, B)`` of ECR's checked inputs on aligned pairs, one per candidate and sample.
 
     ``inputs``: as :func:`~enmi_torch.scores.ecr.ecr` checks them. ``image_shape``: the captured images' ``(H, W)``;
-    ``misfit`` as :func:`estimated_model_variance`'s. A regional misfit gives a map per pair, ``(C, B, N)``.
+    ``misfit`` and ``side`` (``(C B, N)``) as :func:`estimated_model_variance`'s. A regional misfit gives a map per
+    pair, ``(C, B, N)``.
     """
-    options = (inputs.bins, inputs.value_range, response, image_shape, misfit)
+    options = (inputs.bins, inputs.value_range, response, image_shape, misfit, side)
     tau2 = estimated_model_variance(*_flat_pairs(inputs), *options)
     return tau2.view(inputs.reference.shape if misfit == "regional" else inputs.reference.shape[:-1])
 

@@ -22,6 +22,8 @@ from enmi_torch.binning import hard_bin_index
 from enmi_torch.placement.fft import Correlator
 from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
 from enmi_torch.placement.planes import moment_blocks, per_sample_reference_planes
+from enmi_torch.scores.censoring import check_saturation, saturated_pixels
+from enmi_torch.scores.ecr_censored import censored_ecr
 from enmi_torch.scores.ecr_model_variance import (
     MISFITS,
     MODEL_VARIANCE_ESTIMATE,
@@ -57,7 +59,17 @@ def cheap_value_range(window: Tensor, window_valid: Tensor) -> tuple[float, floa
 
 
 def check_surface_inputs(
-    captured, reference, variance, bins, value_range, model_variance, captured_mask, reference_mask, response, misfit
+    captured,
+    reference,
+    variance,
+    bins,
+    value_range,
+    model_variance,
+    captured_mask,
+    reference_mask,
+    response,
+    misfit,
+    saturation="value_range",
 ):
     """The checked inputs, bins and value range of :func:`~enmi_torch.scores.ecr.ecr_surface` (its arguments)."""
     check_variance_given(variance)
@@ -66,6 +78,7 @@ def check_surface_inputs(
     check_model_variance(model_variance, bins, value_range)
     check_option("response", response, RESPONSES)
     check_option("misfit", misfit, MISFITS)
+    check_saturation(saturation)
     binned = None if response == "linear" else bins  # the map is binned: refuse one that all falls in one bin
     inputs = check_inputs(
         captured, reference, captured_mask, reference_mask, value_range, variance, reference_bins=binned
@@ -106,6 +119,7 @@ def variances_at_peaks(
     response: str,
     misfit: str,
     model_variance: float | str = MODEL_VARIANCE_ESTIMATE,
+    saturation=None,
 ) -> tuple[Tensor, Tensor]:
     """``tau^2`` and ``delta^2`` ``(B,)`` float64 at each captured image's best placement in ``scores`` ``(B, Sy, Sx)``.
 
@@ -113,7 +127,8 @@ def variances_at_peaks(
     finite score gets the floor, ``bin_width^2 / 12``, with any misfit (a regional misfit: a map ``(B, h w)``, the
     floor at every pixel). ``delta^2``: the shrunk response's
     (:func:`~enmi_torch.scores.ecr_model_variance.estimated_response_variance`) with that ``tau^2``; 0 without a
-    finite score.
+    finite score. ``saturation``: the saturated readings (:mod:`~enmi_torch.scores.censoring`) both estimates treat
+    as censored.
     """
     batch, height, width = inputs.captured.shape
     device = inputs.captured.device
@@ -125,11 +140,23 @@ def variances_at_peaks(
     found = torch.isfinite(scores.flatten(1).amax(1))[:, None, None]
     valid = inputs.captured_valid & inputs.reference_valid[under] & found
     flat = [part.reshape(batch, -1) for part in (inputs.captured, inputs.reference[under], inputs.variance, valid)]
+    readings = flat[0].detach().to(torch.float64)
+    captured_valid = inputs.captured_valid.reshape(batch, -1)
+    saturated = saturated_pixels(readings, captured_valid, saturation, value_range, bins)
+    side = saturated.side if saturated.any else None
     if model_variance == MODEL_VARIANCE_ESTIMATE:
-        tau2 = estimated_model_variance(*flat, bins, value_range, response, (height, width), misfit)
+        tau2 = estimated_model_variance(*flat, bins, value_range, response, (height, width), misfit, side)
     else:
         tau2 = torch.full((batch,), float(model_variance), dtype=torch.float64, device=device)
-    return tau2, estimated_response_variance(*flat, tau2, bins, value_range)
+    if side is None:
+        return tau2, estimated_response_variance(*flat, tau2, bins, value_range)
+    with torch.no_grad():
+        _, reference, noise, mask = (part.detach().to(torch.float64) for part in flat)
+        total = noise + (tau2 if tau2.dim() == 2 else tau2[:, None])
+        _, delta2 = censored_ecr(
+            readings, reference, total, mask, side, bins, value_range, "shrunk", RESPONSE_VARIANCE_ESTIMATE
+        )
+    return tau2, delta2
 
 
 def surface_variances(
@@ -140,19 +167,22 @@ def surface_variances(
     value_range: tuple[float, float],
     response: str,
     misfit: str = "independent",
+    saturation=None,
 ) -> tuple[float | Tensor, float | Tensor | None]:
     """A surface's ``tau^2`` and ``delta^2``: each the fixed number or the estimate per captured image ``(B, 1, 1)``.
 
     A regional misfit's ``tau^2`` estimate is a map over each captured image, ``(B, h, w)``.
-    Both estimates are read at the best placement of one cheap first pass; ``delta^2`` is ``None`` unless the
-    response is shrunk and ``response_variance`` given (it is then checked).
+    Both estimates are read at the best placement of one cheap first pass, the ``saturation``'s readings censored
+    there; ``delta^2`` is ``None`` unless the response is shrunk and ``response_variance`` given (it is then checked).
     """
     tau2 = check_model_variance(model_variance, bins, value_range)
     shrunk = response == "shrunk" and response_variance is not None
     delta2 = check_response_variance(response_variance) if shrunk else None
     if tau2 != MODEL_VARIANCE_ESTIMATE and delta2 != RESPONSE_VARIANCE_ESTIMATE:
         return tau2, delta2
-    tau2_at, delta2_at = variances_at_peaks(inputs, _first_pass(inputs), bins, value_range, response, misfit, tau2)
+    tau2_at, delta2_at = variances_at_peaks(
+        inputs, _first_pass(inputs), bins, value_range, response, misfit, tau2, check_saturation(saturation)
+    )
     dtype = inputs.captured.dtype
     if tau2 == MODEL_VARIANCE_ESTIMATE:
         tau2 = (
@@ -242,9 +272,9 @@ def rough_ecr_surface(inputs: SurfaceInputs, options: dict) -> Surface:
     """
     bins, value_range = options["bins"], options["value_range"]
     with torch.no_grad():
-        tau2 = surface_variances(
-            inputs, options["model_variance"], None, bins, value_range, options["response"], options["misfit"]
-        )[0]
+        names = ("model_variance", "response", "misfit", "saturation")
+        model_variance, response, misfit, saturation = (options[name] for name in names)
+        tau2 = surface_variances(inputs, model_variance, None, bins, value_range, response, misfit, saturation)[0]
         return ecr_surface_from_inputs(inputs, tau2, bins, value_range, exact_counts=False)
 
 
@@ -287,7 +317,7 @@ def ecr_placement_scores(
             variance[yaws, 0].to(dtype),
         )
         tau2_at, delta2_at = variances_at_peaks(
-            rotated, rough[yaws], bins, value_range, options["response"], options["misfit"], tau2
+            rotated, rough[yaws], bins, value_range, options["response"], options["misfit"], tau2, options["saturation"]
         )
         if tau2 == MODEL_VARIANCE_ESTIMATE:
             tau2 = tau2_at.to(dtype) if options["misfit"] == "regional" else tau2_at.to(dtype)[:, None]
@@ -322,19 +352,17 @@ def scores_with_surface_variances(score, inputs: SurfaceInputs):
     """The direct surface's pair score with the ``tau^2`` and ``delta^2`` each captured image's surface estimates.
 
     An :class:`~enmi_torch.ECR` per captured image with them fixed (a regional ``tau^2`` map added to the image's
-    noise variance, with a model variance of 0); ``None`` when both are fixed numbers already.
+    noise variance, with a model variance of 0) and every reading a Gaussian value, as the surface scores it.
     """
-    names = ("model_variance", "response_variance", "bins", "value_range", "response", "misfit")
+    names = ("model_variance", "response_variance", "bins", "value_range", "response", "misfit", "saturation")
     tau2, delta2 = surface_variances(inputs, *(score.options[name] for name in names))
-    if not isinstance(tau2, Tensor) and not isinstance(delta2, Tensor):
-        return None
     batch = inputs.captured.shape[0]
     regional = isinstance(tau2, Tensor) and score.options["misfit"] == "regional"
 
     def per_sample(value) -> list:
         return torch.as_tensor(value, dtype=torch.float64).flatten().expand(batch).tolist()
 
-    fixed = {"misfit": "independent"}
+    fixed = {"misfit": "independent", "saturation": None}  # the surface scores every reading as a Gaussian value
     shrinks = [None] * batch if delta2 is None else per_sample(delta2)
     models = [0.0] * batch if regional else per_sample(tau2)
     samples = [

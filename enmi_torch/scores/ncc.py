@@ -153,6 +153,7 @@ class NCC(Score):
 
     name = "ncc"
     uses_variance = False
+    trait_holders = frozenset({"least_squares"})
 
     def __init__(self) -> None:
         super().__init__()
@@ -165,6 +166,11 @@ class NCC(Score):
 
     def _loss(self, captured, reference, variance, valid_mask, reduction) -> Tensor:
         return reduce_loss(1 - self._value(captured, reference, variance, valid_mask), reduction)
+
+    @property
+    def traits(self) -> frozenset[str]:
+        """``"least_squares"``: :func:`~enmi_torch.register` fits the affine response."""
+        return frozenset({"least_squares"})
 
     def response_basis(self) -> ResponseBasis:
         """The affine response ``a + b m``: NCC squared is the share of the variance it explains."""

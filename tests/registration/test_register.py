@@ -120,7 +120,8 @@ def test_batched_equals_one_at_a_time(generator):
 def test_registration_refuses_what_it_cannot_fit(generator):
     reference = _map(generator)
     captured, start = reference[..., :20, :28], torch.tensor([[14.0, 10.0, 0.0]], dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"score must be ECR or NCC for register .* got .nmi."):
+    refusal = r"register needs a score with the 'least_squares' trait .* got score=NMI\(.*have it: ecr, ncc"
+    with pytest.raises(ValueError, match=refusal):
         register(captured, reference, pose=start, score=NMI())
     with pytest.raises(ValueError, match="variance is not used by score 'ncc'"):
         register(captured, reference, 1.0, pose=start, score="ncc")

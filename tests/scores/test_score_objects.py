@@ -203,7 +203,7 @@ def test_repr_names_every_option_and_round_trips():
     assert (
         repr(ECR())
         == "ECR(bins=32, value_range=(0.0, 256.0), model_variance='estimate', response='shrunk', misfit='independent', "
-        "response_variance='estimate')"
+        "response_variance='estimate', saturation='value_range')"
     )
     assert repr(NCC()) == "NCC()"
     assert repr(Mixture(em_steps=2)) == "Mixture(bins=32, value_range=(0.0, 256.0), em_steps=2)"

@@ -1,5 +1,5 @@
-"""What search and registration ask a score: the two-stage search's stages and the least-squares fit, refused by name
-where a family has none; the package's family functions."""
+"""What search and registration ask a score: its declared traits (the two-stage search's stages, the least-squares
+fit), refused by name where a family has none; the package's family functions."""
 
 import importlib
 
@@ -8,36 +8,58 @@ import torch
 
 import enmi_torch.scores as scores
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Mixture
-from enmi_torch.scores.base import LeastSquaresFit, ResponseBasis
+from enmi_torch.scores.base import LeastSquaresFit, ResponseBasis, Score
 
 RANGE = (0.0, 256.0)
 
 
+TRAIT_METHODS = {
+    "two_stage": ("rough_score", "rough_surface", "placement_scores"),
+    "least_squares": ("response_basis", "least_squares_fit"),
+}
+
+
 @pytest.mark.parametrize(
     ("score", "expected"),
-    [(ECR(), True), (ECR(response="binned"), True), (ECR(response="linear"), False), (NMI(), False), (NCC(), False)],
+    [
+        (ECR(), {"two_stage", "least_squares"}),
+        (ECR(response="binned"), {"two_stage", "least_squares"}),
+        (ECR(response="linear"), {"least_squares"}),
+        (NCC(), {"least_squares"}),
+        (NMI(), set()),
+        (ENMI(), set()),
+        (Mixture(), set()),
+    ],
+    ids=repr,
 )
-def test_a_score_says_whether_it_supports_the_two_stage_search(score, expected):
-    assert score.supports_two_stage is expected
+def test_a_score_declares_its_traits_and_has_exactly_their_methods(score, expected):
+    assert score.traits == expected and set(TRAIT_METHODS) == set(scores.base.TRAITS)
+    for trait, methods in TRAIT_METHODS.items():
+        for method in methods:
+            # The base class declares no stub: a family without the trait has no such method at all.
+            assert not hasattr(Score, method)
+            if trait in expected:
+                assert callable(getattr(score, method))
+        assert (trait in expected) <= (trait in type(score).trait_holders)
 
 
-@pytest.mark.parametrize("score", [NMI(), ENMI(), NCC(), Mixture()], ids=lambda score: score.name)
-def test_scores_without_a_cheap_form_refuse_each_stage_by_name(score):
-    window = torch.rand(1, 1, 12, 12) * 256
-    captured = window[..., 2:8, 3:9]
-    variance = 1.0 if score.uses_variance else None
-    with pytest.raises(ValueError, match=rf"score {type(score).__name__}\(.*has no first stage for a two-stage search"):
-        score.rough_score(4, window)
-    with pytest.raises(ValueError, match="has no rough surface for a two-stage search"):
-        score.rough_surface(captured, window, variance)
-    placements = torch.zeros(1, 3, dtype=torch.int64)
-    with pytest.raises(ValueError, match="has no exact rescoring for a two-stage search"):
-        score.placement_scores(placements, rotations=(), window=(), min_overlap=0.5, rough=torch.zeros(1, 7, 7))
+@pytest.mark.parametrize(
+    ("score", "trait", "holders"),
+    [(NMI(), "two_stage", "ecr"), (ECR(response="linear"), "two_stage", "ecr"), (ENMI(), "least_squares", "ecr, ncc")],
+    ids=repr,
+)
+def test_require_names_the_use_the_trait_its_methods_and_the_scores_that_have_it(score, trait, holders):
+    with pytest.raises(ValueError, match=rf"^the use needs a score with the '{trait}' trait \(") as error:
+        score.require(trait, "the use")
+    assert f"got score={score!r}; scores that have it: {holders} (" in str(error.value)
+    ECR().require("two_stage", "the use")  # no error
+    with pytest.raises(ValueError, match="trait must be one of"):
+        ECR().require("fast", "the use")
 
 
 def test_the_linear_ecr_refuses_the_two_stage_stages():
     window = torch.rand(1, 1, 12, 12) * 256
-    with pytest.raises(ValueError, match="two-stage ECR search needs a binned or shrunk response, got 'linear'"):
+    with pytest.raises(ValueError, match=r"the first stage of a two-stage search needs a score with the 'two_stage'"):
         ECR(response="linear").rough_score(4, window)
 
 
@@ -65,15 +87,6 @@ def test_least_squares_scores_give_their_response_and_weights():
         captured, captured, variance, valid
     )
     torch.testing.assert_close(shrunk.line_penalty, torch.full((2,), 0.5, dtype=torch.float64))
-
-
-@pytest.mark.parametrize("score", [NMI(), ENMI(), Mixture()], ids=lambda score: score.name)
-def test_histogram_scores_are_no_least_squares_fit(score):
-    with pytest.raises(ValueError, match=rf"score must be ECR or NCC for register .* got '{score.name}'"):
-        score.response_basis()
-    image = torch.rand(1, 1, 4, 4)
-    with pytest.raises(ValueError, match="score must be ECR or NCC for register"):
-        score.least_squares_fit(image, image, None, torch.ones_like(image, dtype=torch.bool))
 
 
 def test_the_family_functions_live_in_their_modules_and_functional_and_the_modules_stay_modules():

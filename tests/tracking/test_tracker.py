@@ -167,7 +167,7 @@ def test_a_tracker_refines_each_used_frame_below_one_cell(generator):
         assert output.refined[0].tolist() == pytest.approx(truth[0].tolist(), abs=5e-3)
     assert float((output.pose[0, :2].double() - truth[0, :2]).abs().max()) < 0.6  # the belief's own: one cell
     belief = initial_belief(torch.tensor([[40.0, 50.0, 0.0]]))
-    with pytest.raises(ValueError, match="score must be ECR or NCC for register"):
+    with pytest.raises(ValueError, match=r"register needs a score with the .least_squares. trait"):
         track_step(belief, frame, reference.float(), move.float(), settings=TrackerSettings(refine=True), score="nmi")
 
 
