@@ -9,8 +9,8 @@ visited) → :mod:`~enmi_torch.localization.candidates` (windows, rotations, sur
 builds on :func:`localize` in :mod:`enmi_torch.tracking`.
 """
 
-from enmi_torch.localization.peak import Localization, NoCandidateError
+from enmi_torch.localization.peak import Finalists, Localization, NoCandidateError
 from enmi_torch.localization.search import Localizer, localize
 from enmi_torch.localization.strategy import SearchStrategy
 
-__all__ = ["Localization", "Localizer", "NoCandidateError", "SearchStrategy", "localize"]
+__all__ = ["Finalists", "Localization", "Localizer", "NoCandidateError", "SearchStrategy", "localize"]

@@ -139,6 +139,14 @@ def _mills_terms(z: Tensor) -> tuple[Tensor, Tensor]:
     return mills, excess
 
 
+def _standardised(mean: Tensor, total_variance: Tensor, values: Tensor, side: Tensor):
+    """``(s, z, lambda, lambda + z)`` in float64 (the Mills ratio's cancellation needs it), broadcast."""
+    mean, total_variance, values, side = (part.to(torch.float64) for part in (mean, total_variance, values, side))
+    scale = total_variance.sqrt()
+    z = side * (mean - values) / scale
+    return (scale, z, *_mills_terms(z))
+
+
 def tobit_expansion(
     mean: Tensor, total_variance: Tensor, values: Tensor, side: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -152,7 +160,7 @@ def tobit_expansion(
     discard).
 
     Returns:
-        ``(pseudo, weight, constant)``.
+        ``(pseudo, weight, constant)`` in the dtype of ``mean`` and ``total_variance`` (computed in float64).
 
     Example:
         >>> mean, variance = torch.tensor([100.0, 250.0], dtype=torch.float64), torch.tensor(25.0, dtype=torch.float64)
@@ -160,13 +168,12 @@ def tobit_expansion(
         >>> pseudo.round(decimals=2).tolist(), (weight * variance).round(decimals=3).tolist()  # far below; near
         ([255.32, 259.52], [0.999, 0.801])
     """
-    scale = total_variance.sqrt()
-    z = side * (mean - values) / scale
-    mills, excess = _mills_terms(z)
-    weight = mills * excess / total_variance
+    dtype = torch.promote_types(mean.dtype, total_variance.dtype)
+    scale, z, mills, excess = _standardised(mean, total_variance, values, side)
+    weight = mills * excess / scale.square()
     pseudo = mean + side * scale / excess
     constant = torch.special.log_ndtr(z) + mills / (2 * excess)
-    return pseudo, weight, constant
+    return pseudo.to(dtype), weight.to(dtype), constant.to(dtype)
 
 
 def truncated_moments(mean: Tensor, total_variance: Tensor, values: Tensor, side: Tensor) -> tuple[Tensor, Tensor]:
@@ -181,7 +188,7 @@ def truncated_moments(mean: Tensor, total_variance: Tensor, values: Tensor, side
         >>> [round(float(moment), 4) for moment in moments]  # the half-normal: sqrt(2 / pi), 1 - 2 / pi
         [0.7979, 0.3634]
     """
-    scale = total_variance.sqrt()
-    z = side * (mean - values) / scale
-    mills, excess = _mills_terms(z)
-    return mean + side * scale * mills, total_variance * (1 - mills * excess).clamp_min(0.0)
+    dtype = torch.promote_types(mean.dtype, total_variance.dtype)
+    scale, _, mills, excess = _standardised(mean, total_variance, values, side)
+    expected = mean + side * scale * mills
+    return expected.to(dtype), (scale.square() * (1 - mills * excess).clamp_min(0.0)).to(dtype)

@@ -174,7 +174,7 @@ def ecr(
 
     Convention:
         Differentiable in ``captured`` and ``variance`` (the reference is hard-binned; an estimated ``tau^2`` is held
-        fixed; a saturated reading carries no gradient to ``captured``).
+        fixed; a saturated reading's gradient is that of its tail probability, which starts at the reading).
 
     Example:
         >>> generator = torch.Generator().manual_seed(0)

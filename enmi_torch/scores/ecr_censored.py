@@ -90,13 +90,17 @@ class _Rows:
 
 
 def _expanded(values, total_variance, side, saturated, fit: Tensor, valid: Tensor):
-    """Pseudo-observations, weights and constants ``(S, N)`` at the fitted means ``fit``."""
-    pseudo, weight, constant = tobit_expansion(fit, total_variance, values, side)
-    plain = valid / total_variance
+    """Pseudo-observations, weights and constants ``(S, N)`` at the fitted means ``fit``.
+
+    ``saturated``: the saturated readings' indices (``nonzero(as_tuple=True)``): only they are expanded.
+    """
+    pseudo, weight, constant = tobit_expansion(
+        fit[saturated], total_variance[saturated], values[saturated], side[saturated]
+    )
     return (
-        torch.where(saturated, pseudo, values),
-        torch.where(saturated, weight * valid, plain),
-        torch.where(saturated, constant * valid, 0.0),
+        values.index_put(saturated, pseudo),
+        (valid / total_variance).index_put(saturated, weight),
+        torch.zeros_like(fit).index_put(saturated, constant),
     )
 
 
@@ -148,7 +152,7 @@ def censored_ecr(
     ``(S, N)`` float64 where they matter. ``response_variance``: the shrunk response's ``delta^2`` (a number or
     ``(S,)``) or ``"estimate"``; the other responses return 0 for it.
     """
-    saturated = (side != 0) & (valid > 0)
+    saturated = ((side != 0) & (valid > 0)).nonzero(as_tuple=True)
     rows = _Rows(reference, valid, bins, value_range, response)
     estimate = response == "shrunk" and isinstance(response_variance, str)
     if response == "shrunk":

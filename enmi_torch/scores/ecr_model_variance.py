@@ -176,15 +176,15 @@ def _reml_model_variance(
     residual, _, fitted = fit(values, mask)
     moment = (mask * residual.square()).sum(1) / (count - fitted).clamp_min(1)
     tau2 = (moment - (mask * noise).sum(1) / count.clamp_min(1)).clamp_min(floor)
-    saturated = None if side is None else (side != 0) & valid
+    saturated = None if side is None else ((side != 0) & valid).nonzero(as_tuple=True)
     completed, extra, mean = values, 0.0, values - residual
     for _ in range(_FISHER_STEPS if saturated is None else _EM_STEPS):
         total = noise + tau2[:, None]
         weight = mask / total
         if saturated is not None:
-            expected, spread = truncated_moments(mean, total, values, side)
-            completed = torch.where(saturated, expected, values)
-            extra = torch.where(saturated, spread, 0.0)
+            expected, spread = truncated_moments(mean[saturated], total[saturated], values[saturated], side[saturated])
+            completed = values.index_put(saturated, expected)
+            extra = torch.zeros_like(values).index_put(saturated, spread)
         residual, trace, _ = fit(completed, weight)
         mean = completed - residual
         squared = weight.square()

@@ -99,3 +99,43 @@ def test_the_family_functions_live_in_their_modules_and_functional_and_the_modul
     mixture = importlib.import_module("enmi_torch.scores.mixture")
     for name in ("mixture_information", "mixture_surface", "mixture_loss"):
         assert getattr(functional, name) is getattr(mixture, name)
+
+
+@pytest.mark.parametrize("score", [NMI(bins=16), ECR(bins=16), ENMI(bins=16)], ids=repr)
+def test_the_default_finalists_score_each_aligned_pair_of_the_crops_with_both_masks(score, generator):
+    window = torch.rand(1, 1, 14, 19, generator=generator, dtype=torch.float64) * 256
+    window_mask = torch.rand(1, 1, 14, 19, generator=generator) > 0.2
+    captured = torch.rand(2, 1, 5, 7, generator=generator, dtype=torch.float64) * 256
+    captured_mask = torch.rand(2, 1, 5, 7, generator=generator) > 0.1
+    variance = (
+        (10 + 90 * torch.rand(2, 1, 5, 7, generator=generator, dtype=torch.float64)) if score.uses_variance else None
+    )
+    placements = torch.tensor([[0, 0, 0], [1, 9, 12], [0, 4, 2], [1, 0, 11]])
+    expected = []
+    for index, row, col in placements.tolist():  # a direct loop over the placements
+        crop = window[..., row : row + 5, col : col + 7]
+        valid = captured_mask[index : index + 1] & window_mask[..., row : row + 5, col : col + 7]
+        noise = None if variance is None else variance[index : index + 1]
+        expected.append(float(score(captured[index : index + 1], crop, noise, valid_mask=valid)))
+    found = score.finalists(
+        captured, window, placements, variance, captured_mask=captured_mask, window_mask=window_mask
+    )
+    torch.testing.assert_close(found, torch.tensor(expected, dtype=torch.float64))
+
+
+@pytest.mark.parametrize(
+    ("score", "exact"),
+    [
+        (NMI(), True),
+        (NCC(), True),
+        (ENMI(), True),
+        (ECR(), False),
+        (ECR(model_variance=9.0, response_variance=4.0), False),  # saturated readings are censored
+        (ECR(model_variance=9.0, saturation=None), False),  # delta^2 estimated
+        (ECR(model_variance=9.0, response_variance=4.0, saturation=None), True),
+        (ECR(model_variance=9.0, response="binned", saturation=None), True),
+    ],
+    ids=repr,
+)
+def test_a_score_says_whether_its_surface_is_its_value_on_each_aligned_pair(score, exact):
+    assert score.surface_is_exact is exact
