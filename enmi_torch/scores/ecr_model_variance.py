@@ -60,9 +60,12 @@ MODEL_VARIANCE_ESTIMATE = "estimate"
 RESPONSE_VARIANCE_ESTIMATE = "estimate"
 # misfit="correlated" sums the residuals' autocovariance over lags up to this fraction of the image's smaller side.
 MISFIT_REACH = 1 / 8
-# Fisher scoring stops when tau^2 moves by less than this fraction, or after this many steps (it takes a few; with
-# saturated readings, expectation-maximisation takes more: each step sees the completed values of the last).
-_FISHER_TOLERANCE, _FISHER_STEPS, _EM_STEPS = 1e-10, 32, 200
+# Fisher scoring stops when tau^2 moves by less than this fraction, or after this many steps (it takes a few). With
+# saturated readings, expectation-maximisation takes more (each step sees the completed values of the last; Aitken's
+# extrapolation every third step), and its fixed point is defined to about 1e-7 of tau^2 (the completed values move
+# with it): it stops at a millionth.
+_FISHER_TOLERANCE, _FISHER_STEPS = 1e-10, 32
+_EM_TOLERANCE, _EM_STEPS = 1e-6, 200
 
 
 def default_model_variance(bins: int, value_range: tuple[float, float]) -> float:
@@ -178,6 +181,7 @@ def _reml_model_variance(
     tau2 = (moment - (mask * noise).sum(1) / count.clamp_min(1)).clamp_min(floor)
     saturated = None if side is None else ((side != 0) & valid).nonzero(as_tuple=True)
     completed, extra, mean = values, 0.0, values - residual
+    history = []
     for _ in range(_FISHER_STEPS if saturated is None else _EM_STEPS):
         total = noise + tau2[:, None]
         weight = mask / total
@@ -191,11 +195,27 @@ def _reml_model_variance(
         score = 0.5 * ((squared * (residual.square() + extra)).sum(1) - weight.sum(1) + trace)
         information = 0.5 * squared.sum(1).clamp_min(torch.finfo(values.dtype).tiny)
         updated = (tau2 + score / information).clamp_min(floor)
-        settled = bool(((updated - tau2).abs() <= _FISHER_TOLERANCE * updated).all())
+        tolerance = _FISHER_TOLERANCE if saturated is None else _EM_TOLERANCE
+        settled = bool(((updated - tau2).abs() <= tolerance * updated).all())
         tau2 = updated
         if settled:
             break
+        if saturated is not None:
+            history.append(tau2)
+            if len(history) == 3:
+                tau2, history = _extrapolated(*history, floor), []
     return torch.where(count > fitted, tau2, floor), completed
+
+
+def _extrapolated(first: Tensor, second: Tensor, third: Tensor, floor: float) -> Tensor:
+    """Aitken's extrapolation of three steps of a linearly converging sequence (EM's), where it converges steadily.
+
+    A row whose steps change sign or do not shrink keeps its last value.
+    """
+    step, next_step = second - first, third - second
+    steady = (step * next_step > 0) & (next_step.abs() < step.abs())
+    ratio = torch.where(steady, next_step / torch.where(steady, step, 1.0), 0.0)
+    return torch.where(steady, third + next_step * ratio / (1 - ratio), third).clamp_min(floor)
 
 
 def misfit_extent(residual: Tensor, valid: Tensor, misfit_variance: Tensor) -> Tensor:

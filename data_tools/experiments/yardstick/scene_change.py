@@ -72,6 +72,7 @@ import torch
 
 from data_tools.experiments.yardstick import yardstick
 from enmi_torch import ECR, ENMI, NCC, NMI
+from enmi_torch.localization import SearchStrategy, localize
 from enmi_torch.data.scene_change import CHANGES, scene_change
 from enmi_torch.scores.ecr import default_model_variance, ecr_model_variance
 from enmi_torch.utils.files import read_npy
@@ -126,9 +127,14 @@ def _factor_name(factor: float) -> str:
 
 # Which score with which variance: "true" (the sensor's map), "capped" (the true map capped at what a clipped grey
 # level can vary), "learned" (--learned-mask), a factor of the true map's mean (one uniform variance), or None (a score
-# without a variance).
+# without a variance). Each searches as localize does, with its default finalist stage (the surface's best local
+# maxima rescored by the score on each aligned pair: ECR's estimated tau^2 and delta^2 and its censored readings);
+# the methods of SURFACE_ONLY take the surface's maximum as it is.
 METHODS: dict[str, tuple] = {
     "ECR true": (ECR(bins=BINS), "true"),
+    "ECR surface true": (ECR(bins=BINS), "true"),
+    "ECR Gaussian true": (ECR(bins=BINS, saturation=None), "true"),
+    "ECR before true": (ECR(bins=BINS, saturation=None), "true"),
     "ECR today": (ECR(bins=BINS, model_variance=TODAY), "true"),
     "ECR regional true": (ECR(bins=BINS, misfit="regional"), "true"),
     "ECR learned": (ECR(bins=BINS), "learned"),
@@ -150,6 +156,10 @@ METHODS: dict[str, tuple] = {
     "ECR regional at its peak": (ECR(bins=BINS, model_variance=0.0), "regional at peak"),
 }
 DEFAULT_METHODS = tuple(method for method in METHODS if method != "ECR learned")
+# The surface's maximum, no finalist stage: the default's surface alone, and the default of the last release (its
+# readings Gaussian, issue 33's "ECR true").
+SURFACE_ONLY = ("ECR surface true", "ECR before true")
+FINALISTS = SearchStrategy().finalists
 # Methods whose estimated tau^2 is recorded per trial.
 ESTIMATED = ("ECR true", "ECR learned")
 # Columns of the report: the grids collapse into their mean and their best (picked per cell after the fact).
@@ -168,6 +178,9 @@ CONTROLS = (
 CANDIDATES = ("ECR true", "ECR regional true", "ECR learned", "ECR today")
 SHOWN = (
     "ECR true",
+    "ECR surface true",
+    "ECR Gaussian true",
+    "ECR before true",
     "ECR regional true",
     "ECR learned",
     "ECR today",
@@ -396,6 +409,26 @@ def _variance(context: Context, kind):
     return None if kind is None else context.mean * kind
 
 
+def searched(score, context: Context, variance, finalists: int = FINALISTS) -> torch.Tensor:
+    """``(T, 2)`` the placement (row, column) ``localize`` picks in each trial's window: the surface, its finalists."""
+    center = (LOCAL // 2 + RADIUS, LOCAL // 2 + RADIUS)  # shift 0 puts the captured image on the window's middle
+    found = localize(
+        context.local,
+        context.window,
+        variance,
+        score=score,
+        shifts=RADIUS,
+        center=center,
+        captured_mask=context.mask,
+        search=SearchStrategy(finalists=finalists),
+    )
+    if found.finalists is not None:
+        return found.finalists.best()[:, 1:]
+    columns = found.surface.shape[-1]
+    peak = found.surface.flatten(1).argmax(1)
+    return torch.stack([peak // columns, peak % columns], 1)
+
+
 def run_methods(trials: Trials, sensor: str, level: float, methods, learned=None, clip=True) -> dict[str, tuple]:
     """Per method: success per trial (bool ``(T,)``) and the estimated ``tau^2`` per trial (empty when not kept)."""
     torch.set_num_threads(1)
@@ -405,8 +438,8 @@ def run_methods(trials: Trials, sensor: str, level: float, methods, learned=None
         for method in methods:
             score, kind = METHODS[method]
             variance = _variance(context, kind)
-            surface = score.surface(context.local, context.window, variance, captured_mask=context.mask)
-            success[method].append(NOISE_ONLY._outcomes(surface.score, context.truth)[0])
+            found = searched(score, context, variance, 0 if method in SURFACE_ONLY else FINALISTS)
+            success[method].append(((found - context.truth).abs() <= 1).all(1))
             if method in ESTIMATED:
                 estimate = score.surface_model_variance(
                     context.local, context.window, variance, captured_mask=context.mask
