@@ -412,8 +412,12 @@ def _window_scene():
     height, width, top, left = 14, 19, 12, 20
     variance = torch.linspace(20, 400, height, dtype=torch.float64)[:, None].expand(height, width).contiguous()
     noise = torch.randn(1, 1, height, width, generator=generator, dtype=torch.float64)
-    captured = 1.2 * reference[..., top : top + height, left : left + width] - 20 + variance.sqrt() * noise
-    return captured.clamp(0, 255), reference, variance
+    crop = reference[..., top : top + height, left : left + width]
+    low, high = crop.quantile(0.1).item(), crop.quantile(0.9).item()  # a contrast that clips about a fifth
+    captured = ((crop - low) * 255 / (high - low) + variance.sqrt() * noise).clamp(0, 255)
+    saturated = ((captured == 0) | (captured == 255)).double().mean()
+    assert 0.1 < saturated < 0.4, saturated
+    return captured, reference, variance
 
 
 @guards("eq-ecr-surface")
@@ -426,7 +430,7 @@ def test_surface_is_ecr_with_the_model_fitted_once():
     delta2 = score.surface_response_variance(captured, window, variance).item()
     height, width = captured.shape[2:]
     assert surface.shape == (window.shape[2] - height + 1, window.shape[3] - width + 1)
-    differs = 0
+    differs = []
     for row in range(surface.shape[0]):
         for col in range(surface.shape[1]):
             crop = window[..., row : row + height, col : col + width]
@@ -434,8 +438,9 @@ def test_surface_is_ecr_with_the_model_fitted_once():
                 captured, crop, variance, bins=BINS, model_variance=tau2, response_variance=delta2, saturation=None
             )
             assert surface[row, col].item() == pytest.approx(fixed.item(), rel=1e-7, abs=1e-9)
-            differs += abs(score(captured, crop, variance).item() - fixed.item()) > 1e-6
-    assert differs > surface.numel() // 2  # its own fit and the censored readings change most placements
+            if row % 3 == col % 3 == 0:  # its own fit and the censored readings change the value
+                differs.append(abs(score(captured, crop, variance).item() - fixed.item()) > 1e-6)
+    assert sum(differs) > len(differs) // 2
     assert ecr_surface(captured, window, variance, bins=BINS, saturation=(0, 255)).score[0].equal(surface)
 
 
