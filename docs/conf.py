@@ -33,6 +33,9 @@ napoleon_numpy_docstring = False
 napoleon_use_rtype = False
 napoleon_use_ivar = True  # "Attributes:" as fields: autodoc documents the attributes themselves once
 myst_heading_anchors = 3
+# The model page's equations: $...$ and labelled $$...$$ blocks (dollarmath), LaTeX environments such as aligned
+# (amsmath); MathJax renders them.
+myst_enable_extensions = ["dollarmath", "amsmath"]
 # Docstrings name the role of an argument in double backquotes; a bare `x` is code, not a cross-reference.
 default_role = "code"
 # Type hints name classes of torch, kornia and Lightning that this site does not document.
@@ -60,6 +63,14 @@ SUBPACKAGES = {
     "enmi_torch.placement": "The FFT machinery the score surfaces share.",
     "enmi_torch.data": "Pairs for fitting a variance mask: folders, synthetic data, the Lightning data module.",
     "enmi_torch.simulation": "The paper's simulation (Fig. simPerformance).",
+}
+# Modules whose docstrings a subpackage's page shows (each opens with its model and links to docs/model.md).
+MODULE_DOCSTRINGS = {
+    "enmi_torch.scores": [
+        f"enmi_torch.scores.{name}"
+        for name in "ecr shrunk_response ecr_model_variance ecr_regional_misfit censoring ecr_censored".split()
+        + "enmi nmi ncc mixture".split()
+    ],
 }
 TRAINING = {
     "enmi_torch.training.mask_module": ["MaskFitModule", "localization_trials"],
@@ -101,6 +112,9 @@ def _subpackage(module_name: str, summary: str) -> str:
     if shared:
         lines += ["Also here, documented at the top level: " + ", ".join(f":obj:`enmi_torch.{n}`" for n in shared), ""]
     lines += [_entry(module_name, name) for name in added]
+    if module_name in MODULE_DOCSTRINGS:  # last: an automodule sets the current module for what follows
+        lines += ["The modules and their models", "-" * 28, ""]
+        lines += [f".. automodule:: {name}\n" for name in MODULE_DOCSTRINGS[module_name]]
     return "\n".join(lines)
 
 

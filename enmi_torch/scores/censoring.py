@@ -1,12 +1,12 @@
 """Saturated captured pixels as censored observations: a reading at a sensor's limit says only "this far or beyond".
 
-Model (Tobit): a captured pixel is ``x_n ~ N(mu_n, s_n^2)`` (``s_n^2 = sigma_n^2 + tau^2``, ``mu_n`` the response to
-the map) read through a sensor that saturates: a reading ``v_n`` at its lower limit says ``x_n <= v_n`` and adds
-``log Phi((v_n - mu_n) / s_n)`` to the log-likelihood, one at its upper limit ``x_n >= v_n`` and
-``log Phi((mu_n - v_n) / s_n)``. Scored as a Gaussian value instead, a saturated pixel looks less noisy than it is
-(a pile of pixels on one grey level), which drives an estimated model variance to its floor and over-trusts it.
+Model (Tobit, :ref:`model-censored`): a captured pixel is ``x_n ~ N(mu_n, s_n^2)`` (``s_n^2 = sigma_n^2 + tau^2``) read
+through a sensor that saturates; a reading ``v_n`` at a lower limit adds ``log Phi((v_n - mu_n) / s_n)`` to the
+log-likelihood, one at an upper limit ``log Phi((mu_n - v_n) / s_n)``.
 
-Which pixels are saturated (``saturation``, an option of :class:`~enmi_torch.ECR`):
+Scored as a Gaussian value instead, a saturated pixel looks less noisy than it is (a pile of pixels on one grey
+level), which drives an estimated model variance to its floor and over-trusts it. Which pixels are saturated
+(``saturation``, an option of :class:`~enmi_torch.ECR`):
 
 * ``"value_range"`` (the default): an end of ``value_range`` is a saturation level of a captured image unless one
   of the image's valid values lies beyond it (a sensor that clips never reads beyond its limit); the pixels within

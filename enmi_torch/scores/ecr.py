@@ -1,35 +1,27 @@
 """ECR, the enhanced (noise-aware) correlation ratio: a Gaussian log-likelihood ratio with per-pixel noise variance.
 
-Model: the sensor sees a function of the map, blurred by noise whose variance is known per pixel. A captured pixel
-``v_n`` over a reference pixel in bin ``j_n`` is ``v_n ~ N(mu_{j_n}, sigma_n^2 + tau^2)``, one unknown mean per
-reference bin (any response, monotonic or not), ``sigma_n^2`` the pixel's noise variance (analytic or learned) and
-``tau^2`` the model variance (what a bin of the map does not explain; by default estimated from the data,
-:mod:`~enmi_torch.scores.ecr_model_variance`, at least the spread of an amplitude uniform in a bin,
-``bin_width^2 / 12``). The alternative is one mean for all pixels (captured independent of the map). With weights
-``w_n = 1 / (sigma_n^2 + tau^2)`` and per-bin sums ``W_j = sum w_n``, ``S_j = sum w_n v_n``, the maximised
-log-likelihood ratio is
+Model (:ref:`model-ecr`): a captured pixel is the sensor's response to the map plus noise, ``v_n ~ N(mu(r_n),
+sigma_n^2 + tau^2)``, against one mean for all pixels; ECR is the maximised log-likelihood ratio less its mean for
+pure noise, per valid pixel, in nats. The default response is one mean per reference bin shrunk toward an increasing
+line (``response="shrunk"``, :ref:`model-shrunk`); ``"binned"`` frees the bin means, ``"linear"`` fits the line.
 
-    ``LLR = (sum_j S_j^2 / W_j - S^2 / W) / 2`` (``S``, ``W`` the sums over all bins),
-
-the weighted between-bin sum of squares (generalised least squares). When the captured values are noise of the
-stated variances around one level, ``2 LLR`` is ``chi^2`` with ``K_occ - 1`` degrees of freedom (``K_occ`` the
-occupied reference bins) whatever the variances, so ``ECR = (LLR - (K_occ - 1) / 2) / n`` (``n`` the valid pixels)
-has mean 0; a captured image with structure of its own that is unrelated to the reference scores about
-``(K_occ - 1) / (2 n)`` times its spread over the noise variance, small against an aligned placement's score and
-without a term that follows the map's content. A noisy pixel adds its evidence in proportion to its precision
-instead of a full unit of histogram weight.
-
-With one variance for all pixels, ``ECR = eta^2 Var[v] / (2 (sigma^2 + tau^2)) - (K_occ - 1) / (2 n)`` with
-``eta^2`` the classic correlation ratio (Pearson, Roche et al. 1998) of the captured image given the reference bins.
+``sigma_n^2`` is the pixel's noise variance (analytic or learned), ``tau^2`` the model variance (what a bin of the map
+does not explain): by default estimated by REML from the data at the alignment, at least ``bin_width^2 / 12``
+(:mod:`~enmi_torch.scores.ecr_model_variance`). Saturated readings are scored as censored by default
+(:mod:`~enmi_torch.scores.censoring`). A noisy pixel adds its evidence in proportion to its precision instead of a
+full unit of histogram weight (ENMI's); with one variance for all pixels the binned response is the classic
+correlation ratio (Pearson; Roche et al. 1998) scaled by the signal-to-noise ratio.
 
 This module holds the score (:func:`ecr`, :func:`ecr_surface`, :func:`ecr_loss`, :class:`ECR`) and the ``tau^2`` they
 use (:func:`ecr_model_variance`, :func:`ecr_surface_model_variance`); the per-bin sums are in
-:mod:`~enmi_torch.scores.ecr_statistics`, the estimates in :mod:`~enmi_torch.scores.ecr_model_variance`, the surface
-and the two-stage search's stages in :mod:`~enmi_torch.scores.ecr_placements`.
+:mod:`~enmi_torch.scores.ecr_statistics`, the estimates in :mod:`~enmi_torch.scores.ecr_model_variance`, the censored
+readings in :mod:`~enmi_torch.scores.ecr_censored`, the surface and the two-stage search's stages in
+:mod:`~enmi_torch.scores.ecr_placements`.
 
 Convention:
-    Captured values are used as they are (not clipped: a value beyond the range is still evidence); reference values
-    are hard-binned into ``bins`` equal bins over ``value_range``, clipped into the edge bins.
+    Captured values are used as they are (not clipped: a value beyond the range is still evidence, and a reading at a
+    saturation level is censored); reference values are hard-binned into ``bins`` equal bins over ``value_range``,
+    clipped into the edge bins.
 """
 
 from __future__ import annotations

@@ -1,20 +1,21 @@
 """ECR on aligned pairs with saturated captured pixels scored as censored (Tobit) observations.
 
-A saturated pixel's term (:mod:`~enmi_torch.scores.censoring`) is expanded to second order about the fitted response
-at the mode of each hypothesis (the map's response and the one mean of unrelated images): a Gaussian
-pseudo-observation ``(pseudo_n, weight_n)`` and a constant ``c_n`` (a Laplace approximation, exact for the other
-pixels). The fit iterates the expansion to its mode (iteratively reweighted least squares, a Newton step each). With
-``S_j``, ``W_j`` the pseudo-observations' per-bin sums at the response's mode and ``SS`` a hypothesis' weighted sum
-of squares about its own weighted mean, the log-likelihood ratio is
+Model (:ref:`model-censored`): each saturated reading's ``log Phi`` term, expanded to second order about each
+hypothesis's mode, is a Gaussian pseudo-observation; the log-likelihood ratio is the Gaussian closed form of the
+pseudo-observations' sums plus ``(SS_0 - SS_1) / 2 + sum_n (c_1n - c_0n)`` (Laplace's approximation at the mode).
 
-    ``LLR = LLR_Gauss(S, W) + (SS_0 - SS_1) / 2 + sum_n (c_1n - c_0n)``,
-
-``LLR_Gauss`` the closed form of :mod:`~enmi_torch.scores.ecr_statistics` (each response's), ``0`` the one mean and
-``1`` the response; ECR is ``(LLR - penalty) / n`` as in the Gaussian model. Without a saturated pixel every
-pseudo-observation is the reading with weight ``1 / (sigma^2 + tau^2)``, both corrections vanish and ECR is the
-Gaussian value. The shrunk response's ``delta^2``, when estimated, is the profile maximum of the pseudo-observations'
-sums, re-read at each step of the fit. Gradients reach ``captured`` (its readings that are not saturated) and the
-variance through the final Newton step (the implicit derivative of the mode); ``tau^2`` and ``delta^2`` are held.
+The two hypotheses are the map's response (``1``) and the one mean of unrelated images (``0``);
+:mod:`~enmi_torch.scores.censoring` gives each saturated pixel's pseudo-observation ``(pseudo_n, weight_n)`` and
+constant ``c_n``, the other pixels keep their reading and weight ``1 / (sigma^2 + tau^2)``. The fit iterates the
+expansion to its mode (iteratively reweighted least squares, a Newton step each). ``SS`` is a hypothesis' weighted sum
+of squares about its own weighted mean and the Gaussian closed form each response's
+(:mod:`~enmi_torch.scores.ecr_statistics`); ECR is ``(LLR - penalty) / n`` as in the Gaussian model. For the binned and
+linear responses this is the exact maximised likelihood ratio of the censored model; for the shrunk one, Laplace's
+approximation of the integral over the bins' deviations. Without a saturated pixel every pseudo-observation is the
+reading, both corrections vanish and ECR is the Gaussian value. The shrunk response's ``delta^2``, when estimated, is
+the profile maximum of the pseudo-observations' sums, re-read at each step of the fit. Gradients reach ``captured`` (its
+readings that are not saturated) and the variance through the final Newton step (the implicit derivative of the mode);
+``tau^2`` and ``delta^2`` are held.
 """
 
 from __future__ import annotations

@@ -1,11 +1,14 @@
 """ECR's model variance ``tau^2`` and its shrunk response's ``delta^2``, estimated from the data.
 
-The model variance ``tau^2`` is what a bin of the map leaves unexplained: the quantisation, ``bin_width^2 / 12``, where
-the map explains the captured image up to the sensor noise; far more where the scene changed (shadows, cars, another
-date, another modality). Too small a ``tau^2`` trusts the quiet pixels far more than the misfit allows.
-``model_variance="estimate"`` estimates it from the data, one ``tau^2`` per captured image, by restricted maximum
-likelihood (REML: the likelihood of the residuals about the fitted bin means, which does not take the ``K_occ`` fitted
-means for evidence against ``tau^2``), at least ``bin_width^2 / 12``:
+Model (:ref:`model-tau`): ``tau^2`` is what a bin of the map leaves unexplained, at least the quantisation
+``bin_width^2 / 12``; ``model_variance="estimate"`` takes the restricted maximum likelihood (REML) estimate by Fisher
+scoring, each saturated reading completed by expectation-maximisation (:ref:`model-censored`).
+
+``tau^2`` is the quantisation where the map explains the captured image up to the sensor noise, far more where the
+scene changed (shadows, cars, another date, another modality); too small a ``tau^2`` trusts the quiet pixels far more
+than the misfit allows. REML (the likelihood of the residuals about the fitted bin means, or about ``a + b r`` with
+``response="linear"``) does not take the fitted means for evidence against ``tau^2``. One ``tau^2`` per captured
+image is estimated:
 
 * on aligned pairs (:func:`~enmi_torch.scores.ecr.ecr`, :func:`~enmi_torch.scores.ecr.ecr_loss`): at the given
   alignment (each candidate reference its own), without gradient; the score is ECR with that ``tau^2``;
@@ -13,31 +16,19 @@ means for evidence against ``tau^2``), at least ``bin_width^2 / 12``:
   (:mod:`~enmi_torch.scores.ecr_placements`); the surface is ECR with that ``tau^2`` at every placement;
 * in the two-stage search: at the best placement of its cheap stage, per yaw.
 
-REML by Fisher scoring: with ``w_n = 1 / (sigma_n^2 + tau^2)``, ``r_n`` the residuals about the weighted bin means and
-``W_j`` the bins' weight sums, the score ``U = (sum w^2 r^2 - sum w + sum_j sum_{n in j} w_n^2 / W_j) / 2`` over the
-information ``I = sum w^2 / 2`` moves ``tau^2`` from the moment estimate (the residual variance about the plain bin
-means less the mean noise variance) until it settles. With ``response="linear"`` the fitted means are ``a + b r``.
-
 A changed scene's misfit is spatially correlated: a new building, a shadow or a parked car covers many neighbouring
-pixels, and the per-pixel model counts each quiet pixel of such a patch as independent evidence. ``misfit="correlated"``
-takes the misfit beyond the bins' quantisation as one value per block of ``m`` pixels: a pixel's weight becomes
-``1 / (sigma_n^2 + m tau^2)``, so a block of ``m`` pixels of noise ``sigma^2`` weighs ``1 / (tau^2 + sigma^2 / m)``,
-the generalised-least-squares weight of its mean. ``m``, the pixels per independent misfit (:func:`misfit_extent`), is
-read from the residuals' autocovariance where ``tau^2`` is estimated (the sensor noise is white and adds to lag 0
-only). The model variance is then ``q + m (tau^2 - q)``, ``q = bin_width^2 / 12`` the quantisation floor, which stays
-per pixel as in the independent model (a smooth map's within-bin variation is correlated too, but it is the bins'
-resolution, not a change of the scene). Where the misfit outweighs the noise the weights are nearly uniform, and the
-log-likelihood ratio is about ``m`` times smaller: evidence counted per independent patch instead of per pixel.
+pixels, and the per-pixel model counts each quiet pixel of such a patch as independent evidence.
+``misfit="correlated"`` (:ref:`model-correlated`) counts the misfit beyond the quantisation once per ``m`` pixels,
+``m`` the pixels per independent misfit read from the residuals' autocovariance (:func:`misfit_extent`): the model
+variance becomes ``q + m (tau^2 - q)``, ``q = bin_width^2 / 12``, and where the misfit outweighs the noise the
+log-likelihood ratio is about ``m`` times smaller. ``misfit="regional"`` (:ref:`model-regional`) lets ``tau^2`` vary
+over the captured image (:mod:`~enmi_torch.scores.ecr_regional_misfit`): a changed part of the scene gets the misfit
+it shows instead of the image's average.
 
-``misfit="regional"`` lets ``tau^2`` vary over the captured image, read from the residuals around each pixel and
-shrunk toward the image's REML ``tau^2`` (:mod:`~enmi_torch.scores.ecr_regional_misfit`): a changed part of the scene
-gets the misfit it shows instead of the image's average.
-
-A sensor that saturates biases the estimate low: a clipped grey level varies far less than its noise variance says,
-and the estimate reads that as a pair without misfit. On other-date photographs with two fifths of the pixels
-clipped it gave the floor instead of 240 to 313; with a tenth to a third clipped, 275 to 470 instead of about 740
-(``docs/results/scores.md``). Where many pixels saturate, read the estimate as a lower bound; a fixed
-``model_variance`` of the misfit you expect avoids the bias.
+Saturated readings (``saturation``, :mod:`~enmi_torch.scores.censoring`) are censored in the estimate by default.
+Read as Gaussian values instead (``saturation=None``), clipped grey levels vary far less than their noise variance
+says and bias the estimate low: on other-date photographs with two fifths of the pixels clipped it gave the floor
+instead of 240 to 313 (``data_tools/notes/scene_change_remedies.md``).
 
 The shrunk response's ``delta^2`` (:mod:`~enmi_torch.scores.shrunk_response`) is estimated where its profile
 likelihood is largest, with the pair's ``tau^2`` (:func:`estimated_response_variance`).

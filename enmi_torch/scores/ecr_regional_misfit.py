@@ -1,23 +1,15 @@
 """ECR's regional misfit (``misfit="regional"``): a model variance ``tau^2(x)`` that varies over the captured image.
 
+Model (:ref:`model-regional`): around each pixel, a precision-weighted local estimate of the misfit's variance from
+the residuals ``r_n^2 - sigma_n^2`` over a box, shrunk toward the image's REML ``tau^2`` by empirical Bayes (as far as
+its sampling variance outweighs the spread of the local variances), at least ``bin_width^2 / 12``.
+
 One ``tau^2`` for the whole image lets the quiet pixels of a changed part of the scene (a new building, a shadow, a
-parked car) keep the trust of their low sensor noise: their misfit is far larger than the image's average. The
-regional misfit reads ``tau^2`` per pixel from the residuals ``r_n`` of the fitted response where the pair is aligned:
-
-* a local Fisher-scoring estimate around each pixel ``x``, over a box of ``(2 R_y + 1) x (2 R_x + 1)`` pixels
-  (``R = max(1, round(REGIONAL_REACH * side))`` on each axis, :data:`REGIONAL_REACH`):
-  ``t(x) = sum_box u_n (r_n^2 - sigma_n^2) / sum_box u_n`` with ``u_n = 1 / (sigma_n^2 + tau_n^2)^2``, the precision
-  of ``r_n^2 - sigma_n^2`` as an estimate of the misfit's variance, so noisy pixels count little; its sampling
-  variance is ``V(x) = 2 / sum_box u_n``;
-* shrunk toward the image's REML ``tau^2`` (empirical Bayes): ``tau^2(x) = tau^2 + A / (A + V(x)) (t(x) - tau^2)``,
-  ``A`` the spread of the true local variances about ``tau^2`` by moments (the mean of ``(t - tau^2)^2 - V`` over the
-  valid pixels, at least 0): a window with little evidence, or an image whose misfit is the same everywhere, keeps
-  the image's ``tau^2``;
-* at least the quantisation floor ``bin_width^2 / 12``; the response is refitted with the new weights and the map
-  re-read (:data:`REGIONAL_STEPS` rounds of iteratively reweighted fits), the prior mean staying the REML ``tau^2``.
-
-A pixel's weight is then ``1 / (sigma_n^2 + tau^2(x_n))``; the map is held fixed in the gradient, and a surface holds
-the map read at its first pass's peak at every placement, in the captured image's coordinates.
+parked car) keep the trust of their low sensor noise: their misfit is far larger than the image's average. The box
+reaches :data:`REGIONAL_REACH` of the image's side on each axis; the response is refitted with the map's weights and
+the map re-read :data:`REGIONAL_STEPS` times, the prior mean staying the REML ``tau^2``. A pixel's weight is then
+``1 / (sigma_n^2 + tau^2(x_n))``; the map is held fixed in the gradient, and a surface holds the map read at its first
+pass's peak at every placement, in the captured image's coordinates.
 """
 
 from __future__ import annotations

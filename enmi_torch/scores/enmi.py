@@ -1,10 +1,12 @@
 """ENMI, the enhanced (noise-aware) NMI of the paper: each captured pixel spreads its unit weight over the bins.
 
-A captured pixel ``v`` with noise variance ``sigma^2`` counts in captured bin ``i`` with the weight its Gaussian
-likelihood gives amplitudes in that bin (:func:`~enmi_torch.binning.likelihood_weights`), paired with the hard bin of
-the reference pixel under it; ENMI is the Studholme NMI (:func:`~enmi_torch.information.nmi_from_joint_histogram`)
-of that joint histogram. Over every placement (:func:`enmi_surface`) the joint histograms come from FFT correlations
-of the captured likelihood planes with the reference's bin planes
+Model (:ref:`model-enmi`): a captured pixel ``v`` with noise variance ``sigma^2`` (``N0 / A~`` for a road tile) counts
+in captured bin ``i`` with the weight its Gaussian likelihood gives amplitudes in that bin, paired with the hard bin of
+the reference pixel under it; ENMI is the Studholme NMI of that joint histogram.
+
+The weights are :func:`~enmi_torch.binning.likelihood_weights`, the NMI
+:func:`~enmi_torch.information.nmi_from_joint_histogram`. Over every placement (:func:`enmi_surface`) the joint
+histograms come from FFT correlations of the captured likelihood planes with the reference's bin planes
 (:func:`~enmi_torch.placement.information.information_surface`, shared with hard NMI).
 """
 

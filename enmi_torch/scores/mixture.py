@@ -1,26 +1,16 @@
 """The mixture-likelihood score: mutual information with each captured pixel's noise integrated out.
 
-Model: a captured pixel ``v_n`` is a true amplitude in some bin ``i``, seen through Gaussian noise of variance
-``sigma_n^2``; for an amplitude uniform in bin ``i`` the density of ``v_n`` is proportional to ``L_n(i)``, the mass
-``N(v_n, sigma_n^2)`` puts in bin ``i`` (:func:`~enmi_torch.binning.truncated_likelihood_weights`: tails outside the
-range dropped, rows normalised). The reference (map) pixel is hard-binned, ``j_n``. The soft joint histogram
+Model (:ref:`model-mixture`): ENMI's soft joint histogram gives two mixture models of the captured pixels, one given
+the reference bin and one without it; the score ``M`` is their log-likelihood ratio per valid pixel, in nats, and
+``em_steps`` fit both models' bin probabilities to the noisy pixels by expectation-maximisation.
 
-    ``J[i, j] = sum_n L_n(i) [j_n = j]``,  ``p(i | j) = J[i, j] / sum_i J[i, j]``,  ``p(i) = sum_j J[i, j] / n``
-
-gives two mixture models of the captured pixels, one given the reference bin, one without it, and the score is their
-log-likelihood ratio per valid pixel, in nats:
-
-    ``M = (1 / n) sum_n [log sum_i L_n(i) p(i | j_n) - log sum_i L_n(i) p(i)]``.
-
-A pixel whose likelihood is flat over the bins adds ``log(1 / K) - log(1 / K) = 0`` of its own instead of a full unit
-of histogram weight (its ``1 / K`` per bin still enters ``J``: the other pixels' ``p(i | j)`` and ``p(i)`` move by
-``O(1 / n)``), and as ``sigma -> 0`` (``L_n`` one-hot) ``M`` is the plug-in mutual information
-``H[A] + H[B] - H[A, B]`` of the hard joint histogram.
-
-``em_steps`` deconvolve the noise: each step replaces each model's bin probabilities by the mean responsibilities of
-its pixels, ``r_n(i) ∝ L_n(i) p(i | j_n)`` (so ``J[i, j] = sum_n r_n(i) [j_n = j]``) for the conditional model and
-``r_n(i) ∝ L_n(i) p(i)`` for the marginal one. Each step is an EM step of that model's likelihood, which never
-decreases; both models are fitted alike so that the ratio compares two fits of equal effort.
+A captured pixel is a true amplitude in some bin seen through Gaussian noise of variance ``sigma_n^2``; its
+likelihood of each bin is the mass ``N(v_n, sigma_n^2)`` puts there
+(:func:`~enmi_torch.binning.truncated_likelihood_weights`: tails outside the range dropped, rows normalised); the
+reference (map) pixel is hard-binned. A pixel whose likelihood is flat over the bins adds nothing of its own instead
+of a full unit of histogram weight, and as ``sigma -> 0`` ``M`` is the plug-in mutual information
+``H[A] + H[B] - H[A, B]`` of the hard joint histogram. Each EM step never decreases its model's likelihood; both
+models are fitted alike so that the ratio compares two fits of equal effort.
 
 Convention:
     Captured values are weighted over ``bins`` equal bins of ``value_range``, truncated to it (a value far above the

@@ -1,5 +1,8 @@
 """Normalised cross-correlation (Pearson) over the valid pixels: the classic score of a linear sensor response.
 
+Model (:ref:`model-ncc`): Pearson's correlation of the captured and reference values over the valid pixels, the
+score of a linear response with one noise level everywhere; ``ECR(response="linear")`` is its noise-aware form.
+
 :func:`ncc` of aligned pairs, :func:`ncc_surface` over every placement (six FFT correlations of masks, centred images
 and their squares: :func:`~enmi_torch.placement.planes.moment_blocks`), :func:`ncc_loss` (``1 - NCC``) and
 :class:`NCC`. It takes no variance and no bins.

@@ -1,5 +1,9 @@
 """Normalized mutual information (Studholme) with hard or Parzen bins: the measurement ENMI and ECR are compared to.
 
+Model (:ref:`model-nmi`): ``(H[A] + H[B]) / H[A, B]``, the entropies of the joint histogram of the captured image's
+bins (hard, or spread over the nearest bins by a Parzen window) and the reference's hard bins; 2 for images that
+determine each other, about 1 for independent ones.
+
 :func:`nmi` of aligned pairs, :func:`nmi_surface` over every placement (by FFT correlation of the captured bin-weight
 planes with the reference's bin planes: :func:`~enmi_torch.placement.information.information_surface`, shared with
 ENMI), :func:`nmi_loss` and :class:`NMI`. One default throughout: the captured image's ``kernel="triangular"`` Parzen

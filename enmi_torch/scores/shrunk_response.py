@@ -1,26 +1,14 @@
 """ECR's default response: one mean per reference bin, shrunk toward an increasing line by as much as the data allow.
 
+Model (:ref:`model-shrunk`): ``mu_j = a + b u_j + d_j``, ``d_j ~ N(0, delta^2)``, ``b >= 0``, ``u_j`` the bin's index;
+with the deviations integrated out, the log-likelihood ratio against one mean is a closed form in the per-bin sums
+``W_j``, ``S_j`` (:func:`shrunk_llr_terms`), and ``delta^2`` is taken where it is largest (:func:`shrunk_llr`).
+
 The binned response fits one free mean per reference bin (any function of the map, monotonic or not); the linear
-response fits ``a + b r``. With few pixels per bin and much noise the free means fit the noise (their evidence is
-spread over ``K - 1`` degrees of freedom), and a near-linear pair is scored far below what the line finds; where the
-map and the image are not monotonically related the line finds nothing. The shrunk response puts the bin means on a
-line plus a deviation per bin, and weighs how far the data let them leave it:
-
-    ``mu_j = a + b u_j + d_j``, ``d_j ~ N(0, delta^2)``, ``b >= 0``,
-
-``u_j`` the bin's index (its centre on a scale of bin widths). Given the per-bin sums of the weights ``W_j`` and
-weighted values ``S_j`` (:class:`~enmi_torch.scores.ecr.BinSums`), the weighted bin mean ``m_j = S_j / W_j`` has
-variance ``1 / W_j`` about ``mu_j``; integrating the deviations out, ``m_j ~ N(a + b u_j, 1 / W_j + delta^2)``, and
-the log-likelihood ratio against one mean for all pixels (``a`` and ``b`` fitted, the within-bin residuals common to
-both) is, with ``s_j = 1 / (1 + delta^2 W_j)``,
-
-    ``2 LLR = sum_j delta^2 s_j S_j^2 + (sum s S)^2 / sum s W - S^2 / W + C^2 / V - sum_j log(1 + delta^2 W_j)``
-
-``C`` and ``V`` the covariance and spread of the bin indices about their mean under the weights ``s_j W_j`` (``C^2 / V``
-only where ``C > 0``: an increasing line), ``S`` and ``W`` the sums over all bins. ``delta^2 = 0`` is the linear
-response on the bin centres; a large ``delta^2`` is the binned response less a log term per bin, the price of a free
-mean (an Occam factor where the binned response pays a flat ``1 / 2``). ECR is ``(LLR - 1 / 2) / n``, as the linear
-response's.
+response fits ``a + b r``. With few pixels per bin and much noise the free means fit the noise, and a near-linear pair
+scores far below what the line finds; where the map and the image are not monotonically related the line finds
+nothing. ``delta^2 = 0`` is the linear response on the bin centres; a large ``delta^2`` is the binned response less
+an Occam factor per bin. ECR is ``(LLR - 1 / 2) / n``, as the linear response's.
 
 ``delta^2`` is a property of the sensor and the scene, not of a placement, so it is estimated once where the images
 are aligned and held at every placement (as ECR's model variance ``tau^2``): an aligned pair takes the maximum of
