@@ -172,30 +172,46 @@ def _reml_model_variance(
     tau2 = (moment - (mask * noise).sum(1) / count.clamp_min(1)).clamp_min(floor)
     saturated = None if side is None else ((side != 0) & valid).nonzero(as_tuple=True)
     completed, extra, mean = values, 0.0, values - residual
-    history = []
-    for _ in range(_FISHER_STEPS if saturated is None else _EM_STEPS):
-        total = noise + tau2[:, None]
-        weight = mask / total
-        if saturated is not None:
-            expected, spread = truncated_moments(mean[saturated], total[saturated], values[saturated], side[saturated])
-            completed = values.index_put(saturated, expected)
-            extra = torch.zeros_like(values).index_put(saturated, spread)
-        residual, trace, _ = fit(completed, weight)
-        mean = completed - residual
-        squared = weight.square()
-        score = 0.5 * ((squared * (residual.square() + extra)).sum(1) - weight.sum(1) + trace)
-        information = 0.5 * squared.sum(1).clamp_min(torch.finfo(values.dtype).tiny)
-        updated = (tau2 + score / information).clamp_min(floor)
-        tolerance = _FISHER_TOLERANCE if saturated is None else _EM_TOLERANCE
-        settled = bool(((updated - tau2).abs() <= tolerance * updated).all())
-        tau2 = updated
-        if settled:
+    if saturated is None:
+        for _ in range(_FISHER_STEPS):
+            updated = _fisher_step(values, noise, mask, fit, tau2, floor, 0.0)[0]
+            settled = bool(((updated - tau2).abs() <= _FISHER_TOLERANCE * updated).all())
+            tau2 = updated
+            if settled:
+                break
+        return torch.where(count > fitted, tau2, floor), values
+    # Each row stops on its own (a batch gives each row what it gives alone), its completed values with it.
+    active, history, kept = torch.ones_like(tau2, dtype=torch.bool), [], values
+    for _ in range(_EM_STEPS):
+        expected, spread = truncated_moments(
+            mean[saturated], (noise + tau2[:, None])[saturated], values[saturated], side[saturated]
+        )
+        completed = values.index_put(saturated, expected)
+        extra = torch.zeros_like(values).index_put(saturated, spread)
+        updated, mean = _fisher_step(completed, noise, mask, fit, tau2, floor, extra)
+        moving = active & ((updated - tau2).abs() > _EM_TOLERANCE * updated)
+        tau2 = torch.where(active, updated, tau2)
+        kept = torch.where(active[:, None], completed, kept)
+        active = moving
+        if not bool(active.any()):
             break
-        if saturated is not None:
-            history.append(tau2)
-            if len(history) == 3:
-                tau2, history = _extrapolated(*history, floor), []
-    return torch.where(count > fitted, tau2, floor), completed
+        history.append(tau2)
+        if len(history) == 3:
+            tau2, history = torch.where(active, _extrapolated(*history, floor), tau2), []
+    return torch.where(count > fitted, tau2, floor), kept
+
+
+def _fisher_step(values, noise, mask, fit, tau2, floor: float, extra) -> tuple[Tensor, Tensor]:
+    """One Fisher scoring step of the restricted likelihood from ``tau2`` ``(S,)``, and the fitted means ``(S, N)``.
+
+    ``extra``: each reading's variance beyond what its value shows (a saturated reading's, given the fit), or 0.
+    """
+    weight = mask / (noise + tau2[:, None])
+    residual, trace, _ = fit(values, weight)
+    squared = weight.square()
+    score = 0.5 * ((squared * (residual.square() + extra)).sum(1) - weight.sum(1) + trace)
+    information = 0.5 * squared.sum(1).clamp_min(torch.finfo(values.dtype).tiny)
+    return (tau2 + score / information).clamp_min(floor), values - residual
 
 
 def _extrapolated(first: Tensor, second: Tensor, third: Tensor, floor: float) -> Tensor:

@@ -379,6 +379,6 @@ def test_model_variance_by_expectation_maximisation(response):
     shape = (1, 1, 1, values.size)
     inputs = [torch.tensor(part).view(shape) for part in (values, reference, variance)]
     got = ecr_model_variance(*inputs, bins=BINS, response=response, saturation=LEVELS).item()
-    assert got == pytest.approx(tau2, rel=1e-8)
+    assert got == pytest.approx(tau2, rel=1e-5)  # the library's EM stops when tau^2 moves by a millionth
     gaussian = ecr_model_variance(*inputs, bins=BINS, response=response, saturation=None).item()
     assert gaussian < 0.9 * got  # read as Gaussian values, the clipped readings bias the estimate low
