@@ -139,7 +139,7 @@ def test_cheap_bins_are_checked_under_their_own_name():
             SearchStrategy("two_stage", cheap_bins=cheap_bins)
     with pytest.raises(ValueError, match=r"cheap_bins must be at most bins \(16\), got 32"):
         Localizer(score=ECR(bins=16), search=SearchStrategy("two_stage", cheap_bins=32))
-    with pytest.raises(TypeError, match=r"Localizer.__init__\(\) takes cheap_bins in search=SearchStrategy"):
+    with pytest.raises(TypeError, match=r"Localizer\(\) takes cheap_bins in search=SearchStrategy"):
         Localizer(score=ECR(bins=16), search="two_stage", cheap_bins=8)
 
 
