@@ -95,8 +95,10 @@ def check_checkpoint(path: str, model: torch.nn.Module | None = None) -> None:
     With ``model``, refuse one whose tensors do not have the model's shapes either (a 16x16 run's checkpoint resumed on
     32x32 data), naming the sizes, instead of ``load_state_dict``'s traceback.
     """
+    if Path(path).is_dir():
+        raise ValueError(f"--ckpt_path must be a checkpoint file, got the folder {path!r}")
     if not Path(path).is_file():
-        raise FileNotFoundError(f"ckpt_path must be a checkpoint file, got {path!r}")
+        raise FileNotFoundError(f"--ckpt_path must be a checkpoint file, got {path!r} (no such file)")
     try:
         checkpoint = load_plain_torch(path, "a plain checkpoint")
     except ValueError as error:

@@ -43,7 +43,7 @@ from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.utils.checks import check_option
 from enmi_torch.utils.files import read_npy
-from enmi_torch.utils.options import signature_defaults
+from enmi_torch.utils.options import OptionError, signature_defaults
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
 from enmi_torch.variance.learned import FORMS
 
@@ -224,8 +224,11 @@ class MaskFitModule(LightningModule):
         elif truth is not None:
             analytic = truth.variance
         else:
-            raise ValueError(
-                "form='perspective' needs analytic_variance (an .npy analytic map) when the data has no known field"
+            raise OptionError(
+                lambda spell: (
+                    f"{spell('form', 'perspective')} needs an analytic variance map when the data has no "
+                    f"known field: pass {spell('analytic_variance', 'MAP.npy')}"
+                )
             )
         if tuple(analytic.shape) != self.shape:
             raise ValueError(f"analytic_variance must be an {self.shape} map, got shape {tuple(analytic.shape)}")
