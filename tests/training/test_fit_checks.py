@@ -188,6 +188,7 @@ def test_the_model_refuses_its_options_when_it_is_made(tmp_path):
         "localization_shift=2 or less, or localization_pairs=0 (no held-out search)"
     )
     assert MaskFitModule(shape=(6, 40), localization_shift=2).hparams.localization_shift == 2  # 2 pixels left
+    assert MaskFitModule(shape=(5, 40), localization_shift=2).shape == (5, 40)  # 1 pixel left: the least it takes
     assert MaskFitModule(shape=(6, 40), localization_shift=3, localization_pairs=0).shape == (6, 40)
     with pytest.raises(OptionConflict, match=r"analytic_variance='m\.npy' has no effect with form='radial'"):
         MaskFitModule(form="radial", analytic_variance="m.npy")
