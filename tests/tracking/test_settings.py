@@ -110,3 +110,17 @@ def test_a_keyword_that_moved_to_the_settings_is_refused_naming_them_by_tracker_
     settings = TrackerSettings(motion_noise=(1.0, 1.0, 0.5), z_drop=0.5)
     _, output, _ = track_step(belief, *frame, settings=settings)
     assert output.pose.round().tolist() == [[24.0, 24.0, 0.0]]
+
+
+def test_checked_settings_cannot_be_changed_past_their_checks():
+    import dataclasses
+
+    from enmi_torch.localization import SearchStrategy
+
+    settings, search = TrackerSettings(), SearchStrategy()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.z_drop = 1.5
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        search.cheap_bins = 8
+    with pytest.raises(ValueError, match="z_drop must be a fraction"):  # a changed copy is checked again
+        dataclasses.replace(settings, z_drop=1.5)

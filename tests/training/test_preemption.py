@@ -263,3 +263,22 @@ def test_lightnings_own_sigterm_stop_after_an_earlier_checkpoint_writes_the_curr
         f"enmi-fit-mask: stopped by SIGTERM at epoch 1, step 5; checkpoint {tmp_path / 'last.ckpt'}; resume with: "
         f"enmi-fit-mask --data.size 16 --ckpt_path {tmp_path / 'last.ckpt'}"
     )
+
+
+def test_without_a_checkpoint_callback_the_checkpoint_goes_to_the_run_folders_checkpoints(tmp_path):
+    datamodule = PairDataModule(train_pairs=32, val_pairs=8, size=16, batch_size=16)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_epochs=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=100,
+        default_root_dir=tmp_path,
+        callbacks=[Preemption()],
+    )
+    trainer.fit(MaskFitModule(shape=datamodule.shape), datamodule=datamodule, weights_only=True)
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 2
