@@ -220,7 +220,8 @@ def run_mutant(root: Path, mutant: tuple[str, int, str, str], timeout: float) ->
         shutil.copytree(root / "enmi_torch", copy / "enmi_torch")
         shutil.copytree(root / "tests", copy / "tests")
         shutil.copy(root / "pyproject.toml", copy / "pyproject.toml")
-        for folder_name in ("configs", "data_tools"):  # tests/data_tools imports the data_tools package
+        # tests/data_tools imports the data_tools package; the fit's tests run train/fit_mask.py
+        for folder_name in ("configs", "data_tools", "train"):
             if (root / folder_name).is_dir():
                 shutil.copytree(root / folder_name, copy / folder_name)
         path = module_file(copy, module)

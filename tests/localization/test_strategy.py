@@ -68,3 +68,13 @@ def test_localize_and_localizer_refuse_the_score_keywords_of_0_1_naming_the_scor
         localize(captured, reference, 4.0, shifts=2, coarse_peaks=2)
     found = localize(captured, reference, 4.0, shifts=2, score=ENMI(bins=16, kernel="density"))
     assert found.pose[0].round().tolist() == [0.0, 0.0, 0.0]
+
+
+def test_a_checked_strategy_cannot_be_changed_past_its_checks():
+    import dataclasses
+
+    search = SearchStrategy()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        search.cheap_bins = 8
+    with pytest.raises(ValueError, match="cheap_bins=8 has no effect"):  # a changed copy is checked again
+        dataclasses.replace(search, cheap_bins=8)
