@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from enmi_torch.data.pairs import write_pairs
-from enmi_torch.training.fit_checks import LOCK_FILE, MASK_RULES, claim_output_dir
+from enmi_torch.training.fit_checks import LOCK_FILE, MASK_RULES, check_learnable, claim_output_dir
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.utils.options import OptionConflict, OptionError
 
@@ -180,6 +180,8 @@ def test_the_model_refuses_its_options_when_it_is_made(tmp_path):
     """The library's own spelling of the same checks (the command re-spells each option as its flag)."""
     with pytest.raises(ValueError, match=r"^lr must be a finite number > 0, got 0$"):
         MaskFitModule(lr=0)
+    with pytest.raises(ValueError, match=r"^smoothness must be a finite number >= 0, got inf$"):
+        MaskFitModule(smoothness=float("inf"))
     with pytest.raises(OptionError) as refusal:
         MaskFitModule(shape=(6, 40), localization_shift=3)
     assert str(refusal.value) == (
@@ -260,3 +262,23 @@ def test_two_runs_started_at_once_with_one_output_dir_never_share_it(tmp_path):
     assert summary["files"]["npy"] == str(output / "variance_mask.npy")
     assert sorted(path.name for path in (tmp_path / "runs" / "fit_mask").iterdir()) == ["lidar_0"]  # one run folder
     assert str(output) in winner_out and not (output / LOCK_FILE).exists()
+
+
+def test_a_pixel_valid_in_two_training_pairs_is_enough_to_learn_from():
+    import types
+
+    import torch
+
+    def data(*masks, held_out=1):
+        pairs = [{"valid": torch.tensor(mask)} for mask in masks]
+        return types.SimpleNamespace(train_set=pairs, val_set=[None] * held_out)
+
+    folder = {"root": "pairs", "val_fraction": 0.05}
+    check_learnable(data([True, False], [True, False]), folder)  # the first pixel, in both
+    check_learnable(data([False, True], [True, False], [False, True]), {"root": None})
+    with pytest.raises(ValueError, match=r"1 to train on: no pixel is valid in two .*; give it more pairs$"):
+        check_learnable(data([True, True]), folder)
+    with pytest.raises(ValueError, match=r"and 2 to train on: .*; their valid/ masks must overlap$"):
+        check_learnable(data([True, False], [False, True]), folder)
+    with pytest.raises(ValueError, match=r"^--data.train_pairs 3: no pixel .*; pass --data.train_pairs 2 or more$"):
+        check_learnable(data([True, False], [False, True], [False, False]), {"root": None})
