@@ -50,7 +50,7 @@ def check_ecr_options(options: Mapping[str, Any], defaults: Mapping[str, Any]) -
         ...
         enmi_torch.utils.options.OptionConflict: response_variance=3.0 has no effect with response='linear': ...
     """
-    checked = {name: options[name] for name in ("bins", "value_range", *_OTHERS) if name in options}
+    checked = dict(options)  # the rows may name any of them (a new option: one more row, and its check here)
     if "bins" in checked:
         checked["bins"] = check_bins(checked["bins"])
     if "value_range" in checked:
@@ -66,8 +66,6 @@ def check_ecr_options(options: Mapping[str, Any], defaults: Mapping[str, Any]) -
     check_option_rules(ECR_RULES, checked, defaults)
     return checked
 
-
-_OTHERS = ("model_variance", "response", "misfit", "response_variance")
 
 # The decorator of the functions that take ECR's options.
 ecr_options_checked = options_checked(check_ecr_options)
