@@ -30,6 +30,14 @@ LOCALIZATION_TESTS = [
     "tests/localization/test_search.py",
     "tests/localization/test_peak.py",
     "tests/localization/test_candidates.py",
+    "tests/localization/test_strategy.py",
+]
+# The option tables (which options apply under which others) and their users.
+OPTION_TESTS = [
+    "tests/utils/test_options.py",
+    "tests/scores/test_ecr_options.py",
+    "tests/localization/test_strategy.py",
+    "tests/tracking/test_settings.py",
 ]
 TRACKING_TESTS = [
     "tests/tracking/test_belief.py",
@@ -96,6 +104,10 @@ MODULES = {
     "tracking/settings": TRACKING_TESTS,
     "tracking/belief": TRACKING_TESTS,
     "utils/checks": ["tests/utils/test_checks.py", "tests/registration/test_register.py", "tests/utils/test_budget.py"],
+    "utils/options": OPTION_TESTS,
+    "scores/ecr_options": ["tests/scores/test_ecr_options.py", "tests/scores/test_ecr.py"],
+    "training/fit_checks": ["tests/training/test_fit_checks.py"],
+    "training/preemption": ["tests/training/test_preemption.py"],
 }
 
 # Where a module's code lived in older checkouts, newest first, for --root: before the scores package (337d306 and
@@ -208,7 +220,8 @@ def run_mutant(root: Path, mutant: tuple[str, int, str, str], timeout: float) ->
         shutil.copytree(root / "enmi_torch", copy / "enmi_torch")
         shutil.copytree(root / "tests", copy / "tests")
         shutil.copy(root / "pyproject.toml", copy / "pyproject.toml")
-        for folder_name in ("configs", "data_tools"):  # tests/data_tools imports the data_tools package
+        # tests/data_tools imports the data_tools package; the fit's tests run train/fit_mask.py
+        for folder_name in ("configs", "data_tools", "train"):
             if (root / folder_name).is_dir():
                 shutil.copytree(root / folder_name, copy / folder_name)
         path = module_file(copy, module)

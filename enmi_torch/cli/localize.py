@@ -18,7 +18,8 @@ from enmi_torch.localization.peak import Localization
 from enmi_torch.localization.search import RESAMPLING, localize
 from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.scores import Score, as_score, score_names
-from enmi_torch.utils.command import ArgumentParser, run_command
+from enmi_torch.utils.command import ArgumentParser, run_command, with_flag_names
+from enmi_torch.utils.options import OptionConflict
 
 
 def _read_array(path: str, name: str):
@@ -143,7 +144,11 @@ _OPTION_NAMES = {
 
 
 def _score(args: argparse.Namespace) -> Score:
-    """The score of ``--score`` with ``--bins``, ``--value-range`` (where it has them) and every ``--score-option``."""
+    """The score of ``--score`` with ``--bins``, ``--value-range`` (where it has them) and every ``--score-option``.
+
+    Built by the score's constructor, which decides which options it takes and which combinations mean something;
+    its refusal comes back with the options spelt as this command takes them (:func:`_spell_score_option`).
+    """
     family = type(as_score(args.score))
     names = family.option_names()
     flags = {"bins": args.bins, "value_range": tuple(args.value_range)}
@@ -159,7 +164,26 @@ def _score(args: argparse.Namespace) -> Score:
             options[key] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
             options[key] = value
-    return family(**options)
+    try:
+        return family(**options)
+    except OptionConflict as conflict:
+        raise ValueError(conflict.spelled(_spell_score_option)) from None
+    except (ValueError, TypeError) as error:
+        flags = {name: _SCORE_FLAGS.get(name, f"--score-option {name}") for name in names}
+        message = with_flag_names(str(error), flags)
+        if message == str(error):
+            raise
+        raise type(error)(message) from None
+
+
+_SCORE_FLAGS = {"bins": "--bins", "value_range": "--value-range"}  # the score options with flags of their own
+
+
+def _spell_score_option(name: str, value: object) -> str:
+    """A score option as this command takes it: ``--bins 8``, ``--value-range 0.0 1.0``, ``--score-option k=v``."""
+    if name == "value_range":
+        return f"--value-range {value[0]} {value[1]}"
+    return f"--bins {value}" if name == "bins" else f"--score-option {name}={value}"
 
 
 def _check_finite_file(name: str, values: Tensor, valid: Tensor | None) -> None:
@@ -179,6 +203,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 def _command(argv: Sequence[str]) -> dict:
     """The command with these arguments; returns the printed result as a dict."""
     args = _parser().parse_args(argv)
+    score = _score(args)  # its options refused before any file is read
     if args.output is not None:
         _check_output(args.output)
     dtype = getattr(torch, args.dtype)
@@ -213,7 +238,7 @@ def _command(argv: Sequence[str]) -> dict:
             shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
             center=None if args.center is None else tuple(args.center),
             yaws=args.yaws,
-            score=_score(args),
+            score=score,
             min_overlap=args.min_overlap,
             exclusion_radius=args.exclusion_radius,
             search=SearchStrategy(coarse_factor=args.coarse_factor),

@@ -6,16 +6,33 @@ default options); :mod:`~enmi_torch.localization.surfaces` carries it out.
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
+from enmi_torch.scores import as_score, score_names
 from enmi_torch.utils.checks import check_bins, check_non_negative_int, check_option, check_positive_int
+from enmi_torch.utils.options import (
+    MovedKeywords,
+    OptionRule,
+    check_option_rules,
+    refuse_moved_keywords,
+    signature_defaults,
+)
 
 SEARCHES = ("exhaustive", "two_stage")
 # Keyword arguments of localize and Localizer that are fields of SearchStrategy.
 MOVED_OPTIONS = ("coarse_factor", "coarse_peaks", "cheap_bins")
+# Which fields take effect under which values of the others (one more row for a new field that depends on another).
+SEARCH_RULES = (
+    OptionRule("cheap_bins", "method", ("two_stage",), "the bins of the two-stage search's first stage"),
+    OptionRule(
+        "coarse_peaks",
+        "coarse_factor",
+        lambda factor: factor > 1,
+        "the number of coarse candidates a coarse-to-fine search refines",
+        "coarse_factor > 1 (a coarse-to-fine search)",
+    ),
+)
 
 
 @dataclass(frozen=True)
@@ -40,8 +57,9 @@ class SearchStrategy:
             every shift within ``f`` cells of each at full resolution (at its yaw and the two next ones): for windows
             much larger than the captured image. Each of these surfaces reads ECR's estimated model variance in its
             own window.
-        coarse_peaks: coarse candidates refined when ``coarse_factor > 1``.
-        cheap_bins: bins of the first stage of the two-stage search, ``2 <= cheap_bins <= bins`` of the score.
+        coarse_peaks: coarse candidates refined when ``coarse_factor > 1`` (refused with ``coarse_factor=1``).
+        cheap_bins: bins of the first stage of the two-stage search, ``2 <= cheap_bins <= bins`` of the score
+            (refused with the exhaustive search). Which fields need which is :data:`SEARCH_RULES`.
         finalists: how many of the surface's best local maxima (over shifts and yaws) are rescored exactly, each with
             its own fit (:meth:`~enmi_torch.scores.Score.finalists`), when the score's surface holds a model fitted
             once (not :attr:`~enmi_torch.scores.Score.surface_is_exact`: ECR's default); the pose is the best of
@@ -69,6 +87,8 @@ class SearchStrategy:
         check_non_negative_int("finalists", self.finalists)
         if self.method == "two_stage" and self.coarse_factor != 1:
             raise ValueError(f"search='two_stage' needs coarse_factor=1, got coarse_factor={self.coarse_factor!r}")
+        options = {field.name: getattr(self, field.name) for field in fields(self)}
+        check_option_rules(SEARCH_RULES, options, signature_defaults(SearchStrategy))
 
 
 def as_search_strategy(search: SearchStrategy | str) -> SearchStrategy:
@@ -78,18 +98,21 @@ def as_search_strategy(search: SearchStrategy | str) -> SearchStrategy:
     return SearchStrategy(method=search)
 
 
-def refuse_moved_search_options(function: Callable) -> Callable:
-    """``function`` that refuses the keyword arguments now in :class:`SearchStrategy` by a ``TypeError`` naming it."""
+def _score_family(given: dict[str, Any]) -> tuple[str, tuple[str, ...]]:
+    """The family a former ``metric=`` names (ECR without one); ``metric`` is not one of its options."""
+    metric = given.get("metric")
+    family = type(as_score(metric)).__name__ if isinstance(metric, str) and metric in score_names() else "ECR"
+    return family, ("metric",)
 
-    @functools.wraps(function)
-    def checked(*args: Any, **kwargs: Any) -> Any:
-        moved = [name for name in MOVED_OPTIONS if name in kwargs]
-        if moved:
-            fields = ", ".join(f"{name}={kwargs[name]!r}" for name in moved)
-            raise TypeError(
-                f"{function.__qualname__}() takes {', '.join(moved)} in search=SearchStrategy(...): pass "
-                f"search=SearchStrategy(..., {fields}) (enmi_torch.localization.SearchStrategy)"
-            )
-        return function(*args, **kwargs)
 
-    return checked
+# Keywords that localize, Localizer, Tracker and track_step took before 0.2, and where they live now.
+MOVED_TO_SEARCH = MovedKeywords(MOVED_OPTIONS, "search", "SearchStrategy", "enmi_torch.localization.SearchStrategy")
+MOVED_TO_SCORE = MovedKeywords(
+    ("metric", "bins", "value_range", "kernel", "log_prior", "model_variance", "response", "reliability", "em_steps"),
+    "score",
+    "ECR",
+    "a score of enmi_torch: ECR, ENMI, NMI, NCC or Mixture",
+    _score_family,
+)
+# localize and Localizer refuse them by a TypeError naming their new home.
+refuse_moved_search_options = refuse_moved_keywords(MOVED_TO_SEARCH, MOVED_TO_SCORE)

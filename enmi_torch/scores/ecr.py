@@ -45,6 +45,7 @@ from enmi_torch.scores.ecr_model_variance import (
     default_model_variance,
     misfit_extent,
 )
+from enmi_torch.scores.ecr_options import RESPONSES, check_ecr_options, ecr_options_checked
 from enmi_torch.scores.ecr_placements import (
     cheap_value_range,
     check_surface_inputs,
@@ -55,16 +56,15 @@ from enmi_torch.scores.ecr_placements import (
     scores_with_surface_variances,
     surface_variances,
 )
-from enmi_torch.scores.ecr_statistics import RESPONSES, BinSums, bin_sums, ecr_from_bin_sums, linear_ecr
+from enmi_torch.scores.ecr_statistics import BinSums, bin_sums, ecr_from_bin_sums, linear_ecr
 from enmi_torch.utils.checks import (
-    check_bins,
     check_floating,
     check_option,
     check_resolved_by_bins,
-    check_value_range,
     check_variance_given,
     fitted_to,
 )
+from enmi_torch.utils.options import signature_defaults
 
 __all__ = [
     "ECR",
@@ -110,6 +110,7 @@ def _aligned_inputs(
     return inputs, tau2, image_shape, side
 
 
+@ecr_options_checked
 def ecr(
     captured: Tensor,
     reference: Tensor,
@@ -148,11 +149,11 @@ def ecr(
             independent misfit, :func:`~enmi_torch.scores.ecr_model_variance.misfit_extent` of the residuals: see
             :mod:`~enmi_torch.scores.ecr_model_variance`; captured must be images) or ``"regional"`` (a ``tau^2(x)``
             per captured pixel, read from the residuals around it: :mod:`~enmi_torch.scores.ecr_regional_misfit`).
-            A fixed ``model_variance`` is used as it is.
+            With a fixed ``model_variance`` (used as it is) any other than ``"independent"`` is refused.
         response_variance: the shrunk response's ``delta^2``, how far the bin means may leave the line:
             ``"estimate"`` (the default: each pair its own, where its profile likelihood is largest, held fixed in
             the gradient; see :mod:`~enmi_torch.scores.shrunk_response`) or a number >= 0 (``0``: the line on the
-            bin centres). The other responses do not use it.
+            bin centres). A number with another response is refused (:data:`~enmi_torch.scores.ecr_options.ECR_RULES`).
         saturation: which readings are saturated, scored as censored (a reading at a limit says only "this far or
             beyond": :mod:`~enmi_torch.scores.censoring`, :mod:`~enmi_torch.scores.ecr_censored`): ``"value_range"``
             (the default: readings at an end of ``value_range``, unless the image reads beyond that end), the sensor's
@@ -233,6 +234,7 @@ def _censored_response_variance(inputs, tau2, side: Tensor) -> Tensor:
     return delta2.view(shape[:-1])
 
 
+@ecr_options_checked
 def ecr_model_variance(
     captured: Tensor,
     reference: Tensor,
@@ -271,6 +273,7 @@ def ecr_model_variance(
     return tau2 if inputs.with_candidates else tau2[0]
 
 
+@ecr_options_checked
 def ecr_surface(
     captured: Tensor,
     reference: Tensor,
@@ -354,6 +357,7 @@ def ecr_surface(
         return ecr_surface_from_inputs(inputs, model_variance, bins, value_range, response_variance=delta2)
 
 
+@ecr_options_checked
 def ecr_surface_model_variance(
     captured: Tensor,
     reference: Tensor,
@@ -438,9 +442,12 @@ class ECR(Score):
         misfit: ``"independent"`` (the default), ``"correlated"`` (an estimated ``tau^2``'s excess over the
             quantisation floor times the pixels per independent misfit,
             :func:`~enmi_torch.scores.ecr_model_variance.misfit_extent`) or ``"regional"`` (a ``tau^2(x)`` per
-            captured pixel, :mod:`~enmi_torch.scores.ecr_regional_misfit`); see :func:`ecr`.
+            captured pixel, :mod:`~enmi_torch.scores.ecr_regional_misfit`); see :func:`ecr`. Only with
+            ``model_variance="estimate"``: with a fixed one it is refused
+            (:data:`~enmi_torch.scores.ecr_options.ECR_RULES` says which options need which).
         response_variance: the shrunk response's ``delta^2``: ``"estimate"`` (the default: per aligned pair; per
-            captured image for a surface, at the first pass's best placement) or a number >= 0 (see :func:`ecr`).
+            captured image for a surface, at the first pass's best placement) or a number >= 0 (see :func:`ecr`);
+            a number with another response is refused.
         saturation: the readings scored as censored: ``"value_range"`` (the default: at an end of the range the
             image does not read beyond), the sensor's ``(low, high)`` levels, or ``None`` (see :func:`ecr`).
 
@@ -468,23 +475,9 @@ class ECR(Score):
         response_variance: float | str = "estimate",
         saturation: str | tuple[float | None, float | None] | None = "value_range",
     ) -> None:
-        bins = check_bins(bins)
-        value_range = check_value_range(value_range)
-        if model_variance is not None:
-            model_variance = check_model_variance(model_variance, bins, value_range)
-        check_option("response", response, RESPONSES)
-        check_option("misfit", misfit, MISFITS)
-        response_variance = check_response_variance(response_variance)
-        saturation = check_saturation(saturation)
-        super().__init__(
-            bins=bins,
-            value_range=value_range,
-            model_variance=model_variance,
-            response=response,
-            misfit=misfit,
-            response_variance=response_variance,
-            saturation=saturation,
-        )
+        options = {"bins": bins, "value_range": value_range, "model_variance": model_variance, "response": response}
+        options.update(misfit=misfit, response_variance=response_variance, saturation=saturation)
+        super().__init__(**check_ecr_options(options, signature_defaults(ECR.__init__)))  # ECR_RULES among them
 
     def _value(self, captured, reference, variance, valid_mask) -> Tensor:
         return ecr(captured, reference, variance, valid_mask=valid_mask, **self._options)
@@ -596,7 +589,8 @@ class ECR(Score):
             window_mask = torch.ones_like(window, dtype=torch.bool)
         flat, flat_valid = window.reshape(1, -1), window_mask.reshape(1, -1)
         check_resolved_by_bins("reference", flat, flat_valid, self.bins, self.value_range)
-        return self.replace(bins=bins, value_range=cheap_value_range(window, window_mask), model_variance=None)
+        value_range = cheap_value_range(window, window_mask)  # its fixed tau^2 has no misfit to shape
+        return self.replace(bins=bins, value_range=value_range, model_variance=None, misfit="independent")
 
     def rough_surface(
         self,

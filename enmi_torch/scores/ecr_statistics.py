@@ -16,9 +16,11 @@ import torch
 from torch import Tensor
 
 from enmi_torch.binning import hard_bin_index
-from enmi_torch.scores.ecr_model_variance import RESPONSE_VARIANCE_ESTIMATE, check_response_variance
+from enmi_torch.scores.ecr_model_variance import RESPONSE_VARIANCE_ESTIMATE
+from enmi_torch.scores.ecr_options import RESPONSES, check_ecr_options
 from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr, shrunk_llr_terms
 from enmi_torch.utils.checks import check_option
+from enmi_torch.utils.options import signature_defaults
 
 
 class BinSums(NamedTuple):
@@ -33,9 +35,6 @@ class BinSums(NamedTuple):
     count: Tensor
     weight: Tensor
     weighted_value: Tensor
-
-
-RESPONSES = ("shrunk", "binned", "linear")
 
 
 def linear_llr(
@@ -127,7 +126,7 @@ def ecr_from_bin_sums(
     range (the scale of the shrunk response's ``delta^2`` grid; the binned response does not use it);
     ``response_variance``: the shrunk response's ``delta^2``, ``"estimate"`` (each set of sums its own, where its
     profile is largest, held fixed in the gradient; the pixels taken as independent) or a number (or a tensor
-    broadcastable to ``(...)``).
+    broadcastable to ``(...)``), refused with the binned response (:data:`~enmi_torch.scores.ecr_options.ECR_RULES`).
 
     Example:
         >>> sums = BinSums(torch.tensor([[2.0, 2.0]]), torch.tensor([[2.0, 2.0]]), torch.tensor([[-4.0, 4.0]]))
@@ -137,8 +136,8 @@ def ecr_from_bin_sums(
         tensor([1.8750])
     """
     check_option("response", response, RESPONSES[:2])
-    if not isinstance(response_variance, Tensor):
-        response_variance = check_response_variance(response_variance)
+    options = {"response": response, "response_variance": response_variance}
+    response_variance = check_ecr_options(options, signature_defaults(ecr_from_bin_sums))["response_variance"]
     positions = bin_positions(sums.weight.shape[-1], sums.weight.dtype, sums.weight.device)
     shrunk = None if response == "binned" else (positions, value_range, response_variance)
     return ecr_from_sums(sums.count, sums.weight, sums.weighted_value, -1, shrunk=shrunk)

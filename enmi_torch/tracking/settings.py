@@ -10,10 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from torch import Tensor
 
+from enmi_torch.localization.strategy import MOVED_TO_SCORE
 from enmi_torch.tracking.belief import check_mismatch_probability
 from enmi_torch.utils.checks import (
     check_bool,
@@ -22,6 +23,7 @@ from enmi_torch.utils.checks import (
     check_positive_int,
     check_positive_number,
 )
+from enmi_torch.utils.options import MovedKeywords, refuse_moved_keywords
 
 COASTING = ("linear", "random_walk")
 WEAK_UPDATES = ("nudge", "skip")
@@ -53,8 +55,8 @@ class TrackerSettings:
         min_peak_z: a surface whose best score's robust z-score is below this is no match.
         max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
             is no match (the prediction rules it out).
-        z_drop: a peak z-score below this fraction of the recent matches' (:class:`~enmi_torch.tracking.Health`) is
-            no match.
+        z_drop: a peak z-score below this fraction (``0 < z_drop <= 1``) of the recent matches'
+            (:class:`~enmi_torch.tracking.Health`) is no match.
         patience: relocalize after this many consecutive frames without a match.
         relocalize_shifts: radius in cells of the relocalization search.
         relocalize_yaw_bins: yaw bins (of the belief's spacing) of the relocalization search.
@@ -104,7 +106,7 @@ class TrackerSettings:
             "temperature": check_temperature(self.temperature),
             "min_peak_z": check_positive_number("min_peak_z", self.min_peak_z),
             "max_surprise": check_positive_number("max_surprise", self.max_surprise),
-            "z_drop": check_positive_number("z_drop", self.z_drop),
+            "z_drop": check_z_drop(self.z_drop),
             "patience": check_positive_int("patience", self.patience),
             "relocalize_shifts": check_non_negative_int("relocalize_shifts", self.relocalize_shifts),
             "relocalize_yaw_bins": check_positive_int("relocalize_yaw_bins", self.relocalize_yaw_bins),
@@ -124,6 +126,17 @@ class TrackerSettings:
             10.0
         """
         return dataclasses.replace(self, **changes)
+
+
+def check_z_drop(z_drop: object) -> float:
+    """``z_drop`` as a float in ``(0, 1]`` (a fraction of the recent matches' peak z-score), else a ValueError."""
+    value = check_positive_number("z_drop", z_drop)
+    if value > 1:
+        raise ValueError(
+            f"z_drop must be a fraction in (0, 1] of the recent matches' peak z-score, got {z_drop!r}: a larger one "
+            "would call a peak as clear as the recent ones no match"
+        )
+    return value
 
 
 def check_temperature(temperature: object) -> float | str:
@@ -152,3 +165,10 @@ def check_motion_noise(noise: object) -> tuple[float, ...] | tuple[tuple[float, 
             raise ValueError(f"{expected}, got {noise!r}")
     floats = tuple(tuple(float(value) for value in row) for row in rows)
     return floats if rows is values else floats[0]
+
+
+# The keywords Tracker and track_step took before 0.2: the settings' fields (all of them) and the score's options.
+MOVED_TO_SETTINGS = MovedKeywords(
+    tuple(field.name for field in fields(TrackerSettings)), "settings", "TrackerSettings", "enmi_torch.TrackerSettings"
+)
+refuse_moved_tracker_keywords = refuse_moved_keywords(MOVED_TO_SETTINGS, MOVED_TO_SCORE)

@@ -46,7 +46,7 @@ from enmi_torch.tracking.belief import (
 )
 from enmi_torch.tracking.health import Health, check_health, clearness, next_health, prediction_surprise
 from enmi_torch.tracking.search import FrameSearch
-from enmi_torch.tracking.settings import COASTING, TrackerSettings
+from enmi_torch.tracking.settings import COASTING, TrackerSettings, refuse_moved_tracker_keywords
 from enmi_torch.utils.checks import check_floating, check_mask_of, check_option, check_real_data, check_same_device
 from enmi_torch.variance.base import VarianceModel
 
@@ -81,6 +81,7 @@ class TrackOutput(NamedTuple):
     refined: Tensor
 
 
+@refuse_moved_tracker_keywords
 def track_step(
     belief: Belief,
     captured: Tensor,

@@ -13,7 +13,7 @@ from enmi_torch.scores import Score, as_score
 from enmi_torch.tracking.belief import Belief, check_belief_memory, initial_belief
 from enmi_torch.tracking.calibration import Calibration, checked_calibration
 from enmi_torch.tracking.health import Health
-from enmi_torch.tracking.settings import TrackerSettings
+from enmi_torch.tracking.settings import TrackerSettings, refuse_moved_tracker_keywords
 from enmi_torch.tracking.step import TrackOutput, check_reference_map, check_settings, default_score, track_step
 from enmi_torch.utils.checks import check_floating, check_positive_int, check_shifts
 from enmi_torch.variance.base import VarianceModel, call_variance
@@ -67,6 +67,7 @@ class Tracker(nn.Module):
         ([[46.0, 30.0, 0.0]], True)
     """
 
+    @refuse_moved_tracker_keywords
     def __init__(
         self,
         reference: Tensor,

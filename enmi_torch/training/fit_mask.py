@@ -26,12 +26,27 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from enmi_torch.data import PairDataModule
-from enmi_torch.training.fit_checks import check_checkpoint, check_output_dir, check_pairs
+from enmi_torch.training.fit_checks import (
+    OutputClaim,
+    check_checkpoint,
+    check_learnable,
+    check_pairs,
+    claim_output_dir,
+)
 from enmi_torch.training.fit_outputs import MaskWriter, print_summary, write_outputs
 from enmi_torch.training.logger import next_version, run_name
 from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.training.preemption import EXIT_CODES, Preempted, Preemption
-from enmi_torch.utils.command import HelpFormatter, dashed_aliases, parser_error, plain_text, with_flag_names
+from enmi_torch.utils.command import (
+    HelpFormatter,
+    check_text_files,
+    dashed_aliases,
+    parser_error,
+    plain_text,
+    with_flag_names,
+)
+from enmi_torch.utils.files import check_folder_to_write
+from enmi_torch.utils.options import OptionError
 from enmi_torch.utils.resources import config_file
 
 PROG = "enmi-fit-mask"
@@ -175,6 +190,8 @@ class FitMaskCLI(LightningCLI):
         root_dir = self.config["trainer"].get("default_root_dir")
         if root_dir is not None and init_args.get("save_dir") == DEFAULT_SAVE_DIR:
             init_args.save_dir = str(root_dir)
+            check_folder_to_write(root_dir, "--trainer.default_root_dir")
+        check_folder_to_write(init_args.get("save_dir") or ".", "--trainer.logger.init_args.save_dir")
         if "version" in init_args and init_args.get("version") is None:
             if RUN_FOLDER in os.environ and int(os.environ.get("LOCAL_RANK", "0")) > 0:
                 init_args.version = os.environ[RUN_FOLDER]
@@ -260,12 +277,18 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
     """Run the command with these arguments; returns the summary on the main process (``None`` on the others).
 
     Everything that can be checked before training is (the options, the checkpoint, the output folder, the pairs),
-    before any of Lightning's lines; a run that fails before its first checkpoint leaves no run folder behind.
+    before any of Lightning's lines; a run that fails before its first checkpoint leaves no run folder behind. The
+    mask's folder is held by this run until it ends (:func:`~enmi_torch.training.fit_checks.claim_output_dir`): a run
+    started meanwhile with the same ``--output_dir`` is refused before it trains, and an earlier run's mask is never
+    replaced without ``--overwrite true``.
     """
     created: list[Path] = []
+    claims: list[OutputClaim] = []  # the mask's folder, held until the run ends
     try:
-        return _fit_mask(argv, created)
+        return _fit_mask(argv, created, claims)
     except BaseException:
+        for claim in claims:
+            claim.release()  # first: a mask folder made for the claim and left empty goes
         run_folder, *parents = created or [None]
         if run_folder is not None and not any((run_folder / kept).exists() for kept in ("checkpoints", "mask")):
             shutil.rmtree(run_folder, ignore_errors=True)  # nothing learned there: no folder to clutter TensorBoard
@@ -273,12 +296,16 @@ def fit_mask(argv: Sequence[str]) -> dict | None:
                 with contextlib.suppress(OSError):
                     parent.rmdir()
         raise
+    finally:
+        for claim in claims:
+            claim.release()
 
 
-def _fit_mask(argv: Sequence[str], created: list[Path]) -> dict | None:
+def _fit_mask(argv: Sequence[str], created: list[Path], claims: list[OutputClaim]) -> dict | None:
     default_config = config_file("fit_mask.yaml")
     quiet_lightning()
     arguments = dashed_aliases(argv, RUN_KEYS)
+    check_text_files(arguments, "--config")
     writer = None
     try:
         with lightning_chatter_held():
@@ -306,20 +333,26 @@ def _fit_mask(argv: Sequence[str], created: list[Path]) -> dict | None:
                 check_checkpoint(ckpt_path, cli.model)
             output_dir = None if cli.config["output_dir"] is None else Path(cli.config["output_dir"])
             if output_dir is not None:
-                check_output_dir(output_dir, cli.config["overwrite"])
+                check_folder_to_write(output_dir, "--output_dir")
+            cli.model.build_mask(cli.datamodule.truth)  # the mask's options and analytic map, before any work
             world = cli.trainer.num_devices * cli.trainer.num_nodes
             if cli.datamodule.batch_size % world:
                 raise ValueError(
                     f"--data.batch_size must be divisible by the number of processes {world}, "
                     f"got {cli.datamodule.batch_size}"
                 )
-            if cli.trainer.is_global_zero and cli.config["data"]["root"] is not None:  # synthetic pairs fit by design
-                check_pairs(cli.datamodule, cli.model.hparams.bins, cli.model.hparams.value_range)
+            if cli.trainer.is_global_zero:
+                check_learnable(cli.datamodule, cli.config["data"])
+                if cli.config["data"]["root"] is not None:  # synthetic pairs fit by design
+                    check_pairs(cli.datamodule, cli.model.hparams.bins, cli.model.hparams.value_range)
             for callback in cli.trainer.callbacks:
                 if isinstance(callback, Preemption):
                     callback.command = [PROG, *argv]
             writer = MaskWriter(output_dir)
             cli.trainer.callbacks.append(writer)
+            if cli.trainer.is_global_zero:  # the mask's folder, taken atomically: runs started at once never share one
+                folder = "--output_dir" if output_dir is not None else "the run's mask folder"
+                claims.append(claim_output_dir(writer.folder(cli.trainer), cli.config["overwrite"], folder))
         start = time.perf_counter()
         if created:
             os.environ[RUN_FOLDER] = created[0].name
@@ -334,12 +367,16 @@ def _fit_mask(argv: Sequence[str], created: list[Path]) -> dict | None:
     except MisconfigurationException as error:  # Lightning's word for a bad option (devices, strategy, ...)
         raise ValueError(str(error)) from error
     except (ValueError, TypeError, FileNotFoundError) as error:
-        message = with_flag_names(str(error), cli_config_keys())
+        flags = cli_config_keys()
+        if isinstance(error, OptionError):  # a refusal naming several options: each as its flag
+            message = error.spelled(lambda name, value: f"{flags.get(name, name)} {value}")
+        else:
+            message = with_flag_names(str(error), flags)
         if writer is not None and writer.written is not None:
             message += f" (the mask trained before the error is in {writer.written.parent})"
         if message == str(error):
             raise
-        raise type(error)(message) from error
+        raise (ValueError if isinstance(error, OptionError) else type(error))(message) from error
     seconds = time.perf_counter() - start
     log_dir = cli.trainer.log_dir  # a collective under DDP: every process asks
     output_dir = writer.folder(cli.trainer)

@@ -37,11 +37,13 @@ from torch import Tensor
 from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
+from enmi_torch.training.fit_checks import check_model_options
 from enmi_torch.training.localization_figure import ANSWER_METHODS, OTHER_METHODS, held_out_order, localization_figure
 from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.utils.checks import check_option
 from enmi_torch.utils.files import read_npy
+from enmi_torch.utils.options import OptionError, signature_defaults
 from enmi_torch.variance import EmpiricalVariance, LearnedVariance
 from enmi_torch.variance.learned import FORMS
 
@@ -162,14 +164,14 @@ class MaskFitModule(LightningModule):
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
     ) -> None:
+        options = {name: value for name, value in locals().items() if name not in ("self", "__class__")}
         super().__init__()
+        check_option("form", form, FORMS)  # here, not when the mask is built at the fit's start
+        check_model_options(options, signature_defaults(MaskFitModule.__init__))  # every option, before any work
         # Lists, not tuples: hparams.yaml stays plain YAML (no !!python/tuple tags).
         shape, value_range = [int(size) for size in shape], [float(value) for value in value_range]
         localization_noise = [float(factor) for factor in localization_noise]
-        if not localization_noise or min(localization_noise) <= 0:
-            raise ValueError(f"localization_noise must be factors > 0, got {localization_noise}")
         localization_grid = [float(factor) for factor in localization_grid]
-        check_option("form", form, FORMS)  # here, not when the mask is built at the fit's start
         self.save_hyperparameters()
         self.shape = (shape[0], shape[1])
         self.mask: LearnedVariance | None = None
@@ -193,14 +195,20 @@ class MaskFitModule(LightningModule):
 
     def configure_model(self) -> None:
         """Build the mask (its analytic map may come from the data)."""
-        if self.mask is not None:
-            return
+        if self.mask is None:
+            self.mask = self.build_mask(self.truth)
+
+    def build_mask(self, truth) -> LearnedVariance:
+        """The mask these options make, ``truth`` the data's known field or ``None``.
+
+        The command builds one before training, so that a mistake in the mask's options stops it before it starts.
+        """
         hparams = self.hparams
         analytic = valid = None
         if hparams.form == "perspective":
-            analytic = self._analytic_variance()
+            analytic = self._analytic_variance(truth)
             valid = torch.isfinite(analytic) & (analytic > 0)
-        self.mask = LearnedVariance(
+        return LearnedVariance(
             self.shape,
             hparams.form,
             degree=hparams.degree,
@@ -209,17 +217,18 @@ class MaskFitModule(LightningModule):
             smoothness=hparams.smoothness,
         )
 
-    def _analytic_variance(self) -> Tensor:
+    def _analytic_variance(self, truth) -> Tensor:
         path = self.hparams.analytic_variance
         if path is not None:
-            analytic = torch.from_numpy(
-                read_npy(path, "analytic_variance (--model.analytic_variance)").astype(np.float64)
-            )
-        elif self.truth is not None:
-            analytic = self.truth.variance
+            analytic = torch.from_numpy(read_npy(path, "analytic_variance").astype(np.float64))
+        elif truth is not None:
+            analytic = truth.variance
         else:
-            raise ValueError(
-                "form='perspective' needs analytic_variance (an .npy analytic map) when the data has no known field"
+            raise OptionError(
+                lambda spell: (
+                    f"{spell('form', 'perspective')} needs an analytic variance map when the data has no "
+                    f"known field: pass {spell('analytic_variance', 'MAP.npy')}"
+                )
             )
         if tuple(analytic.shape) != self.shape:
             raise ValueError(f"analytic_variance must be an {self.shape} map, got shape {tuple(analytic.shape)}")

@@ -465,15 +465,17 @@ def check_log_prior(log_prior: Any, bins: int, batch: int) -> Tensor:
 def check_captured_in_reference(captured: Any, reference: Any, reference_dims: str) -> tuple[int, int, int]:
     """Raise unless ``captured`` is ``(B, 1, h, w)`` and ``reference`` ``(1 or B, 1, H, W)``, ``H >= h``, ``W >= w``.
 
-    Both must be floating point and on one device; ``reference_dims`` names the reference's sizes in messages
-    (``"Hw, Ww"``).
+    Both must be floating point, hold data (no meta tensor) and be on one device; ``reference_dims`` names the
+    reference's sizes in messages (``"Hw, Ww"``).
     Returns ``(B, h, w)``.
     """
     check_floating("captured", captured)
+    check_real_data("captured", captured)
     if captured.ndim != 4 or captured.shape[1] != 1:
         raise ValueError(f"captured must have shape (B, 1, h, w), got {tuple(captured.shape)}")
     check_not_empty("captured", captured)
     check_floating("reference", reference)
+    check_real_data("reference", reference)
     batch, _, height, width = captured.shape
     if reference.ndim != 4 or reference.shape[1] != 1 or reference.shape[0] not in (1, batch):
         raise ValueError(
@@ -493,7 +495,10 @@ def check_captured_in_reference(captured: Any, reference: Any, reference_dims: s
 def check_real_data(name: str, value: Tensor) -> None:
     """Raise ``ValueError`` if the tensor ``value`` is a meta tensor (a shape without data) or complex."""
     if value.is_meta:
-        raise ValueError(f"{name} must hold data, got a meta tensor (a shape only) of shape {tuple(value.shape)}")
+        raise ValueError(
+            f"{name} must hold data, got a meta tensor (a shape only) of shape {tuple(value.shape)}: pass {name} on "
+            "a device that holds values (cpu, cuda)"
+        )
     if value.is_complex():
         raise TypeError(f"{name} must be real, got complex dtype {value.dtype}")
 

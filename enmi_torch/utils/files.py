@@ -126,6 +126,55 @@ def read_image(path: str | Path, source: str) -> np.ndarray:
     return image
 
 
+def check_file_to_write(path: str | Path, source: str) -> Path:
+    """``path`` as a :class:`~pathlib.Path` if a file can be written there; else a ``ValueError`` naming ``source``.
+
+    Refused: an existing folder at ``path``, a file where one of its folders should be, a folder that cannot be
+    written. ``source`` is how the caller's user named the path (an argument, a command-line flag).
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     check_file_to_write(folder, "path")
+        Traceback (most recent call last):
+        ...
+        ValueError: path must name a file to write, got the existing folder '...'
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{source} must name a file to write, got the existing folder {str(path)!r}")
+    existing = next(parent for parent in path.absolute().parents if parent.exists())
+    if not existing.is_dir():
+        raise ValueError(f"{source} {str(path)!r} cannot be written: {str(existing)!r} on its path is a file")
+    if not os.access(existing, os.W_OK):
+        raise ValueError(f"{source} {str(path)!r} cannot be written: {str(existing)!r} is read-only")
+    return path
+
+
+def check_folder_to_write(path: str | Path, source: str) -> Path:
+    """``path`` as a :class:`~pathlib.Path` if it is or can become a folder to write in; else a ``ValueError``.
+
+    Refused: a file at ``path`` or on its way (``a/b`` where ``a`` is a file), a folder that cannot be written. The
+    message names ``source``, how the caller's user named the path (an argument, a command-line flag).
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.NamedTemporaryFile() as file:
+        ...     check_folder_to_write(file.name, "--output_dir")
+        Traceback (most recent call last):
+        ...
+        ValueError: --output_dir must be a folder, got '...', which is a file
+    """
+    path = Path(path)
+    existing = next(folder for folder in (path, *path.absolute().parents) if folder.exists())
+    if not existing.is_dir():
+        which = "which is" if existing == path else f"but {str(existing)!r} on its path is"
+        raise ValueError(f"{source} must be a folder, got {str(path)!r}, {which} a file")
+    if not os.access(existing, os.W_OK):
+        raise ValueError(f"{source} {str(path)!r} cannot be written: {str(existing)!r} is read-only")
+    return path
+
+
 def load_plain_torch(path: str | Path, what: str) -> object:
     """``torch.load(path, weights_only=True)`` on the CPU: tensors and primitives only, never a pickled object.
 

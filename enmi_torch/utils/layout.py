@@ -20,6 +20,7 @@ from enmi_torch.utils.checks import (
     check_mask_not_empty,
     check_not_empty,
     check_positive_where,
+    check_real_data,
     check_tensor,
     check_variance_fits,
 )
@@ -57,6 +58,7 @@ def broadcast_map(name: str, values: Tensor, like: Tensor, like_name: str = "cap
     map per sample (``(B, 1, H, W)``, ``(B, H, W)``); for flat samples ``(B, 1, N)`` also ``(N,)`` and ``(B, N)``.
     """
     check_tensor(name, values)
+    check_real_data(name, values)
     spatial = spatial_shape(like_name, like)
     batch = like.shape[0]
 

@@ -10,7 +10,7 @@ from importlib import resources
 from pathlib import Path
 
 # The folder above the package: a clone's root when ``enmi_torch`` is imported from a source tree.
-_SOURCE_ROOT = Path(__file__).resolve().parents[1]
+_SOURCE_ROOT = Path(__file__).resolve().parents[2]
 
 
 def config_dir() -> Path:

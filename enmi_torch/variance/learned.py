@@ -34,7 +34,7 @@ from enmi_torch.utils.checks import (
     check_some_pixel,
     check_tensor,
 )
-from enmi_torch.utils.files import load_plain_torch, read_npy
+from enmi_torch.utils.files import check_file_to_write, load_plain_torch, read_npy
 from enmi_torch.utils.layout import broadcast_map, mask_map
 from enmi_torch.variance.base import VarianceModel
 
@@ -378,7 +378,7 @@ class LearnedVariance(VarianceModel):
         The ``.pt`` file holds only a plain dict of tensors, strings and numbers, so that :meth:`load` reads it with
         ``torch.load(..., weights_only=True)``; the ``.npy`` file holds a float32 ``(H, W)`` array and no pickle.
         """
-        path = Path(path)
+        path = check_file_to_write(path, "path")
         suffix = _check_suffix(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         if suffix == ".npy":

@@ -117,7 +117,9 @@ def test_ecr_with_a_regional_misfit_is_ecr_with_its_map_added_to_the_noise(dtype
         delta2 = score.response_variance_of(captured, section, 25.0, valid_mask=mask)
         value = score(captured, section, 25.0, valid_mask=mask)
         held = (25.0 + tau2[:, None]).to(dtype)
-        fixed = {"model_variance": 0.0, "response_variance": float(delta2[0]), "valid_mask": mask}
+        fixed = {"model_variance": 0.0, "valid_mask": mask}
+        if response == "shrunk":  # the other responses have no delta^2 (refused, ECR_RULES)
+            fixed["response_variance"] = float(delta2[0])
         torch.testing.assert_close(value, ecr(captured, section, held, response=response, **fixed))
         assert value.dtype == dtype
     # The patch weighed down, the quiet pixels around it weighed up: the true section scores higher than with one
@@ -187,14 +189,13 @@ def test_a_surface_holds_the_map_of_its_peak_and_the_search_agrees(generator):
     torch.testing.assert_close(linear.surface(captured, reference, variance).score, expected, rtol=1e-9, atol=1e-9)
 
 
-def test_a_fixed_model_variance_is_used_as_it_is_and_bad_misfits_are_refused(generator):
+def test_a_misfit_with_a_fixed_model_variance_and_bad_misfits_are_refused(generator):
     captured, _, section = _images(generator, changed=True)
-    fixed = ecr_model_variance(captured, section, 25.0, misfit="regional", model_variance=30.0)
-    assert fixed.tolist() == [30.0]
-    torch.testing.assert_close(
-        ecr(captured, section, 25.0, misfit="regional", model_variance=30.0),
-        ecr(captured, section, 25.0, model_variance=30.0),
-    )
+    moot = r"misfit='regional' has no effect with model_variance=30.0: .* pass model_variance='estimate'"
+    with pytest.raises(ValueError, match=moot):
+        ecr_model_variance(captured, section, 25.0, misfit="regional", model_variance=30.0)
+    with pytest.raises(ValueError, match=moot):
+        ecr(captured, section, 25.0, misfit="regional", model_variance=30.0)
     with pytest.raises(ValueError, match=r"misfit must be one of \['independent', 'correlated', 'regional'\]"):
         ECR(misfit="local")
     with pytest.raises(ValueError, match="misfit must be one of"):

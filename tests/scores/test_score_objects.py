@@ -152,7 +152,7 @@ def test_direct_surface_of_every_family_equals_its_fft_surface_on_a_non_square_i
     if score.options.get("model_variance") == "estimate":  # a surface's tau^2 is one per captured image
         tau2 = score.surface_model_variance(local, reference, given, **masks)
         score = score.replace(model_variance=float(tau2[sample]))
-    if score.options.get("response_variance") == "estimate":  # and so is the shrunk response's delta^2
+    if score.options.get("response") == "shrunk":  # and so is the shrunk response's delta^2
         delta2 = score.surface_response_variance(local, reference, given, **masks)
         score = score.replace(response_variance=float(delta2[sample]))
     if not score.options.get("reliability", False):  # reliability is estimated over the whole image on a surface

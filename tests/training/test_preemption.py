@@ -230,3 +230,55 @@ def test_a_resumable_loader_skips_only_within_the_epoch_it_stopped_in():
         loader.load_state_dict({"batches": 1})
     with pytest.raises(TypeError, match="sampler must be a ResumableSampler, got SequentialSampler"):
         ResumableLoader(dataset, batch_size=4)
+
+
+class _LightningsOwnStop(Callback):
+    """Notes SIGTERM as Lightning's handler does, after the preemption callback looked at this step: Lightning then
+    stops the fit itself (``SIGTERMException``), and the callback hears of it only through ``on_exception``."""
+
+    def __init__(self, at_step: int) -> None:
+        self.at_step = at_step
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == self.at_step:
+            trainer._signal_connector.received_sigterm = True
+
+
+def test_lightnings_own_sigterm_stop_after_an_earlier_checkpoint_writes_the_current_step(tmp_path, capsys):
+    """A checkpoint at epoch 0's end (step 3), then Lightning's SIGTERM stop at step 5: last.ckpt must hold step 5, so
+    that the steps since the epoch's checkpoint are not lost (the mutation survivor of issue 43)."""
+    datamodule = PairDataModule(train_pairs=48, val_pairs=8, size=16, batch_size=16, seed=3)  # 3 steps per epoch
+    preemption = Preemption()
+    preemption.command = ["enmi-fit-mask", "--data.size", "16"]
+    trainer = _quiet_trainer(
+        tmp_path, 3, ModelCheckpoint(dirpath=tmp_path, save_top_k=0, save_last=True), preemption, _LightningsOwnStop(5)
+    )
+    with pytest.raises(SystemExit) as stop:
+        trainer.fit(MaskFitModule(shape=datamodule.shape), datamodule=datamodule, weights_only=True)
+    assert type(stop.value).__name__ == "SIGTERMException"  # Lightning's own stop, not the callback's
+    state = torch.load(tmp_path / "last.ckpt", weights_only=False)
+    assert state["global_step"] == 5 and state["epoch"] == 1
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line == (
+        f"enmi-fit-mask: stopped by SIGTERM at epoch 1, step 5; checkpoint {tmp_path / 'last.ckpt'}; resume with: "
+        f"enmi-fit-mask --data.size 16 --ckpt_path {tmp_path / 'last.ckpt'}"
+    )
+
+
+def test_without_a_checkpoint_callback_the_checkpoint_goes_to_the_run_folders_checkpoints(tmp_path):
+    datamodule = PairDataModule(train_pairs=32, val_pairs=8, size=16, batch_size=16)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_epochs=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=100,
+        default_root_dir=tmp_path,
+        callbacks=[Preemption()],
+    )
+    trainer.fit(MaskFitModule(shape=datamodule.shape), datamodule=datamodule, weights_only=True)
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 2

@@ -139,7 +139,7 @@ def test_cheap_bins_are_checked_under_their_own_name():
             SearchStrategy("two_stage", cheap_bins=cheap_bins)
     with pytest.raises(ValueError, match=r"cheap_bins must be at most bins \(16\), got 32"):
         Localizer(score=ECR(bins=16), search=SearchStrategy("two_stage", cheap_bins=32))
-    with pytest.raises(TypeError, match=r"Localizer.__init__\(\) takes cheap_bins in search=SearchStrategy"):
+    with pytest.raises(TypeError, match=r"Localizer\(\) takes cheap_bins in search=SearchStrategy"):
         Localizer(score=ECR(bins=16), search="two_stage", cheap_bins=8)
 
 
@@ -316,11 +316,36 @@ def _scene():
         (lambda x: ecr(x, x.to("meta"), 4.0), "reference must hold data, got a meta tensor"),
         (lambda x: ecr(x, x, torch.ones_like(x, device="meta")), "variance must hold data"),
         (lambda x: ncc(x, x.to("meta")), "reference must hold data, got a meta tensor"),
+        # The surfaces over every placement, the direct loop and the search's variance and masks (issue 43).
+        (lambda x: ECR().surface(x[..., :8, :8].to("meta"), x.to("meta"), 4.0), "captured must hold data"),
+        (lambda x: ECR().surface(x[..., :8, :8], x.to("meta"), 4.0), "reference must hold data"),
+        (lambda x: ECR().surface(x[..., :8, :8], x, torch.ones(8, 8, device="meta")), "variance must hold data"),
+        (lambda x: direct_surface(ECR(), x[..., :8, :8].to("meta"), x.to("meta"), 4.0), "captured must hold data"),
+        (lambda x: direct_surface("ncc", x[..., :8, :8], x.to("meta")), "reference must hold data"),
+        (lambda x: localize(x[..., :8, :8].to("meta"), x, 64.0, shifts=2), "captured must hold data"),
+        (lambda x: localize(x[..., :8, :8], x, torch.ones(8, 8, device="meta"), shifts=2), "variance must hold data"),
+        (
+            lambda x: localize(
+                x[..., :8, :8], x, 64.0, shifts=2, captured_mask=torch.ones(8, 8, dtype=bool, device="meta")
+            ),
+            "captured_mask must hold data",
+        ),
+        (
+            lambda x: localize(
+                x[..., :8, :8], x, 64.0, shifts=2, reference_mask=torch.ones(16, 16, dtype=bool, device="meta")
+            ),
+            "reference_mask must hold data",
+        ),
+        (
+            lambda x: ecr(x, x, 4.0, valid_mask=torch.ones(16, 16, dtype=bool, device="meta")),
+            "valid_mask must hold data",
+        ),
     ],
 )
-def test_a_reference_without_data_on_the_device_is_named(call, message):
-    with pytest.raises(ValueError, match=message):
+def test_a_tensor_without_data_on_the_device_is_named(call, message):
+    with pytest.raises(ValueError, match=rf"^{message}") as refusal:
         call(torch.rand(1, 1, 16, 16) * 255)
+    assert "got a meta tensor (a shape only) of shape (" in str(refusal.value) and "\n" not in str(refusal.value)
 
 
 def test_a_log_prior_that_rules_out_every_bin_is_refused():

@@ -1,6 +1,7 @@
 """``.npy`` files named by users: headers checked before reading, messages naming the file and where it came from."""
 
 import json
+import os
 import pickle
 import re
 
@@ -11,7 +12,7 @@ from enmi_torch import LearnedVariance
 from enmi_torch.cli.localize import main
 from enmi_torch.data import PairDataset, SyntheticPairs, lidar_truth, write_pairs
 from enmi_torch.utils.budget import MemoryBudgetError, memory_budget
-from enmi_torch.utils.files import read_image, read_npy
+from enmi_torch.utils.files import check_file_to_write, check_folder_to_write, read_image, read_npy
 
 TRUNCATED = (
     r"is truncated or its header is wrong: the header states a \(100000, 100000\) float64 array of 74\.5 GiB, "
@@ -187,3 +188,39 @@ def test_a_complex_map_is_refused(tmp_path):
     np.save(tmp_path / "map.npy", np.ones((4, 4), dtype=np.complex64))
     with pytest.raises(ValueError, match=r"--map '.*map\.npy' must hold real values, got complex dtype complex64"):
         read_image(tmp_path / "map.npy", "--map")
+
+
+def test_a_folder_where_a_mask_file_goes_is_named_by_the_argument(tmp_path):
+    mask = LearnedVariance((4, 6))
+    (tmp_path / "x.pt").mkdir()
+    with pytest.raises(ValueError, match=r"^path must name a file to write, got the existing folder '.*x\.pt'$"):
+        mask.save(tmp_path / "x.pt")
+    (tmp_path / "notes").write_text("a file")
+    with pytest.raises(
+        ValueError, match=r"^path '.*notes/mask\.pt' cannot be written: '.*notes' on its path is a file$"
+    ):
+        mask.save(tmp_path / "notes" / "mask.pt")
+    assert mask.save(tmp_path / "new" / "mask.pt").is_file()  # a folder that does not exist yet is made
+
+
+def test_files_and_folders_to_write_are_told_apart(tmp_path):
+    (tmp_path / "file").write_text("a file")
+    with pytest.raises(ValueError, match=r"^--out must be a folder, got '.*file', which is a file$"):
+        check_folder_to_write(tmp_path / "file", "--out")
+    with pytest.raises(
+        ValueError, match=r"^--out must be a folder, got '.*file/sub', but '.*file' on its path is a file"
+    ):
+        check_folder_to_write(tmp_path / "file" / "sub", "--out")
+    assert check_folder_to_write(tmp_path / "new" / "sub", "--out") == tmp_path / "new" / "sub"
+    assert check_file_to_write(tmp_path / "new" / "mask.npy", "path") == tmp_path / "new" / "mask.npy"
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        if not os.access(locked, os.W_OK):  # root writes anywhere
+            with pytest.raises(ValueError, match="is read-only"):
+                check_folder_to_write(locked / "out", "--out")
+            with pytest.raises(ValueError, match="is read-only"):
+                check_file_to_write(locked / "mask.pt", "path")
+    finally:
+        locked.chmod(0o700)

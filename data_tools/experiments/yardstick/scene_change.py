@@ -72,8 +72,8 @@ import torch
 
 from data_tools.experiments.yardstick import yardstick
 from enmi_torch import ECR, ENMI, NCC, NMI
-from enmi_torch.localization import SearchStrategy, localize
 from enmi_torch.data.scene_change import CHANGES, scene_change
+from enmi_torch.localization import SearchStrategy, localize
 from enmi_torch.scores.ecr import default_model_variance, ecr_model_variance
 from enmi_torch.utils.files import read_npy
 
