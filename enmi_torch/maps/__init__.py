@@ -17,7 +17,7 @@ Convention:
     Poses in cells are the library's ``(x, y, yaw)``: ``x`` the map column, ``y`` the row (down), whole numbers at
     cell centres, yaw in degrees counter-clockwise as displayed. World poses are ``(X, Y, yaw)`` in the map's CRS with
     the yaw the heading of the captured image's top, clockwise from north (``+Y``): equal to the cell yaw on a
-    north-up map; see :mod:`enmi_torch.maps.transform` for flipped and rotated maps.
+    north-up map; see :class:`GeoTransform` for flipped and rotated maps.
 
 Example:
     >>> import tempfile

@@ -3,7 +3,7 @@
 :class:`MapSource` opens a map file (GeoTIFF or COG through rasterio, ``.npy``, PNG or JPEG) or wraps an array, and
 cuts :class:`MapWindow` s around a point given in world coordinates (the map's CRS) or in cells. A GeoTIFF is read
 by windows: the whole map is never loaded, and a window over the memory budget is refused before it is read.
-Cell, world and yaw conventions: :mod:`enmi_torch.maps.transform`.
+Cell, world and yaw conventions: :class:`~enmi_torch.maps.GeoTransform`.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ class MapSource:
     """A prior map that yields windows with their transform, so that the search never sees a file or a CRS.
 
     Open a file with :meth:`open` or wrap an array with :meth:`from_array`; cut windows with :meth:`window`; convert
-    poses with :meth:`to_world` and :meth:`to_cells` (conventions: :mod:`enmi_torch.maps.transform`). A source
+    poses with :meth:`to_world` and :meth:`to_cells` (conventions: :class:`~enmi_torch.maps.GeoTransform`). A source
     opened from a file holds it open: use it in a ``with`` block or call :meth:`close`.
 
     Example:

@@ -1,26 +1,6 @@
 """World coordinates of a map's cells: the affine geotransform, and poses ``(x, y, yaw)`` converted both ways.
 
-Convention:
-    **Cells.** A pose ``(x, y, yaw)`` in cells has ``x`` the map column and ``y`` the map row (down), whole numbers at
-    a cell's centre (cell ``(0, 0)`` is the top-left one), and ``yaw`` in degrees counter-clockwise as displayed: the
-    captured image is the map section rotated by ``yaw`` about its centre, so its top points ``yaw`` degrees
-    clockwise from the map's up (the library's one pose convention; heading east on a north-up map is yaw 90).
-
-    **World.** ``(X, Y)`` in the map's coordinate reference system (easting and northing of a projected CRS). The
-    geotransform is rasterio's ``Affine(a, b, c, d, e, f)`` (GDAL's geotransform ``(c, a, b, f, d, e)``), which maps
-    *pixel corner* coordinates; a cell's centre is half a cell in:
-    ``X = a (x + 0.5) + b (y + 0.5) + c``, ``Y = d (x + 0.5) + e (y + 0.5) + f``, which is rasterio's
-    ``transform * (x + 0.5, y + 0.5)`` and ``rasterio.transform.xy(transform, y, x)``. A north-up map has
-    ``b = d = 0`` and ``e < 0``; a flipped one ``e > 0`` (rows run north); a rotated one ``b, d != 0``.
-
-    **World yaw.** The heading of the captured image's top in the world: degrees clockwise from the world's ``+Y``
-    axis (north) towards ``+X`` (east), wrapped to ``(-180, 180]``. The top's direction ``(sin yaw, -cos yaw)`` in
-    cells is carried into the world by the linear part ``[[a, b], [d, e]]``, and read back the same way. So on a
-    north-up map the world yaw *is* the cell yaw; on a flipped map it is ``180 - yaw``; on a map whose cell axes are
-    turned ``theta`` degrees counter-clockwise in the world (rasterio's ``Affine.rotation(theta)``) it is
-    ``yaw - theta``. The conversion is exact both ways for any invertible transform; the search itself turns
-    images on the square cell grid, so a map whose cells are not square in the world (``|a| != |e|``) turns
-    captured images in cells, not in metres.
+The conventions (cells, world coordinates, the world yaw) are :class:`GeoTransform`'s.
 """
 
 from __future__ import annotations
@@ -37,9 +17,29 @@ from torch import Tensor
 class GeoTransform:
     """The affine map from a raster's pixel corners to world coordinates, and poses converted with it.
 
-    The coefficients are rasterio's ``Affine(a, b, c, d, e, f)``: pixel corner ``(column, row)`` lies at world
-    ``X = a column + b row + c``, ``Y = d column + e row + f``. Cell centres (the library's cells) are half a cell
-    in; see the module's convention for cells, world coordinates and the world yaw.
+    Convention:
+        **Cells.** A pose ``(x, y, yaw)`` in cells has ``x`` the map column and ``y`` the map row (down), whole
+        numbers at a cell's centre (cell ``(0, 0)`` is the top-left one), and ``yaw`` in degrees counter-clockwise
+        as displayed: the captured image is the map section rotated by ``yaw`` about its centre, so its top points
+        ``yaw`` degrees clockwise from the map's up (the library's one pose convention; heading east on a north-up
+        map is yaw 90).
+
+        **World.** ``(X, Y)`` in the map's coordinate reference system (easting and northing of a projected CRS).
+        The coefficients are rasterio's ``Affine(a, b, c, d, e, f)`` (GDAL's geotransform ``(c, a, b, f, d, e)``),
+        which maps *pixel corners*: corner ``(column, row)`` lies at ``(a column + b row + c, d column + e row + f)``.
+        A cell's centre is half a cell in: ``X = a (x + 0.5) + b (y + 0.5) + c``,
+        ``Y = d (x + 0.5) + e (y + 0.5) + f``, which is rasterio's ``transform @ (x + 0.5, y + 0.5)`` and
+        ``rasterio.transform.xy(transform, y, x)``. A north-up map has ``b = d = 0`` and ``e < 0``; a flipped one
+        ``e > 0`` (rows run north); a rotated one ``b, d != 0``.
+
+        **World yaw.** The heading of the captured image's top in the world: degrees clockwise from the world's
+        ``+Y`` axis (north) towards ``+X`` (east), wrapped to ``(-180, 180]``. The top's direction
+        ``(sin yaw, -cos yaw)`` in cells is carried into the world by the linear part ``[[a, b], [d, e]]``, and read
+        back the same way. So on a north-up map the world yaw *is* the cell yaw; on a flipped map it is
+        ``180 - yaw``; on a map whose cell axes are turned ``theta`` degrees counter-clockwise in the world
+        (rasterio's ``Affine.rotation(theta)``) it is ``yaw - theta``. The conversion is exact both ways for any
+        invertible transform. The search turns images on the square cell grid: on a map whose cells are not
+        square in the world (``|a| != |e|``) it turns captured images in cells, not in metres.
 
     Attributes:
         a, b, c, d, e, f: the coefficients, finite, with ``a e - b d != 0``.
