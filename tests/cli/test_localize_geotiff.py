@@ -103,6 +103,21 @@ def test_world_options_on_a_map_in_cells_are_refused_in_one_line(tmp_path, capsy
         assert f"{flag} is for GeoTIFF maps; --map '{tmp_path / 'map.npy'}' is a .npy image in cells" in error
 
 
+def test_a_prior_in_world_coordinates_on_a_tiff_without_georeferencing_is_refused(tmp_path, capsys):
+    from PIL import Image
+
+    Image.fromarray(texture().astype(np.uint8)).save(tmp_path / "plain.tif")
+    np.save(tmp_path / "local.npy", texture()[10:42, 10:50])
+    files = ["--map", str(tmp_path / "plain.tif"), "--local", str(tmp_path / "local.npy"), "--variance", "4"]
+    with pytest.raises(SystemExit) as exit_info:
+        main([*files, "--prior-world", "10", "20"])
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--prior-world needs a georeferenced map" in error
+    report = _command([*files, "--center", "26", "30", "--shifts", "4"])  # in cells it works, without world keys
+    assert list(report) == KEYS[:7] and (report["row"], report["col"]) == pytest.approx((26.0, 30.0), abs=0.1)
+    capsys.readouterr()
+
+
 def test_without_rasterio_a_geotiff_map_ends_in_one_line_naming_the_extra(tmp_path):
     files, _ = _files(tmp_path, "north_up")
     script = (
