@@ -325,12 +325,10 @@ def _searched_map(args: argparse.Namespace, local_shape: tuple[int, int], dtype:
             raise ValueError(f"--prior-world needs a georeferenced map; --map {args.map!r} has no geotransform")
         else:
             prior = tuple(math.floor(value + 0.5) for value in source.to_cells(args.prior_world).tolist())
-        shifts = (args.shifts[0], args.shifts[0]) if len(args.shifts) == 1 else args.shifts
+        shift_y, shift_x = (args.shifts[0], args.shifts[0]) if len(args.shifts) == 1 else args.shifts
         factor = max(args.coarse_factor, 1)
         radius = []
-        for axis, (shift, size) in enumerate(
-            zip(shifts[::-1], local_shape[::-1], strict=True)
-        ):  # x (columns), then y (rows)
+        for axis, shift, size in ((0, shift_x, local_shape[1]), (1, shift_y, local_shape[0])):  # x, then y
             reach = max(shift, 0) + size // 2 + 1
             radius.append(reach + (prior[axis] - reach) % factor)
         window = source.window(prior, tuple(radius), units="cells", dtype=dtype)
