@@ -61,6 +61,7 @@ SUBPACKAGES = {
     "enmi_torch.variance": "Variance bases and the perspective variance.",
     "enmi_torch.tracking": "The filter's steps: belief, health, calibration.",
     "enmi_torch.placement": "The FFT machinery the score surfaces share.",
+    "enmi_torch.maps": "Real maps: windows of GeoTIFF/COG, .npy and PNG maps, and world coordinates (the geo extra).",
     "enmi_torch.data": "Pairs for fitting a variance mask: folders, synthetic data, the Lightning data module.",
     "enmi_torch.simulation": "The paper's simulation (Fig. simPerformance).",
 }

@@ -10,6 +10,7 @@ import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,6 +21,9 @@ from enmi_torch.localization.strategy import SearchStrategy
 from enmi_torch.scores import Score, as_score, score_names
 from enmi_torch.utils.command import ArgumentParser, run_command, with_flag_names
 from enmi_torch.utils.options import OptionConflict
+
+if TYPE_CHECKING:
+    from enmi_torch.maps import MapWindow
 
 
 def _read_array(path: str, name: str):
@@ -65,13 +69,23 @@ _EPILOG = f"""example (files from, in a clone, python -m data_tools.experiments.
 
 output: one JSON line, for example
   {{"dx": -8.99, "dy": 4.98, "yaw_deg": 2.8, "row": 304.98, "col": 211.01, "score": 1.1127, "margin": 0.5266}}
-  dx, dy    shift of the local image's centre from --center, in map cells along columns and rows (sub-cell)
+  dx, dy    shift of the local image's centre from the prior cell (--center, or the cell under --prior-world),
+            in map cells along columns and rows (sub-cell)
   yaw_deg   rotation of the local image against the map, degrees counter-clockwise as displayed
-  row, col  the map cell under the local image's centre pixel (--center + (dy, dx))
+  row, col  the map cell under the local image's centre pixel (the prior cell + (dy, dx))
   score     the best score: ECR and mixture in nats per pixel (0: no evidence), ENMI and NMI in [1, 2], NCC in [-1, 1]
   margin    best score minus the best score farther than --exclusion-radius cells from it: near 0, another
             place of the map fits about as well (a repetitive map); null when the window has no such place
---output also draws the score surface at the best yaw and the best score per yaw."""
+--output also draws the score surface at the best yaw and the best score per yaw.
+
+a GeoTIFF map (pip install "enmi_torch[geo]"; a map and a crop to try: python -m data_tools.make_geotiff_map):
+  {_PROG} --map city.tif --local local.npy --variance 100 --prior-world 500090 5399890 --shifts 16
+reads only the window the search needs around the prior (world coordinates in the map's CRS; or --center ROW COL)
+and adds to the output, for a georeferenced map:
+  world_x, world_y  where the local image's centre pixel lies, in the map's CRS
+  world_yaw_deg     heading of the local image's top, degrees clockwise from north (+Y): yaw_deg on a north-up map
+  crs               the map's coordinate reference system (EPSG:32633, else its WKT)
+row and col stay cells of the whole map; the local image must be on the map's cell grid (same cell size)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -81,7 +95,11 @@ def _parser() -> argparse.ArgumentParser:
         "NCC score surfaces, and print it as JSON (also runs as python -m enmi_torch.cli.localize).",
         epilog=_EPILOG,
     )
-    parser.add_argument("--map", required=True, help="prior map, .npy (2-D) or .png (read as grey levels)")
+    parser.add_argument(
+        "--map",
+        required=True,
+        help="prior map: .npy (2-D), .png (read as grey levels), or a GeoTIFF/COG (read by windows, the geo extra)",
+    )
     parser.add_argument("--local", required=True, help="local image on the map's cell grid, .npy or .png")
     parser.add_argument(
         "--variance", help="local noise variance: a number or a .npy map (needed by --score ecr, enmi, mixture)"
@@ -100,6 +118,18 @@ def _parser() -> argparse.ArgumentParser:
         nargs=2,
         metavar=("ROW", "COL"),
         help="prior map cell of the local centre (default: the map's centre)",
+    )
+    parser.add_argument(
+        "--prior-world",
+        type=float,
+        nargs=2,
+        metavar=("X", "Y"),
+        help="prior position of the local centre in world coordinates of a GeoTIFF map's CRS (instead of --center)",
+    )
+    parser.add_argument(
+        "--band",
+        type=int,
+        help="band of a multi-band GeoTIFF map, from 1 (default: the one band or the luma of red, green, blue)",
     )
     parser.add_argument(
         "--yaws", type=_parse_yaws, default="0", help="degrees: start:stop:step (ends included) or a,b,c"
@@ -207,18 +237,20 @@ def _command(argv: Sequence[str]) -> dict:
     if args.output is not None:
         _check_output(args.output)
     dtype = getattr(torch, args.dtype)
-    prior_map = torch.as_tensor(_read_array(args.map, "map"), dtype=dtype)
     local = torch.as_tensor(_read_array(args.local, "local"), dtype=dtype)
-    for name, image in (("map", prior_map), ("local", local)):
-        if image.ndim != 2:
-            raise ValueError(f"--{name} must hold a 2-D image, got shape {tuple(image.shape)}")
+    if local.ndim != 2:
+        raise ValueError(f"--local must hold a 2-D image, got shape {tuple(local.shape)}")
+    if len(args.shifts) not in (1, 2):
+        raise ValueError(f"--shifts takes r or ry rx, got {args.shifts}")
+    searched = _searched_map(args, tuple(local.shape), dtype)
+    prior_map = searched.image
     variance = None
     if args.variance is not None:
         try:
             variance = float(args.variance)
         except ValueError:
             variance = torch.as_tensor(_read_array(args.variance, "variance"), dtype=dtype)
-    masks = {}
+    masks = {} if searched.valid_mask is None else {"reference_mask": searched.valid_mask}
     for name, path, option in (
         ("captured_mask", args.local_mask, "local-mask"),
         ("reference_mask", args.map_mask, "map-mask"),
@@ -228,15 +260,13 @@ def _command(argv: Sequence[str]) -> dict:
     for name, image, mask_name in (("local", local, "captured_mask"), ("map", prior_map, "reference_mask")):
         mask = masks.get(mask_name)
         _check_finite_file(name, image, mask if mask is not None and mask.shape == image.shape else None)
-    if len(args.shifts) not in (1, 2):
-        raise ValueError(f"--shifts takes r or ry rx, got {args.shifts}")
     try:
         result = localize(
             local[None, None],
             prior_map[None, None],
             variance,
             shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
-            center=None if args.center is None else tuple(args.center),
+            center=searched.center,
             yaws=args.yaws,
             score=score,
             min_overlap=args.min_overlap,
@@ -255,7 +285,7 @@ def _command(argv: Sequence[str]) -> dict:
             message = re.sub(rf"\b{name}\b", option, message)
         raise ValueError(message) from error
     dx, dy, yaw = result.pose[0].tolist()
-    row, col = (prior_map.shape[0] // 2, prior_map.shape[1] // 2) if args.center is None else args.center
+    row, col = searched.center[0] + searched.offset[1], searched.center[1] + searched.offset[0]  # in the whole map
     # The scores are not log-likelihoods, so the fitted covariance is not printed as an uncertainty.
     report = {
         "dx": round(dx, 2),
@@ -266,11 +296,86 @@ def _command(argv: Sequence[str]) -> dict:
         "score": round(float(result.score[0]), 4),
         "margin": round(float(result.margin[0]), 4) if bool(torch.isfinite(result.margin[0])) else None,
     }
+    if searched.window is not None:
+        report.update(_world_report(searched.window, searched.center, (dx, dy, yaw)))
     print(json.dumps(report))
     if args.output is not None:
         _draw_surface(result, args.output, args.score)
         print(f"wrote {args.output}", file=sys.stderr)
     return report
+
+
+class _SearchedMap(NamedTuple):
+    """The map the search runs on, in its own cells: a whole ``.npy``/PNG map, or a GeoTIFF's window."""
+
+    image: Tensor  # (H, W)
+    valid_mask: Tensor | None  # (H, W) bool: a GeoTIFF's nodata, mask or alpha, and cells off the map
+    center: tuple[int, int]  # (row, col) of the prior cell in ``image``
+    offset: tuple[int, int]  # (x0, y0): the whole map's cell under image cell (0, 0)
+    window: MapWindow | None  # a GeoTIFF's window, with its transform and CRS
+
+
+def _searched_map(args: argparse.Namespace, local_shape: tuple[int, int], dtype: torch.dtype) -> _SearchedMap:
+    """The whole ``--map`` (``.npy``, PNG), or the window of a GeoTIFF that the search needs, read alone.
+
+    The window is centred on the prior cell (``--prior-world`` converted to cells, ``--center``, or the map's centre)
+    and holds every shift of ``--shifts`` with the local image and one cell more, its corner on a multiple of
+    ``--coarse-factor`` (so the coarse search pools the cells it would pool in the whole map).
+    """
+    suffix = Path(args.map).suffix.lower()
+    if suffix in (".npy", ".png"):
+        for flag, value in (("--prior-world", args.prior_world), ("--band", args.band)):
+            if value is not None:
+                raise ValueError(f"{flag} is for GeoTIFF maps; --map {args.map!r} is a {suffix} image in cells")
+        image = torch.as_tensor(_read_array(args.map, "map"), dtype=dtype)
+        center = (image.shape[0] // 2, image.shape[1] // 2) if args.center is None else tuple(args.center)
+        return _SearchedMap(image, None, center, (0, 0), None)
+    if args.map_mask is not None:
+        raise ValueError("--map-mask is for .npy and .png maps; a GeoTIFF marks its own invalid cells (nodata, masks)")
+    if args.center is not None and args.prior_world is not None:
+        raise ValueError("give the prior as --center ROW COL (map cells) or as --prior-world X Y, not both")
+    from enmi_torch.maps import MapSource
+
+    try:
+        source = MapSource.open(args.map, band=args.band, source="--map")
+    except ImportError as error:  # rasterio missing: the message names the extra
+        raise ValueError(str(error)) from None
+    with source:
+        if args.prior_world is None:
+            rows, cols = source.shape
+            prior = (cols // 2, rows // 2) if args.center is None else (args.center[1], args.center[0])
+        elif not all(math.isfinite(value) for value in args.prior_world):
+            raise ValueError(f"--prior-world must be two finite numbers X Y, got {args.prior_world}")
+        elif source.transform is None:
+            raise ValueError(f"--prior-world needs a georeferenced map; --map {args.map!r} has no geotransform")
+        else:
+            prior = tuple(math.floor(value + 0.5) for value in source.to_cells(args.prior_world).tolist())
+        shift_y, shift_x = (args.shifts[0], args.shifts[0]) if len(args.shifts) == 1 else args.shifts
+        factor = max(args.coarse_factor, 1)
+        radius = []
+        for axis, shift, size in ((0, shift_x, local_shape[1]), (1, shift_y, local_shape[0])):  # x, then y
+            reach = max(shift, 0) + size // 2 + 1
+            radius.append(reach + (prior[axis] - reach) % factor)
+        window = source.window(prior, tuple(radius), units="cells", dtype=dtype)
+    return _SearchedMap(window.image[0, 0], window.valid_mask[0, 0], window.center[::-1], window.offset, window)
+
+
+def _world_report(window: MapWindow, center: tuple[int, int], pose: tuple[float, float, float]) -> dict:
+    """``world_x``, ``world_y``, ``world_yaw_deg`` and ``crs`` of a pose relative to the window's prior cell.
+
+    World coordinates are given to a hundredth of a cell; nothing for a map without georeferencing.
+    """
+    if window.transform is None:
+        return {}
+    dx, dy, yaw = pose
+    world_x, world_y, world_yaw = window.to_world((center[1] + dx, center[0] + dy, yaw)).tolist()
+    digits = max(0, math.ceil(-math.log10(min(window.transform.cell_size) / 100)))
+    return {
+        "world_x": round(world_x, digits),
+        "world_y": round(world_y, digits),
+        "world_yaw_deg": round(world_yaw, 2),
+        "crs": window.crs,
+    }
 
 
 def _check_output(path: str) -> None:
