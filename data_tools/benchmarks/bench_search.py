@@ -13,7 +13,8 @@ The case: a 128 x 128 captured image cut from scikit-image's gravel (CC0) with n
 variance, 101 x 101 shifts, 32 bins, float32, one torch thread by default. Each round times every method once, in
 turn; ratios are medians of per-round ratios (robust to the load bursts of a shared machine). The 36-yaw search is
 timed exhaustive and two-stage (``search="two_stage"``). A floor row times ``localize`` with ECR's ``tau^2`` and
-``delta^2`` given (what the default's estimates cost is the difference).
+``delta^2`` given (what the default's estimates cost is the difference), another the default without its finalist
+stage (``SearchStrategy(finalists=0)``): the stage's share of the call is printed.
 
 Then the two-stage search's miss rate: how often its best candidate (yaw, shift) differs from the exhaustive search's,
 over random cases: 64 x 64 captured images cut at random shifts (+-12 cells) and yaws (-6..6 degrees) from
@@ -190,6 +191,9 @@ def main(argv=None) -> None:
     methods = {
         "globalign, one angle": lambda: anchor(captured[0, 0]),
         "localize, ECR, 1 yaw": lambda: localize(captured, reference, variance, **options),
+        "localize, ECR, 1 yaw, no finalist stage": lambda: localize(
+            captured, reference, variance, search=SearchStrategy(finalists=0), **options
+        ),
         "localize, ECR with tau^2 and delta^2 given, 1 yaw": lambda: localize(
             captured, reference, variance, **{**options, "score": ECR(bins=BINS, **FIXED)}
         ),
@@ -227,6 +231,9 @@ def main(argv=None) -> None:
     for name in methods:
         if name.startswith("localize"):
             print(f"{name}: pose (dx, dy, yaw) = {[round(value, 2) for value in results[name].pose[0].tolist()]}")
+    with_stage, without = times["localize, ECR, 1 yaw"], times["localize, ECR, 1 yaw, no finalist stage"]
+    shares = [(whole - rest) / whole for whole, rest in zip(with_stage, without, strict=True)]
+    print(f"1 yaw: the finalist stage's share of the call = {statistics.median(shares):.2f} (median of per-round shares)")
     exhaustive, two_stage = times["localize, ECR, 36 yaws"], times["localize, ECR, 36 yaws, two-stage"]
     ratios = [slow / fast for slow, fast in zip(exhaustive, two_stage, strict=True)]
     print(f"36 yaws: exhaustive / two-stage = {statistics.median(ratios):.2f}x (median of per-round ratios)")

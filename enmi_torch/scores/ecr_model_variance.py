@@ -96,24 +96,22 @@ def check_response_variance(response_variance) -> float | str:
 
 
 class _OccupiedBins:
-    """The bins that rows ``(S, N)`` of bin indices occupy, labelled once: sums per bin cost ``O(N)``, not ``O(bins)``.
+    """Rows ``(S, N)`` of bin indices as flat labels into an ``(S, bins)`` table: per-bin sums by one ``index_add``.
 
-    ``label`` ``(S, N)`` numbers each row's occupied bins apart from every other row's, ``row`` ``(L,)`` is the row of
-    each label and ``bin`` ``(L,)`` its bin.
+    ``label`` ``(S, N)`` is each pixel's cell of the table; a bin no pixel of a row falls in sums to 0.
     """
 
     def __init__(self, cells: Tensor, bins: int) -> None:
-        rows = torch.arange(cells.shape[0], device=cells.device)[:, None]
-        labels, label = torch.unique(cells + bins * rows, return_inverse=True)
-        self.label, self.row, self.bin, self.rows = label, labels // bins, labels % bins, cells.shape[0]
+        self.rows, self.bins = cells.shape[0], bins
+        self.label = cells + bins * torch.arange(self.rows, device=cells.device)[:, None]
 
     def sums(self, values: Tensor) -> Tensor:
-        """Sums of ``values`` ``(S, N)`` per label, ``(L,)``."""
-        return values.new_zeros(self.row.shape[0]).index_add_(0, self.label.flatten(), values.flatten())
+        """Sums of ``values`` ``(S, N)`` per row and bin, flat ``(S bins,)``."""
+        return values.new_zeros(self.rows * self.bins).index_add_(0, self.label.flatten(), values.flatten())
 
     def per_row(self, values: Tensor) -> Tensor:
-        """Sums of per-label ``values`` ``(L,)`` over each row's labels, ``(S,)``."""
-        return values.new_zeros(self.rows).index_add_(0, self.row, values)
+        """Sums of per-bin ``values`` ``(S bins,)`` over each row's bins, ``(S,)``."""
+        return values.view(self.rows, self.bins).sum(1)
 
 
 def _binned_fit(cells: Tensor, bins: int):
@@ -376,17 +374,10 @@ def estimated_response_variance(
         tau2 = tau2.to(torch.float64)
         weight = valid / (noise + (tau2 if tau2.dim() == 2 else tau2[:, None]))
         centre = (weight * values).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp_min(1e-300)
-        # Each row's occupied bins, numbered 0, 1, ... in its column of a (most occupied, S) layout: O(N), any bins.
         occupied = _OccupiedBins(cells, bins)
-        counts = torch.bincount(occupied.row, minlength=occupied.rows)
-        rank = torch.arange(occupied.row.shape[0], device=values.device) - (counts.cumsum(0) - counts)[occupied.row]
-        layout = (int(counts.max()), occupied.rows)
-        place = (rank, occupied.row)
-        weight_sums = values.new_zeros(layout).index_put_(place, occupied.sums(weight))
-        value_sums = values.new_zeros(layout).index_put_(place, occupied.sums(weight * (values - centre)))
-        positions = values.new_zeros(layout).index_put_(
-            place, bin_positions(bins, torch.float64, values.device)[occupied.bin]
-        )
+        weight_sums = occupied.sums(weight).view(-1, bins).T  # (bins, S): an empty bin weighs 0 and is left out
+        value_sums = occupied.sums(weight * (values - centre)).view(-1, bins).T
+        positions = bin_positions(bins, torch.float64, values.device)
         return shrunk_llr(weight_sums, value_sums, positions, value_range)[1]
 
 
