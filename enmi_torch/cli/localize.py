@@ -60,13 +60,16 @@ _PROG = "enmi-localize"
 _EPILOG = f"""example (files from, in a clone, python -m data_tools.experiments.yardstick.localization_benchmark \\
          --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
-      --local-mask runs/example/local_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
+      --local-mask runs/example/local_mask.npy --around 220 300 --shifts 16 --yaws -6:6:1
 
 output: one JSON line, for example
-  {{"dx": -8.99, "dy": 4.98, "yaw_deg": 2.8, "row": 304.98, "col": 211.01, "score": 1.1127, "margin": 0.5266}}
-  dx, dy    shift of the local image's centre from --center, in map cells along columns and rows (sub-cell)
+  {{"x": 211.01, "y": 304.98, "yaw_deg": 2.8, "dx": -8.99, "dy": 4.98, "row": 304.98, "col": 211.01,
+   "score": 1.1127, "margin": 0.5266}}
+  x, y      the pose: the map column and row (down) under the local image's centre pixel, in cells (sub-cell),
+            with yaw_deg the (x, y, yaw) that register and Tracker.start take
   yaw_deg   rotation of the local image against the map, degrees counter-clockwise as displayed
-  row, col  the map cell under the local image's centre pixel (--center + (dy, dx))
+  dx, dy    shift of the local image's centre from --around, in map cells along columns and rows
+  row, col  the same cell as y, x (kept for scripts that read them)
   score     the best score: ECR and mixture in nats per pixel (0: no evidence), ENMI and NMI in [1, 2], NCC in [-1, 1]
   margin    best score minus the best score farther than --exclusion-radius cells from it: near 0, another
             place of the map fits about as well (a repetitive map); null when the window has no such place
@@ -94,12 +97,14 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--metric", dest="score", choices=score_names(), help=argparse.SUPPRESS)
     parser.add_argument("--shifts", type=int, nargs="+", default=[16], help="search radius r, or ry rx, in cells")
     parser.add_argument(
-        "--center",
-        type=int,
+        "--around",
+        type=float,
         nargs=2,
-        metavar=("ROW", "COL"),
-        help="prior map cell of the local centre (default: the map's centre)",
+        metavar=("X", "Y"),
+        help="prior map column and row of the local centre, rounded to a cell (default: the map's centre)",
     )
+    # The former spelling, (row, col), kept working for one release (a note on stderr).
+    parser.add_argument("--center", type=int, nargs=2, metavar=("ROW", "COL"), help=argparse.SUPPRESS)
     parser.add_argument(
         "--yaws", type=_parse_yaws, default="0", help="degrees: start:stop:step (ends included) or a,b,c"
     )
@@ -205,13 +210,20 @@ def _command(argv: Sequence[str]) -> dict:
         _check_finite_file(name, image, mask if mask is not None and mask.shape == image.shape else None)
     if len(args.shifts) not in (1, 2):
         raise ValueError(f"--shifts takes r or ry rx, got {args.shifts}")
+    around = None if args.around is None else tuple(args.around)
+    if args.center is not None:
+        if around is not None:
+            raise ValueError("--center ROW COL is the former spelling of --around X Y: pass --around alone")
+        row, col = args.center
+        around = (col, row)
+        print(f"{_PROG}: --center ROW COL is deprecated: pass --around {col} {row} (X Y)", file=sys.stderr)
     try:
         result = localize(
             local[None, None],
             prior_map[None, None],
             variance,
             shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
-            center=None if args.center is None else tuple(args.center),
+            around=around,
             yaws=args.yaws,
             score=_score(args),
             min_overlap=args.min_overlap,
@@ -229,15 +241,17 @@ def _command(argv: Sequence[str]) -> dict:
         for name, option in _OPTION_NAMES.items():
             message = re.sub(rf"\b{name}\b", option, message)
         raise ValueError(message) from error
-    dx, dy, yaw = result.pose[0].tolist()
-    row, col = (prior_map.shape[0] // 2, prior_map.shape[1] // 2) if args.center is None else args.center
+    x, y, yaw = result.pose[0].double().tolist()
+    dx, dy = result.shift[0].double().tolist()
     # The scores are not log-likelihoods, so the fitted covariance is not printed as an uncertainty.
     report = {
+        "x": round(x, 2),
+        "y": round(y, 2),
+        "yaw_deg": round(yaw, 2),
         "dx": round(dx, 2),
         "dy": round(dy, 2),
-        "yaw_deg": round(yaw, 2),
-        "row": round(row + dy, 2),
-        "col": round(col + dx, 2),
+        "row": round(y, 2),
+        "col": round(x, 2),
         "score": round(float(result.score[0]), 4),
         "margin": round(float(result.margin[0]), 4) if bool(torch.isfinite(result.margin[0])) else None,
     }
@@ -273,7 +287,8 @@ def _draw_surface(result: Localization, path: str, score_name: str) -> None:
     image = axes[0, 0].imshow(
         shown, extent=(-radius_x - 0.5, radius_x + 0.5, radius_y + 0.5, -radius_y - 0.5), cmap="viridis"
     )
-    dx, dy, yaw = result.pose[0].tolist()
+    dx, dy = result.shift[0].tolist()
+    yaw = float(result.yaw[0])
     axes[0, 0].plot(dx, dy, marker="+", color="red", markersize=14, markeredgewidth=2)
     axes[0, 0].set(
         xlabel="dx (cells)",
