@@ -55,7 +55,48 @@ def test_the_default_center_is_the_map_centre_row_then_column_on_a_non_square_ma
     row, col = height // 2, width // 2
     captured = section[..., row - 8 : row + 8, col - 8 : col + 8].clone()
     default = localize(captured, section, score="ncc", shifts=3)
-    explicit = localize(captured, section, score="ncc", shifts=3, center=(row, col))
-    assert default.pose[0].tolist() == pytest.approx([0.0, 0.0, 0.0], abs=0.05)  # found where it was cut
+    explicit = localize(captured, section, score="ncc", shifts=3, around=(col, row))
+    assert default.pose[0].tolist() == pytest.approx([col, row, 0.0], abs=0.05)  # found where it was cut
+    assert default.shift[0].tolist() == pytest.approx([0.0, 0.0], abs=0.05)
     torch.testing.assert_close(default.pose, explicit.pose)
     torch.testing.assert_close(default.score, explicit.score)
+
+
+def _smooth_map(shape: tuple[int, int]) -> torch.Tensor:
+    """A smooth random texture ``(1, 1, *shape)`` in grey levels (peaks a few cells wide), float64."""
+    generator = torch.Generator().manual_seed(7)
+    noise = torch.rand(1, 1, shape[0] + 4, shape[1] + 4, generator=generator, dtype=torch.float64)
+    smooth = torch.nn.functional.avg_pool2d(torch.nn.functional.avg_pool2d(noise, 3, 1), 3, 1)
+    return (smooth - smooth.min()) / (smooth.max() - smooth.min()) * 250 + 2
+
+
+def test_the_pose_localize_returns_is_what_register_and_tracker_start_take():
+    # Mutations killed: localize returning the pose relative to around (the former (dx, dy, yaw)); around read as
+    # (row, col); register's or the belief's x and y swapped. A 70 x 150 map, the prior far from its centre (75, 35),
+    # the truth 4.4 columns right of and 3.3 rows above it, a 24 x 32 captured image.
+    from enmi_torch import ECR, Tracker, TrackerSettings, register
+    from enmi_torch.registration import warp_reference
+
+    reference = _smooth_map((70, 150))
+    truth = torch.tensor([[122.4, 17.7, 1.0]], dtype=torch.float64)
+    noise = torch.randn(1, 1, 24, 32, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    captured = warp_reference(reference, truth, (24, 32))[0] + 0.5 * noise
+    options = {"score": ECR(bins=16), "shifts": (5, 6), "around": (118, 21), "yaws": [0.0, 1.0, 2.0]}
+    found = localize(captured, reference, 0.25, **options)
+    assert found.pose[0, :2].tolist() == pytest.approx(truth[0, :2].tolist(), abs=0.3)
+    assert abs(float(found.yaw[0]) - 1.0) <= 1.0  # nearest-neighbour turns of a small image: within a yaw step
+    assert found.shift[0].tolist() == pytest.approx([4.4, -3.3], abs=0.3)
+    refined = register(captured, reference, 0.25, pose=found.pose, score=ECR(bins=16))
+    assert refined.pose[0].tolist() == pytest.approx(truth[0].tolist(), abs=0.02)
+    torch.testing.assert_close(localize(captured, reference, 0.25, refine=True, **options).pose, refined.pose)
+    tracker = Tracker(reference, score=ECR(bins=16), shifts=(3, 4), yaw_bins=3, settings=TrackerSettings())
+    tracker.start(found.pose)
+    assert tracker.belief.center.tolist() == [[18, 122]]  # (row, col) of the window: y, x rounded
+    step = torch.tensor([[2.0, -1.0, 0.0]], dtype=torch.float64)  # two cells along the image's columns, one up
+    turn = torch.deg2rad(-truth[0, 2])  # the image's axes on the map at yaw 1: (cos a du + sin a dv, ...), a = -yaw
+    move = [turn.cos() * 2.0 + turn.sin() * -1.0, -turn.sin() * 2.0 + turn.cos() * -1.0, 0.0]
+    moved = truth + torch.tensor([move], dtype=torch.float64)
+    frame = warp_reference(reference, moved, (24, 32))[0] + 0.5 * noise
+    output = tracker(frame, step, 0.25)
+    assert bool(output.healthy[0])
+    assert output.pose[0, :2].tolist() == pytest.approx(moved[0, :2].tolist(), abs=0.5)

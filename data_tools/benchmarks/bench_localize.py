@@ -158,10 +158,10 @@ def measure(rounds: int, loop_rows: int, yaw_rounds: int) -> dict:
     times["localize_36_yaws"] = []
     for _ in range(yaw_rounds):
         seconds, located = _timed(
-            lambda: localize(local, prior_map, variance, score=enmi, shifts=RADIUS, center=center, yaws=yaws)
+            lambda: localize(local, prior_map, variance, score=enmi, shifts=RADIUS, around=center[::-1], yaws=yaws)
         )
         times["localize_36_yaws"].append(seconds)
-    checks["localize_pose"] = [round(value, 2) for value in located.pose[0].tolist()]
+    checks["localize_pose"] = [round(value, 2) for value in [*located.shift[0].tolist(), float(located.yaw[0])]]
     checks["bin_pairs"] = pairs
     return {"threads": torch.get_num_threads(), "candidates": candidates, "yaws": len(yaws), **checks, "times": times}
 

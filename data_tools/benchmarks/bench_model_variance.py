@@ -49,14 +49,14 @@ def _case(size: int, radius: int):
 def _entries(local, window, variance, radius) -> dict:
     """``{what: {score name: call}}``."""
     scores = {name: ECR(**options) for name, options in SCORES.items()}
-    centre = (window.shape[2] // 2, window.shape[3] // 2)
+    centre = (window.shape[3] // 2, window.shape[2] // 2)  # (x, y)
 
     def surface(score):
         return lambda: score.surface(local, window, variance)
 
     def search(score, kind):
         return lambda: localize(
-            local, window, variance, score=score, shifts=radius, center=centre, yaws=YAWS, search=kind
+            local, window, variance, score=score, shifts=radius, around=centre, yaws=YAWS, search=kind
         )
 
     return {

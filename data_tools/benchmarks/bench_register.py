@@ -117,11 +117,10 @@ def start_poses(maps, captured, variance, centres) -> torch.Tensor:
             reference.float(),
             variance[index : index + 1].float(),
             shifts=5,
-            center=tuple(centres[index].tolist()),
+            around=tuple(centres[index].flip(0).tolist()),
             yaws=yaws,
         )
-        pose = found.pose[0].double()
-        poses.append(torch.stack([centres[index, 1] + pose[0], centres[index, 0] + pose[1], pose[2]]))
+        poses.append(found.pose[0].double())
     return torch.stack(poses)
 
 

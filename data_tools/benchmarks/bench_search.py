@@ -144,14 +144,14 @@ def miss_rate(trials: int, cheap_bins: int) -> None:
         misses = found = rescored = 0
         for _ in range(trials):
             reference, captured, variance, center, radius, truth = _miss_case(texture, response, noise, generator)
-            options = {"shifts": radius, "center": center, "yaws": MISS_YAWS, "score": ECR(bins=BINS)}
+            options = {"shifts": radius, "around": center[::-1], "yaws": MISS_YAWS, "score": ECR(bins=BINS)}
             exhaustive = localize(captured, reference, variance, **options)
             two_stage = localize(
                 captured, reference, variance, search=SearchStrategy("two_stage", cheap_bins=cheap_bins), **options
             )
             misses += int(exhaustive.surface.flatten().argmax()) != int(two_stage.surface.flatten().argmax())
             rescored += int(torch.isfinite(two_stage.surface).sum())
-            error = (exhaustive.pose[0] - torch.tensor(truth)).abs()
+            error = (torch.cat([exhaustive.shift[0], exhaustive.yaw]) - torch.tensor(truth)).abs()
             found += bool((error[:2] <= 1).all() and error[2] <= 1)
         total_misses += misses
         print(f"| {texture} | {response} | {noise:g} | {misses} / {trials} | {found} | {rescored / trials:.0f} |")
@@ -187,7 +187,7 @@ def main(argv=None) -> None:
     top, left = center[0] - LOCAL // 2 - RADIUS, center[1] - LOCAL // 2 - RADIUS
     window = reference[0, 0, top : top + LOCAL + 2 * RADIUS, left : left + LOCAL + 2 * RADIUS]
     anchor = GlobalignAngle(window, BINS)
-    options = {"shifts": RADIUS, "center": center, "score": ECR(bins=BINS)}
+    options = {"shifts": RADIUS, "around": center[::-1], "score": ECR(bins=BINS)}
     methods = {
         "globalign, one angle": lambda: anchor(captured[0, 0]),
         "localize, ECR, 1 yaw": lambda: localize(captured, reference, variance, **options),
@@ -230,10 +230,13 @@ def main(argv=None) -> None:
     print(f"\nglobalign peak (dy, dx) = ({row - RADIUS}, {col - RADIUS}), NMI {score:.3f}; true (7, -12)")
     for name in methods:
         if name.startswith("localize"):
-            print(f"{name}: pose (dx, dy, yaw) = {[round(value, 2) for value in results[name].pose[0].tolist()]}")
+            found = results[name]
+            shown = [round(value, 2) for value in [*found.shift[0].tolist(), float(found.yaw[0])]]
+            print(f"{name}: pose (dx, dy, yaw) = {shown}")
     with_stage, without = times["localize, ECR, 1 yaw"], times["localize, ECR, 1 yaw, no finalist stage"]
     shares = [(whole - rest) / whole for whole, rest in zip(with_stage, without, strict=True)]
-    print(f"1 yaw: the finalist stage's share of the call = {statistics.median(shares):.2f} (median of per-round shares)")
+    share = statistics.median(shares)
+    print(f"1 yaw: the finalist stage's share of the call = {share:.2f} (median of per-round shares)")
     exhaustive, two_stage = times["localize, ECR, 36 yaws"], times["localize, ECR, 36 yaws, two-stage"]
     ratios = [slow / fast for slow, fast in zip(exhaustive, two_stage, strict=True)]
     print(f"36 yaws: exhaustive / two-stage = {statistics.median(ratios):.2f}x (median of per-round ratios)")

@@ -65,14 +65,16 @@ _PROG = "enmi-localize"
 _EPILOG = f"""example (files from, in a clone, python -m data_tools.experiments.yardstick.localization_benchmark \\
          --example runs/example):
   {_PROG} --map runs/example/map.npy --local runs/example/local.npy --variance runs/example/variance.npy \\
-      --local-mask runs/example/local_mask.npy --center 300 220 --shifts 16 --yaws -6:6:1
+      --local-mask runs/example/local_mask.npy --around 220 300 --shifts 16 --yaws -6:6:1
 
 output: one JSON line, for example
-  {{"dx": -8.99, "dy": 4.98, "yaw_deg": 2.8, "row": 304.98, "col": 211.01, "score": 1.1127, "margin": 0.5266}}
-  dx, dy    shift of the local image's centre from the prior cell (--center, or the cell under --prior-world),
-            in map cells along columns and rows (sub-cell)
+  {{"x": 211.01, "y": 304.98, "yaw_deg": 2.8, "dx": -8.99, "dy": 4.98, "row": 304.98, "col": 211.01,
+   "score": 1.1127, "margin": 0.5266}}
+  x, y      the pose: the map column and row (down) under the local image's centre pixel, in cells (sub-cell),
+            with yaw_deg the (x, y, yaw) that register and Tracker.start take
   yaw_deg   rotation of the local image against the map, degrees counter-clockwise as displayed
-  row, col  the map cell under the local image's centre pixel (the prior cell + (dy, dx))
+  dx, dy    shift of the local image's centre from --around, in map cells along columns and rows
+  row, col  the same cell as y, x (kept for scripts that read them)
   score     the best score: ECR and mixture in nats per pixel (0: no evidence), ENMI and NMI in [1, 2], NCC in [-1, 1]
   margin    best score minus the best score farther than --exclusion-radius cells from it: near 0, another
             place of the map fits about as well (a repetitive map); null when the window has no such place
@@ -113,18 +115,20 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--metric", dest="score", choices=score_names(), help=argparse.SUPPRESS)
     parser.add_argument("--shifts", type=int, nargs="+", default=[16], help="search radius r, or ry rx, in cells")
     parser.add_argument(
-        "--center",
-        type=int,
+        "--around",
+        type=float,
         nargs=2,
-        metavar=("ROW", "COL"),
-        help="prior map cell of the local centre (default: the map's centre)",
+        metavar=("X", "Y"),
+        help="prior map column and row of the local centre, rounded to a cell (default: the map's centre)",
     )
+    # The former spelling, (row, col), kept working for one release (a note on stderr).
+    parser.add_argument("--center", type=int, nargs=2, metavar=("ROW", "COL"), help=argparse.SUPPRESS)
     parser.add_argument(
         "--prior-world",
         type=float,
         nargs=2,
         metavar=("X", "Y"),
-        help="prior position of the local centre in world coordinates of a GeoTIFF map's CRS (instead of --center)",
+        help="prior position of the local centre in world coordinates of a GeoTIFF map's CRS (instead of --around)",
     )
     parser.add_argument(
         "--band",
@@ -242,7 +246,14 @@ def _command(argv: Sequence[str]) -> dict:
         raise ValueError(f"--local must hold a 2-D image, got shape {tuple(local.shape)}")
     if len(args.shifts) not in (1, 2):
         raise ValueError(f"--shifts takes r or ry rx, got {args.shifts}")
-    searched = _searched_map(args, tuple(local.shape), dtype)
+    around = None if args.around is None else tuple(args.around)
+    if args.center is not None:
+        if around is not None:
+            raise ValueError("--center ROW COL is the former spelling of --around X Y: pass --around alone")
+        row, col = args.center
+        around = (col, row)
+        print(f"{_PROG}: --center ROW COL is deprecated: pass --around {col} {row} (X Y)", file=sys.stderr)
+    searched = _searched_map(args, tuple(local.shape), dtype, around)
     prior_map = searched.image
     variance = None
     if args.variance is not None:
@@ -266,7 +277,7 @@ def _command(argv: Sequence[str]) -> dict:
             prior_map[None, None],
             variance,
             shifts=args.shifts[0] if len(args.shifts) == 1 else tuple(args.shifts),
-            center=searched.center,
+            around=searched.around,
             yaws=args.yaws,
             score=score,
             min_overlap=args.min_overlap,
@@ -284,20 +295,23 @@ def _command(argv: Sequence[str]) -> dict:
         for name, option in _OPTION_NAMES.items():
             message = re.sub(rf"\b{name}\b", option, message)
         raise ValueError(message) from error
-    dx, dy, yaw = result.pose[0].tolist()
-    row, col = searched.center[0] + searched.offset[1], searched.center[1] + searched.offset[0]  # in the whole map
+    x, y, yaw = result.pose[0].double().tolist()  # in the searched map's cells
+    dx, dy = result.shift[0].double().tolist()
+    x, y = x + searched.offset[0], y + searched.offset[1]  # in the whole map's
     # The scores are not log-likelihoods, so the fitted covariance is not printed as an uncertainty.
     report = {
+        "x": round(x, 2),
+        "y": round(y, 2),
+        "yaw_deg": round(yaw, 2),
         "dx": round(dx, 2),
         "dy": round(dy, 2),
-        "yaw_deg": round(yaw, 2),
-        "row": round(row + dy, 2),
-        "col": round(col + dx, 2),
+        "row": round(y, 2),
+        "col": round(x, 2),
         "score": round(float(result.score[0]), 4),
         "margin": round(float(result.margin[0]), 4) if bool(torch.isfinite(result.margin[0])) else None,
     }
     if searched.window is not None:
-        report.update(_world_report(searched.window, searched.center, (dx, dy, yaw)))
+        report.update(_world_report(searched.window, tuple(result.pose[0].double().tolist())))
     print(json.dumps(report))
     if args.output is not None:
         _draw_surface(result, args.output, args.score)
@@ -310,15 +324,17 @@ class _SearchedMap(NamedTuple):
 
     image: Tensor  # (H, W)
     valid_mask: Tensor | None  # (H, W) bool: a GeoTIFF's nodata, mask or alpha, and cells off the map
-    center: tuple[int, int]  # (row, col) of the prior cell in ``image``
+    around: tuple[float, float] | None  # (x, y) of the prior cell in ``image`` (None: the map's centre)
     offset: tuple[int, int]  # (x0, y0): the whole map's cell under image cell (0, 0)
     window: MapWindow | None  # a GeoTIFF's window, with its transform and CRS
 
 
-def _searched_map(args: argparse.Namespace, local_shape: tuple[int, int], dtype: torch.dtype) -> _SearchedMap:
+def _searched_map(
+    args: argparse.Namespace, local_shape: tuple[int, int], dtype: torch.dtype, around: tuple[float, float] | None
+) -> _SearchedMap:
     """The whole ``--map`` (``.npy``, PNG), or the window of a GeoTIFF that the search needs, read alone.
 
-    The window is centred on the prior cell (``--prior-world`` converted to cells, ``--center``, or the map's centre)
+    The window is centred on the prior cell (``--prior-world`` converted to cells, ``around``, or the map's centre)
     and holds every shift of ``--shifts`` with the local image and one cell more, its corner on a multiple of
     ``--coarse-factor`` (so the coarse search pools the cells it would pool in the whole map).
     """
@@ -328,12 +344,11 @@ def _searched_map(args: argparse.Namespace, local_shape: tuple[int, int], dtype:
             if value is not None:
                 raise ValueError(f"{flag} is for GeoTIFF maps; --map {args.map!r} is a {suffix} image in cells")
         image = torch.as_tensor(_read_array(args.map, "map"), dtype=dtype)
-        center = (image.shape[0] // 2, image.shape[1] // 2) if args.center is None else tuple(args.center)
-        return _SearchedMap(image, None, center, (0, 0), None)
+        return _SearchedMap(image, None, around, (0, 0), None)
     if args.map_mask is not None:
         raise ValueError("--map-mask is for .npy and .png maps; a GeoTIFF marks its own invalid cells (nodata, masks)")
-    if args.center is not None and args.prior_world is not None:
-        raise ValueError("give the prior as --center ROW COL (map cells) or as --prior-world X Y, not both")
+    if around is not None and args.prior_world is not None:
+        raise ValueError("give the prior as --around X Y (map cells) or as --prior-world X Y (world), not both")
     from enmi_torch.maps import MapSource
 
     try:
@@ -343,7 +358,7 @@ def _searched_map(args: argparse.Namespace, local_shape: tuple[int, int], dtype:
     with source:
         if args.prior_world is None:
             rows, cols = source.shape
-            prior = (cols // 2, rows // 2) if args.center is None else (args.center[1], args.center[0])
+            prior = (cols // 2, rows // 2) if around is None else tuple(math.floor(value + 0.5) for value in around)
         elif not all(math.isfinite(value) for value in args.prior_world):
             raise ValueError(f"--prior-world must be two finite numbers X Y, got {args.prior_world}")
         elif source.transform is None:
@@ -357,18 +372,17 @@ def _searched_map(args: argparse.Namespace, local_shape: tuple[int, int], dtype:
             reach = max(shift, 0) + size // 2 + 1
             radius.append(reach + (prior[axis] - reach) % factor)
         window = source.window(prior, tuple(radius), units="cells", dtype=dtype)
-    return _SearchedMap(window.image[0, 0], window.valid_mask[0, 0], window.center[::-1], window.offset, window)
+    return _SearchedMap(window.image[0, 0], window.valid_mask[0, 0], tuple(window.center), window.offset, window)
 
 
-def _world_report(window: MapWindow, center: tuple[int, int], pose: tuple[float, float, float]) -> dict:
-    """``world_x``, ``world_y``, ``world_yaw_deg`` and ``crs`` of a pose relative to the window's prior cell.
+def _world_report(window: MapWindow, pose: tuple[float, float, float]) -> dict:
+    """``world_x``, ``world_y``, ``world_yaw_deg`` and ``crs`` of a pose ``(x, y, yaw)`` in the window's cells.
 
     World coordinates are given to a hundredth of a cell; nothing for a map without georeferencing.
     """
     if window.transform is None:
         return {}
-    dx, dy, yaw = pose
-    world_x, world_y, world_yaw = window.to_world((center[1] + dx, center[0] + dy, yaw)).tolist()
+    world_x, world_y, world_yaw = window.to_world(pose).tolist()
     digits = max(0, math.ceil(-math.log10(min(window.transform.cell_size) / 100)))
     return {
         "world_x": round(world_x, digits),
@@ -403,7 +417,8 @@ def _draw_surface(result: Localization, path: str, score_name: str) -> None:
     image = axes[0, 0].imshow(
         shown, extent=(-radius_x - 0.5, radius_x + 0.5, radius_y + 0.5, -radius_y - 0.5), cmap="viridis"
     )
-    dx, dy, yaw = result.pose[0].tolist()
+    dx, dy = result.shift[0].tolist()
+    yaw = float(result.yaw[0])
     axes[0, 0].plot(dx, dy, marker="+", color="red", markersize=14, markeredgewidth=2)
     axes[0, 0].set(
         xlabel="dx (cells)",

@@ -6,6 +6,7 @@ The result type :class:`Localization` lives here; :mod:`enmi_torch.localization.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -40,23 +41,29 @@ class Finalists(NamedTuple):
 class Localization(NamedTuple):
     """The result of :func:`~enmi_torch.localize`: the pose found, its score surface and how sure it is.
 
-    Read the pose as ``result.dx``, ``result.dy`` (map cells along columns and rows) and ``result.yaw`` (degrees,
-    counter-clockwise as displayed), each ``(B,)``; ``result.local_to_map(center, local_shape)`` gives the
-    ``(B, 3, 3)`` transform from local ``(x, y)`` pixels to map ``(x, y)`` cells.
+    Read the pose as ``result.pose`` ``(B, 3)`` ``(x, y, yaw)``, absolute in the map (what
+    :func:`~enmi_torch.register` and :meth:`~enmi_torch.Tracker.start` take unchanged); the shift from the prior pose
+    the search was centred on as ``result.shift`` ``(B, 2)`` (or ``result.dx``, ``result.dy``), the yaw as
+    ``result.yaw``; ``result.local_to_map(local_shape)`` gives the ``(B, 3, 3)`` transform from local ``(x, y)``
+    pixels to map ``(x, y)`` cells.
 
     Attributes:
-        pose: ``(B, 3)``: ``dx``, ``dy`` (map cells, refined below one cell) and ``yaw`` (degrees, refined below one
-            yaw step when the yaws are evenly spaced), relative to the prior pose.
+        pose: ``(B, 3)`` ``(x, y, yaw)``: the map column ``x`` and row ``y`` (down) under the captured image's pixel
+            ``(h // 2, w // 2)``, in cells, refined below one cell, and the yaw in degrees, counter-clockwise as
+            displayed (refined below one yaw step when the yaws are evenly spaced).
         score: ``(B,)`` score of the best searched candidate.
         surface: ``(B, Y, 2 ry + 1, 2 rx + 1)`` score per yaw and shift (``[b, k, ry + dy, rx + dx]``); ``-inf``
             where the candidate was excluded by ``min_overlap`` or not evaluated by the coarse-to-fine search.
-        covariance: ``(B, 2, 2)`` covariance of ``(dx, dy)`` in cells², ``inverse(-H)`` of the Hessian ``H`` of the
+        covariance: ``(B, 2, 2)`` covariance of ``(x, y)`` in cells², ``inverse(-H)`` of the Hessian ``H`` of the
             quadratic fitted to the 3 x 3 surface around the peak: the spread of ``exp(score)`` near the peak.
             Scale the scores first if they are not log-likelihoods. ``inf`` on the diagonal when the peak is on the
             window's edge, next to an excluded candidate, or not a maximum of the fit.
         margin: ``(B,)`` best score minus the best score farther than ``exclusion_radius`` cells (both axes) from
             the peak (over all yaws); ``inf`` when no such candidate exists. Small margins mean ambiguous maps.
         yaws: ``(Y,)`` the yaws searched, in degrees.
+        around: ``(B, 2)`` ``(x, y)``: the map cell the search window was centred on (the prior pose ``around``
+            given to :func:`~enmi_torch.localize`, rounded to a cell); ``None`` (a result built by hand): the map's
+            origin, so that :attr:`shift` is the pose's ``(x, y)``.
         finalists: the :class:`Finalists` the pose was chosen among (``None`` where the score's surface is exact,
             :attr:`~enmi_torch.scores.Score.surface_is_exact`, or the strategy scores none). The pose, score,
             covariance and margin are read from the surface at the chosen finalist's placement, which need not be
@@ -69,58 +76,75 @@ class Localization(NamedTuple):
     covariance: Tensor
     margin: Tensor
     yaws: Tensor
+    around: Tensor | None = None
     finalists: Finalists | None = None
 
     @property
+    def shift(self) -> Tensor:
+        """``(B, 2)`` ``(dx, dy)``: the pose's move from :attr:`around` along the map's columns and rows, in cells."""
+        if self.around is None:
+            return self.pose[:, :2]
+        return self.pose[:, :2] - self.around.to(self.pose)
+
+    @property
     def dx(self) -> Tensor:
-        """``(B,)`` shift along the map's columns (x), in cells, from the prior pose."""
-        return self.pose[:, 0]
+        """``(B,)`` shift along the map's columns (x), in cells, from the prior pose (:attr:`around`)."""
+        return self.shift[:, 0]
 
     @property
     def dy(self) -> Tensor:
-        """``(B,)`` shift along the map's rows (y, down), in cells, from the prior pose."""
-        return self.pose[:, 1]
+        """``(B,)`` shift along the map's rows (y, down), in cells, from the prior pose (:attr:`around`)."""
+        return self.shift[:, 1]
 
     @property
     def yaw(self) -> Tensor:
         """``(B,)`` rotation of the captured image against the map, degrees, counter-clockwise as displayed."""
         return self.pose[:, 2]
 
-    def local_to_map(self, center: tuple[int, int] | Tensor, local_shape: tuple[int, int]) -> Tensor:
+    def local_to_map(
+        self, local_shape: tuple[int, int], deprecated_local_shape: tuple[int, int] | None = None
+    ) -> Tensor:
         """``(B, 3, 3)`` transform from captured pixel coordinates ``(x, y)`` to map coordinates ``(x, y)``.
 
         Points are ``(x, y) = (column, row)`` with y down, as in kornia. A captured pixel ``p`` shows the map at
         ``T @ [x, y, 1]``: the search turns the captured image by ``-yaw`` about its centre
         ``((w - 1) / 2, (h - 1) / 2)`` (kornia's :func:`~kornia.geometry.transform.rotate`) and puts its pixel
-        ``(h // 2, w // 2)`` on map cell ``(row + dy, col + dx)``.
+        ``(h // 2, w // 2)`` on map cell ``(x, y)`` of :attr:`pose`.
 
         Args:
-            center: the ``center`` given to :func:`localize`: ``(row, col)`` or ``(B, 2)`` integers.
             local_shape: ``(h, w)`` of the captured images.
+            deprecated_local_shape: the former call ``local_to_map(center, local_shape)`` (deprecated, removed in the
+                next release; it warns): ``local_shape`` is then the ``center=(row, col)`` given to
+                :func:`~enmi_torch.localize` and the pose is read as ``center + shift``; call
+                ``local_to_map(local_shape)``, which needs no center.
 
         Example:
-            >>> result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
-            >>> transform = result.local_to_map((10, 20), (5, 5))[0]  # a 90 degree turn about the centre pixel
-            >>> (transform @ torch.tensor([2.0, 2.0, 1.0])).tolist()  # the centre pixel: column 20 + 2, row 10 - 1
+            >>> pose = torch.tensor([[22.0, 9.0, 90.0]])  # (x, y, yaw): column 22, row 9
+            >>> transform = Localization(pose, *(torch.zeros(1),) * 5).local_to_map((5, 5))[0]  # a 90 degree turn
+            >>> (transform @ torch.tensor([2.0, 2.0, 1.0])).tolist()  # the centre pixel: column 22, row 9
             [22.0, 9.0, 1.0]
             >>> (transform @ torch.tensor([4.0, 2.0, 1.0])).round().tolist()  # two pixels right: two cells down
             [22.0, 11.0, 1.0]
         """
-        height, width = check_image_shape("local_shape", local_shape)
         pose = self.pose.double()
-        try:
-            centers = torch.as_tensor(center, dtype=torch.float64, device=pose.device)
-        except (TypeError, ValueError, RuntimeError):
-            centers = None
-        if centers is None or centers.shape not in ((2,), (1, 2), (len(pose), 2)):
-            raise ValueError(f"center must be (row, col) or a ({len(pose)}, 2) tensor of them, got {center!r}")
-        centers = centers.reshape(-1, 2).expand(len(pose), 2)
+        if deprecated_local_shape is None:
+            height, width = check_image_shape("local_shape", local_shape)
+            position = pose[:, :2]
+        else:
+            warnings.warn(
+                "local_to_map(center, local_shape) is deprecated: Localization.pose is absolute now, call "
+                "local_to_map(local_shape)",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            height, width = check_image_shape("local_shape", deprecated_local_shape)
+            position = _center_xy(local_shape, len(pose), pose.device) + self.shift.double()
         angle = torch.deg2rad(-pose[:, 2])  # the search turns the captured image by -yaw
         cos, sin = angle.cos(), angle.sin()
         middle_x, middle_y = (width - 1) / 2, (height - 1) / 2
         # OpenCV/kornia rotation about the centre (source to destination), then the placement of the centre pixel.
-        shift_x = centers[:, 1] + pose[:, 0] - width // 2
-        shift_y = centers[:, 0] + pose[:, 1] - height // 2
+        shift_x = position[:, 0] - width // 2
+        shift_y = position[:, 1] - height // 2
         transform = torch.zeros(len(pose), 3, 3, dtype=torch.float64, device=pose.device)
         transform[:, 0, 0], transform[:, 0, 1] = cos, sin
         transform[:, 1, 0], transform[:, 1, 1] = -sin, cos
@@ -128,6 +152,17 @@ class Localization(NamedTuple):
         transform[:, 1, 2] = sin * middle_x + (1 - cos) * middle_y + shift_y
         transform[:, 2, 2] = 1
         return transform.to(self.pose.dtype)
+
+
+def _center_xy(center, batch: int, device: torch.device) -> Tensor:
+    """``(B, 2)`` float64 ``(x, y)`` of a former ``center=(row, col)`` (or ``(B, 2)`` rows of them)."""
+    try:
+        centers = torch.as_tensor(center, dtype=torch.float64, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        centers = None
+    if centers is None or centers.shape not in ((2,), (1, 2), (batch, 2)):
+        raise ValueError(f"center must be (row, col) or a ({batch}, 2) tensor of them, got {center!r}")
+    return centers.reshape(-1, 2).expand(batch, 2).flip(1)
 
 
 class NoCandidateError(ValueError):
@@ -169,11 +204,18 @@ _FIT = torch.linalg.pinv(_DESIGN)
 
 
 def read_peak(
-    surface: Tensor, yaws: Tensor, radius: tuple[int, int], exclusion_radius: int, finalists: Finalists | None = None
+    surface: Tensor,
+    yaws: Tensor,
+    radius: tuple[int, int],
+    exclusion_radius: int,
+    around: Tensor | None = None,
+    finalists: Finalists | None = None,
 ) -> Localization:
     """Best candidate, sub-cell quadratic fit, covariance and margin of ``(B, Y, Sy, Sx)`` surfaces.
 
-    The best candidate is the surface's maximum, or the chosen one of ``finalists`` (carried into the result).
+    ``around``: ``(B, 2)`` ``(x, y)`` map cells of the windows' middle cells (the pose is absolute); ``None``: the
+    origin (the pose is the shift). The best candidate is the surface's maximum, or the chosen one of ``finalists``
+    (carried into the result).
     """
     device, surface = surface.device, surface.cpu()
     batch, yaw_count, rows, cols = surface.shape
@@ -188,7 +230,7 @@ def read_peak(
     if bool(lost.any()):
         raise NoCandidateError(
             f"no candidate passes min_overlap in sample(s) {lost.nonzero()[:, 0].tolist()}: lower min_overlap, move "
-            "center, or check the masks"
+            "around, or check the masks"
         )
     poses, covariances, margins = [], [], []
     step = yaws[1:] - yaws[:-1]
@@ -211,13 +253,18 @@ def read_peak(
         ] = -math.inf
         runner_up = others.max()
         margins.append(best[sample] - runner_up if torch.isfinite(runner_up) else best.new_tensor(math.inf))
+    poses = torch.stack(poses)
+    if around is not None:
+        poses[:, :2] += around.cpu().double()  # in float64: a float32 map position keeps its sub-cell part
+        around = around.to(device, surface.dtype)
     return Localization(
-        torch.stack(poses).to(device, surface.dtype),
+        poses.to(device, surface.dtype),
         best.to(device),
         surface.to(device),
         torch.stack(covariances).to(device, surface.dtype),
         torch.stack(margins).to(device),
         yaws.to(device),
+        around,
         finalists,
     )
 

@@ -11,11 +11,12 @@ visited is a :class:`~enmi_torch.localization.strategy.SearchStrategy`, carried 
 Run ``enmi-localize --help`` (or ``python -m enmi_torch.cli.localize --help``) for the command-line tool.
 
 Convention:
-    Poses are in map cells and degrees. ``center = (row, col)`` is the map cell under the captured image's centre
-    pixel ``(h // 2, w // 2)`` at the prior pose; a pose ``(dx, dy, yaw)`` puts that pixel on map cell
-    ``(row + dy, col + dx)`` (``dx`` along columns, ``dy`` along rows) and says that the captured image is the map
-    section there rotated by ``yaw`` degrees about its centre, counter-clockwise as displayed (kornia's
-    :func:`~kornia.geometry.transform.rotate`, y axis down). Each yaw is searched by rotating the captured image, its
+    A pose is ``(x, y, yaw)`` in map cells and degrees, absolute, as everywhere in the library (:func:`register`,
+    :class:`~enmi_torch.Tracker`): ``x`` the map column and ``y`` the map row (down) under the captured image's
+    centre pixel ``(h // 2, w // 2)``, and the captured image is the map section there rotated by ``yaw`` degrees
+    about its centre, counter-clockwise as displayed (kornia's :func:`~kornia.geometry.transform.rotate`, y axis
+    down). The prior pose ``around = (x, y)`` is the map cell the search window is centred on; the result's
+    ``shift`` is the pose's move ``(dx, dy)`` from it. Each yaw is searched by rotating the captured image, its
     variance and its valid mask by ``-yaw`` (nearest neighbour by default; with ``resample="bilinear"`` a pixel
     stays valid only where all four of its neighbours are); corners that rotate out of the ``(h, w)`` frame are
     lost. Map cells outside the map are invalid. Searches run without gradient.
@@ -23,8 +24,11 @@ Convention:
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -48,6 +52,47 @@ from enmi_torch.variance.base import VarianceModel, call_variance, check_varianc
 MAX_YAW_DEG = 1e6  # a float32 yaw of 1e6 degrees is exact to 1/16 degree; 1e300 would read as inf
 
 
+def accept_center(function: Callable) -> Callable:
+    """``function`` that still takes ``center=(row, col)`` (deprecated: it warns) as ``around=(col, row)``."""
+
+    @functools.wraps(function)
+    def converted(*args: Any, **kwargs: Any) -> Any:
+        if "center" in kwargs:
+            center = kwargs.pop("center")
+            if kwargs.get("around") is not None:
+                raise TypeError(f"{function.__qualname__}() got center and around: pass around=(x, y) alone")
+            warnings.warn(
+                f"{function.__qualname__}(center=(row, col)) is deprecated and will be removed in the next release: "
+                "pass around=(x, y) = (col, row), e.g. around=(20, 10) for center=(10, 20); Localization.pose is "
+                "now the absolute (x, y, yaw) and Localization.shift the (dx, dy) from around",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            kwargs["around"] = None if center is None else _center_as_around(center)
+        return function(*args, **kwargs)
+
+    return converted
+
+
+def _center_as_around(center) -> tuple[int, int] | Tensor:
+    """A former ``center``: ``(row, col)`` integers or a ``(2,)`` or ``(B, 2)`` integer tensor, as ``(x, y)``."""
+    if isinstance(center, Tensor):
+        if center.is_floating_point() or center.is_complex() or center.ndim not in (1, 2) or center.shape[-1] != 2:
+            raise ValueError(
+                f"center must be (row, col) or an integer tensor of shape (2,) or (B, 2), got {center.dtype} "
+                f"{tuple(center.shape)}"
+            )
+        return center.flip(-1)
+    if (
+        not isinstance(center, (tuple, list))
+        or len(center) != 2
+        or not all(isinstance(value, int) and not isinstance(value, bool) for value in center)
+    ):
+        raise ValueError(f"center must be (row, col) integers or a (B, 2) integer tensor, got {center!r}")
+    return (center[1], center[0])
+
+
+@accept_center
 @refuse_moved_search_options
 def localize(
     captured: Tensor,
@@ -56,7 +101,7 @@ def localize(
     *,
     score: Score | str = "ecr",
     shifts: int | tuple[int, int] = 16,
-    center: tuple[int, int] | Tensor | None = None,
+    around: tuple[float, float] | Tensor | None = None,
     yaws: Sequence[float] | Tensor | None = None,
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
@@ -84,9 +129,12 @@ def localize(
             :class:`~enmi_torch.NCC`. Each candidate is scored by ``score.surface``.
         shifts: search radius in cells, ``r`` or ``(ry, rx)``: shifts ``dy`` in ``[-ry, ry]``, ``dx`` in
             ``[-rx, rx]``.
-        center: prior pose: map cell ``(row, col)`` under the captured centre pixel, or ``(B, 2)`` integers, one per
-            sample; ``None`` for the map's centre cell ``(Hm // 2, Wm // 2)``.
-        yaws: yaw angles to search, in degrees; ``None`` for ``[0]``.
+        around: the prior pose ``(x, y)``: the map column and row under the captured centre pixel, a pair of numbers
+            or a ``(2,)`` or ``(B, 2)`` tensor (one per sample), rounded to the nearest cell (the window's middle);
+            ``None`` for the map's centre cell ``(Wm // 2, Hm // 2)``. It takes no yaw: the ``yaws`` are absolute
+            (to search around a prior yaw ``a``, pass ``yaws=[a - 2, a, a + 2]``). ``center=(row, col)``, its former
+            spelling, still works for one release with a ``DeprecationWarning``: ``around=(col, row)``.
+        yaws: yaw angles to search, in degrees (absolute); ``None`` for ``[0]``.
         captured_mask: bool, broadcast like ``variance``: ``False`` pixels are unobserved.
         reference_mask: bool ``(Hm, Wm)``, ``(1, 1, Hm, Wm)`` or ``(B, 1, Hm, Wm)``: ``False`` cells are unmapped.
         min_overlap: in ``(0, 1]``: a candidate counts only if at least this fraction of the (rotated) captured image's
@@ -100,11 +148,13 @@ def localize(
             coarse to fine, or two stages with a cheap first stage: see there), or its method's name
             (``"exhaustive"``, ``"two_stage"``) for its default options.
         refine: move on from the best candidate to the continuous pose that maximises the score, by Gauss-Newton
-            (:func:`~enmi_torch.registration.register`, ECR or NCC): ``pose`` is then the refined pose; the surface,
-            score, covariance and margin stay those of the search.
+            (:func:`~enmi_torch.registration.register`, ECR or NCC, from ``pose``, as ``register(..., pose=pose)``
+            would): ``pose`` is then the refined pose; the surface, score, covariance and margin stay those of the
+            search.
 
     Returns:
-        :class:`Localization`.
+        :class:`Localization`: ``pose`` ``(B, 3)`` absolute ``(x, y, yaw)`` (pass it to :func:`register` or
+        :meth:`~enmi_torch.Tracker.start` unchanged), ``shift`` ``(B, 2)`` its move from ``around``.
 
     Raises:
         ValueError: on inconsistent shapes, empty masks, a captured image larger than the map, a variance given to
@@ -121,9 +171,9 @@ def localize(
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = torch.rand(1, 1, 48, 48, generator=generator) * 256
         >>> captured = reference[..., 14:30, 19:35] + 8 * torch.randn(1, 1, 16, 16, generator=generator)
-        >>> result = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=6)
-        >>> result.pose.round().tolist(), result.surface.shape
-        ([[3.0, -2.0, 0.0]], torch.Size([1, 1, 13, 13]))
+        >>> result = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=6, around=(24, 24))
+        >>> result.pose.round().tolist(), result.shift.round().tolist(), result.surface.shape  # column 27, row 22
+        ([[27.0, 22.0, 0.0]], [[3.0, -2.0]], torch.Size([1, 1, 13, 13]))
     """
     score = as_score(score)
     check_bool("refine", refine)
@@ -131,7 +181,7 @@ def localize(
     check_same_device("reference", reference, "captured", captured)
     batch = check_captured_in_reference(captured, reference, "Hm, Wm")[0]
     radius = check_shifts(shifts)
-    centers = _check_center(center, batch, tuple(reference.shape[2:]), captured.device)
+    centers, around = _check_around(around, batch, tuple(reference.shape[2:]), captured.device)
     yaw_list = _check_yaws(yaws)
     _check_search_settings(min_overlap, exclusion_radius)
     strategy = as_search_strategy(search)
@@ -150,38 +200,37 @@ def localize(
             finalists = candidates.finalists(surface, strategy.finalists)
         try:
             yaw_tensor = torch.tensor(yaw_list, dtype=surface.dtype)
-            found = read_peak(surface, yaw_tensor, radius, exclusion_radius, finalists)
+            found = read_peak(surface, yaw_tensor, radius, exclusion_radius, around, finalists)
         except NoCandidateError as error:
             off_map = _windows_off_map(centers, radius, tuple(captured.shape[2:]), tuple(reference.shape[2:]))
             if off_map:
                 raise NoCandidateError(
-                    f"the search window lies off the map in sample(s) {off_map}: every candidate of center "
-                    f"{centers[off_map[0]].tolist()} with shifts {radius} places captured {tuple(captured.shape[2:])} "
-                    f"outside the {tuple(reference.shape[2:])} map; move center onto the map"
+                    f"the search window lies off the map in sample(s) {off_map}: every candidate around (x, y) = "
+                    f"{centers[off_map[0]].flip(0).tolist()} with shifts {radius} places captured "
+                    f"{tuple(captured.shape[2:])} outside the {tuple(reference.shape[2:])} map (rows, columns); move "
+                    "around onto the map"
                 ) from None
             raise error from None
     if not refine:
         return found
-    return _refined(found, captured, reference, variance, score, centers, captured_mask, reference_mask)
+    return _refined(found, captured, reference, variance, score, captured_mask, reference_mask)
 
 
-def _refined(found: Localization, captured, reference, variance, score, centers, captured_mask, reference_mask):
-    """``found`` with its pose moved on by :func:`~enmi_torch.registration.register` (absolute poses meanwhile)."""
-    offset = torch.stack([centers[:, 1], centers[:, 0], torch.zeros_like(centers[:, 0])], 1).to(torch.float64)
+def _refined(found: Localization, captured, reference, variance, score, captured_mask, reference_mask):
+    """``found`` with its pose moved on by :func:`~enmi_torch.registration.register`, from that pose as it is."""
     if reference_mask is not None and reference_mask.ndim == 2:
         reference_mask = reference_mask[None, None]
-    start = found.pose.double() + offset.to(found.pose.device)
     refined = register(
         captured,
         reference,
         variance,
-        pose=start,
+        pose=found.pose.double(),
         score=score,
         captured_mask=captured_mask,
         reference_mask=reference_mask,
         margin=1.0,  # the search scored the neighbouring cells: the continuous optimum lies within one of its best
     )
-    return found._replace(pose=(refined.pose.double() - offset).to(found.pose.dtype))
+    return found._replace(pose=refined.pose.to(found.pose.dtype))
 
 
 def _check_search_settings(min_overlap: float, exclusion_radius: int) -> None:
@@ -220,8 +269,8 @@ class Localizer(nn.Module):
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = torch.rand(1, 1, 40, 40, generator=generator) * 256
         >>> localizer = Localizer(ConstantVariance(16.0), score=ECR(bins=16), shifts=5)
-        >>> localizer(reference[..., 15:31, 14:30], reference).pose.round().tolist()
-        [[2.0, 3.0, 0.0]]
+        >>> localizer(reference[..., 15:31, 14:30], reference).pose.round().tolist()  # column 22, row 23
+        [[22.0, 23.0, 0.0]]
     """
 
     @refuse_moved_search_options
@@ -251,24 +300,28 @@ class Localizer(nn.Module):
         _check_search_settings(min_overlap, exclusion_radius)
         _check_strategy_fits_score(self.options["search"], self.score)
 
+    @accept_center
     def forward(
         self,
         captured: Tensor,
         reference: Tensor,
         variance: Tensor | float | None = None,
         *,
-        center: tuple[int, int] | Tensor | None = None,
+        around: tuple[float, float] | Tensor | None = None,
         captured_mask: Tensor | None = None,
         reference_mask: Tensor | None = None,
     ) -> Localization:
-        """Localize ``captured`` ``(B, 1, h, w)`` in ``reference``; ``variance`` per call unless a model is stored."""
+        """Localize ``captured`` ``(B, 1, h, w)`` in ``reference`` around the prior ``(x, y)`` (see :func:`localize`).
+
+        ``variance`` per call unless a model is stored; ``center=(row, col)`` is deprecated as in :func:`localize`.
+        """
         return localize(
             captured,
             reference,
             call_variance("Localizer", variance, self.variance_model),
             score=self.score,
             shifts=self.shifts,
-            center=center,
+            around=around,
             yaws=self.yaws.tolist(),
             captured_mask=captured_mask,
             reference_mask=reference_mask,
@@ -306,21 +359,37 @@ def _check_yaws(yaws) -> list[float]:
     return [float(value) for value in values]
 
 
-def _check_center(center, batch: int, map_shape: tuple[int, int], device: torch.device) -> Tensor:
-    """``(B, 2)`` int64 map cells of the captured centre at the prior pose."""
-    if center is None:
-        return torch.tensor([[map_shape[0] // 2, map_shape[1] // 2]], device=device).expand(batch, 2)
-    if isinstance(center, Tensor):
-        if center.is_floating_point() or center.is_complex() or center.shape not in ((2,), (batch, 2)):
+def _check_around(around, batch: int, map_shape: tuple[int, int], device: torch.device) -> tuple[Tensor, Tensor]:
+    """``(B, 2)`` int64 ``(row, col)`` window middles and ``(B, 2)`` float64 ``(x, y)`` of the prior pose ``around``.
+
+    ``around`` is ``(x, y)`` (numbers, rounded to the nearest cell), a ``(2,)`` or ``(B, 2)`` real tensor, or
+    ``None`` (the map's centre cell).
+    """
+    if around is None:
+        values = torch.tensor([[map_shape[1] // 2, map_shape[0] // 2]], dtype=torch.float64, device=device)
+    elif isinstance(around, Tensor):
+        if around.is_complex() or around.dtype == torch.bool or around.shape not in ((2,), (batch, 2)):
+            extra = " (a pose's yaw is not taken: pass pose[:, :2], and the yaws to search as yaws)"
             raise ValueError(
-                f"center must be (row, col) or an integer tensor of shape (2,) or ({batch}, 2), got "
-                f"{center.dtype} {tuple(center.shape)}"
+                f"around must be (x, y) or a real tensor of shape (2,) or ({batch}, 2), got {around.dtype} "
+                f"{tuple(around.shape)}" + (extra if around.shape[-1:] == (3,) else "")
             )
-        return center.to(device=device, dtype=torch.int64).reshape(-1, 2).expand(batch, 2)
-    if (
-        not isinstance(center, (tuple, list))
-        or len(center) != 2
-        or not all(isinstance(value, int) and not isinstance(value, bool) for value in center)
+        values = around.detach().to(device=device, dtype=torch.float64).reshape(-1, 2)
+    elif (
+        isinstance(around, (tuple, list))
+        and len(around) == 2
+        and all(isinstance(value, (int, float)) and not isinstance(value, bool) for value in around)
     ):
-        raise ValueError(f"center must be (row, col) integers or a (B, 2) integer tensor, got {center!r}")
-    return torch.tensor([list(center)], device=device).expand(batch, 2)
+        values = torch.tensor([list(around)], dtype=torch.float64, device=device)
+    else:
+        extra = ""
+        if isinstance(around, (tuple, list)) and len(around) == 3:
+            extra = " (a pose's yaw is not taken: pass (x, y), and the yaws to search as yaws)"
+        raise ValueError(f"around must be (x, y) numbers or a (B, 2) tensor, got {around!r}{extra}")
+    if not bool(torch.isfinite(values).all()) or bool((values.abs() > MAX_CELL).any()):
+        raise ValueError(f"around must be finite map cells (x, y) within +-{MAX_CELL:g}, got {around!r}")
+    around_xy = values.round().expand(batch, 2)
+    return around_xy.flip(1).long(), around_xy
+
+
+MAX_CELL = 2.0**52  # a float64 map cell beyond this has no integer neighbour to round to

@@ -32,10 +32,9 @@ Example:
     ...     window = source.window(around=(500110.0, 5399931.0), radius=(20.0, 16.0))  # prior 2 m off; metres
     ...     print(source.to_world((224, 136)).tolist())  # the truth, in metres
     [500112.25, 5399931.75]
-    >>> found = localize(captured, window.image, 64.0, shifts=10, center=window.center[::-1],
+    >>> found = localize(captured, window.image, 64.0, shifts=10, around=window.center,
     ...                  reference_mask=window.valid_mask)  # the search sees a tensor in cells
-    >>> pose = [window.center[0] + found.dx.item(), window.center[1] + found.dy.item(), found.yaw.item()]
-    >>> window.to_world(pose).round(decimals=2).tolist()  # window cells (x, y, yaw) to metres and heading
+    >>> window.to_world(found.pose[0]).round(decimals=2).tolist()  # window cells (x, y, yaw) to metres and heading
     [500112.25, 5399931.75, 0.0]
 """
 

@@ -26,9 +26,10 @@ invalid map cell do not count, nor do the captured image's invalid pixels; the s
 refinement of that image (``Registration.converged`` is ``False``).
 
 Convention:
-    A pose is ``(x, y, yaw)`` as in :mod:`enmi_torch.tracking`: ``x`` (column) and ``y`` (row) the map cell under the
-    captured image's pixel ``(h // 2, w // 2)``, ``yaw`` in degrees, counter-clockwise as displayed; the captured
-    pixel ``(u, v)`` shows the map at :meth:`~enmi_torch.Localization.local_to_map` of that pose.
+    A pose is ``(x, y, yaw)`` as everywhere in the library: ``x`` (column) and ``y`` (row, down) the map position of
+    the captured image's pixel ``(h // 2, w // 2)``, absolute; ``yaw`` in degrees, counter-clockwise as displayed:
+    :func:`~enmi_torch.localize`'s ``pose`` and what :meth:`~enmi_torch.Tracker.start` takes. The captured pixel
+    ``(u, v)`` shows the map at :meth:`~enmi_torch.Localization.local_to_map` of that pose.
 """
 
 from __future__ import annotations
@@ -316,7 +317,8 @@ def register(
         reference: ``(1 or B, 1, Hm, Wm)`` the map (one for all, or one per image).
         variance: the captured images' noise variance for ECR (a number, ``(h, w)``, ``(1 or B, 1, h, w)`` or a
             :class:`~enmi_torch.variance.VarianceModel`); ``None`` for NCC.
-        pose: ``(B, 3)`` starting ``(x, y, yaw)``, e.g. :func:`localize`'s ``center + (dx, dy)`` and ``yaw``.
+        pose: ``(B, 3)`` starting ``(x, y, yaw)``, absolute in the map (the module's convention), e.g.
+            :func:`~enmi_torch.localize`'s ``pose`` unchanged.
         score: :class:`~enmi_torch.ECR` (its bins, value range, model variance and response) or
             :class:`~enmi_torch.NCC`, or the name of either.
         captured_mask: bool like ``variance``: ``False`` pixels do not count.
@@ -343,7 +345,7 @@ def register(
         >>> reference = F.avg_pool2d(torch.rand(1, 1, 80, 80, generator=generator, dtype=torch.float64), 3, 1) * 255
         >>> truth = torch.tensor([[39.3, 40.6, 2.5]], dtype=torch.float64)
         >>> captured = warp_reference(reference, truth, (32, 32))[0]
-        >>> start = torch.tensor([[39.0, 41.0, 2.0]], dtype=torch.float64)  # e.g. localize's integer peak
+        >>> start = torch.tensor([[39.0, 41.0, 2.0]], dtype=torch.float64)  # e.g. localize's pose
         >>> found = register(captured, reference, 1.0, pose=start, score=ECR(bins=16))
         >>> found.pose.round(decimals=3).tolist(), bool(found.converged)
         ([[39.3, 40.6, 2.5]], True)

@@ -13,8 +13,8 @@ predicted pose: the same ``(Y, 2 ry + 1, 2 rx + 1)`` grid as a :func:`~enmi_torc
 Convention:
     A pose is ``(x, y, yaw)``: ``x`` (column) and ``y`` (row) the map cell under the captured image's centre pixel
     ``(h // 2, w // 2)``, in cells, and ``yaw`` in degrees: the captured image is the map section there rotated by
-    ``yaw`` counter-clockwise as displayed, as in :func:`~enmi_torch.localize` with ``center = (y, x)``
-    rounded and ``pose`` the rest (:meth:`~enmi_torch.Localization.local_to_map` gives the transform).
+    ``yaw`` counter-clockwise as displayed: the pose :func:`~enmi_torch.localize` returns
+    (:meth:`~enmi_torch.Localization.local_to_map` gives the transform).
     Odometry is ``(du, dv, dyaw)``: the move of the captured image's centre along its own columns (``du``) and rows
     (``dv``), in cells, and the change of yaw in degrees, from the previous frame to this one; on the map the move
     is ``(dx, dy) = (cos a du + sin a dv, -sin a du + cos a dv)`` with ``a = -yaw`` (the linear part of

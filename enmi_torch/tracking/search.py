@@ -55,13 +55,13 @@ class FrameSearch:
         return values
 
     def _localize(self, vehicle: int, center: Tensor, yaws: list[float], shifts: int | tuple[int, int], **options):
-        """The one call of :func:`~enmi_torch.localize` (its mask keyword in one place)."""
+        """The one call of :func:`~enmi_torch.localize` around the belief's ``center`` ``(row, col)``."""
         return localize(
             self.captured[vehicle : vehicle + 1],
             self.reference,
             self._per_vehicle(self.variance, slice(vehicle, vehicle + 1)),
             shifts=shifts,
-            center=center.reshape(1, 2),
+            around=center.reshape(1, 2).flip(1),
             yaws=yaws,
             captured_mask=self._per_vehicle(self.mask, slice(vehicle, vehicle + 1)),
             score=self.score,
@@ -134,6 +134,4 @@ class FrameSearch:
             )
         except NoCandidateError:
             return None
-        pose = found.pose[0].double()
-        center = belief.center[vehicle].double()
-        return torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]])
+        return found.pose[0].double()

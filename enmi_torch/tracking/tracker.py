@@ -103,7 +103,11 @@ class Tracker(nn.Module):
         self.health: Health | None = None
 
     def start(self, pose: Tensor, std: tuple[float, float, float] | None = None) -> None:
-        """Start (or restart) the filter at ``(B, 3)`` poses ``(x, y, yaw)``: a flat or Gaussian belief."""
+        """Start (or restart) the filter at ``(B, 3)`` poses ``(x, y, yaw)``: a flat or Gaussian belief.
+
+        The pose is absolute in the map (x the column, y the row, yaw in degrees), as :func:`~enmi_torch.localize`
+        returns it (``tracker.start(localize(...).pose)``) and :func:`~enmi_torch.register` takes it.
+        """
         self.belief = initial_belief(pose, shifts=self.shifts, yaw_bins=self.yaw_bins, yaw_step=self.yaw_step, std=std)
         self.health = None
 

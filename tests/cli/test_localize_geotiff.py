@@ -17,7 +17,7 @@ from enmi_torch.registration import warp_reference
 
 ROOT = Path(__file__).resolve().parents[2]
 TRUTH = (170, 64)  # map cell (x, y) of the local image's centre pixel: x the column, y the row
-KEYS = ["dx", "dy", "yaw_deg", "row", "col", "score", "margin", "world_x", "world_y", "world_yaw_deg", "crs"]
+KEYS = ["x", "y", "yaw_deg", "dx", "dy", "row", "col", "score", "margin", "world_x", "world_y", "world_yaw_deg", "crs"]
 
 
 def _files(tmp_path: Path, name: str, yaw: float = 0.0) -> tuple[list[str], tuple[float, float]]:
@@ -57,13 +57,13 @@ def test_the_search_reads_only_its_window_and_finds_what_the_whole_array_gives(t
 
     monkeypatch.setattr(DatasetReader, "read", recorded)
     for options in (["--shifts", "9", "7"], ["--shifts", "12", "--coarse-factor", "4"]):
-        geo = _command([*files, "--center", "60", "166", *options])
+        geo = _command([*files, "--around", "166", "60", *options])
         assert len(reads) == 1
         rows, cols = reads.pop()
         radius_y, radius_x = int(options[1]), int(options[-1] if len(options) == 3 else options[1])
         needed = (2 * (radius_y + 16) + 1, 2 * (radius_x + 20) + 1)  # every shift with the 32 x 40 image
         assert needed[0] <= rows <= needed[0] + 2 + 2 * 4 and needed[1] <= cols <= needed[1] + 2 + 2 * 4
-        whole = _command(["--map", str(tmp_path / "map.npy"), *files[2:], "--center", "60", "166", *options])
+        whole = _command(["--map", str(tmp_path / "map.npy"), *files[2:], "--around", "166", "60", *options])
         assert {key: geo[key] for key in whole} == whole  # the same pose, score and margin as on the whole map
     capsys.readouterr()
 
@@ -71,7 +71,7 @@ def test_the_search_reads_only_its_window_and_finds_what_the_whole_array_gives(t
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [
-        (["--prior-world", "1", "2", "--center", "5", "5"], r"give the prior as --center ROW COL \(map cells\) or as"),
+        (["--prior-world", "1", "2", "--around", "5", "5"], r"give the prior as --around X Y \(map cells\) or as"),
         (["--map-mask", "mask.npy"], "--map-mask is for .npy and .png maps; a GeoTIFF marks its own invalid cells"),
         (["--band", "2"], r"band must be a band number from 1 to 1 of --map '.*rotated\.tif', got 2"),
         (
@@ -113,8 +113,8 @@ def test_a_prior_in_world_coordinates_on_a_tiff_without_georeferencing_is_refuse
         main([*files, "--prior-world", "10", "20"])
     error = capsys.readouterr().err
     assert exit_info.value.code == 2 and "--prior-world needs a georeferenced map" in error
-    report = _command([*files, "--center", "26", "30", "--shifts", "4"])  # in cells it works, without world keys
-    assert list(report) == KEYS[:7] and (report["row"], report["col"]) == pytest.approx((26.0, 30.0), abs=0.1)
+    report = _command([*files, "--around", "30", "26", "--shifts", "4"])  # in cells it works, without world keys
+    assert list(report) == KEYS[:9] and (report["row"], report["col"]) == pytest.approx((26.0, 30.0), abs=0.1)
     capsys.readouterr()
 
 

@@ -84,7 +84,23 @@ def test_a_peak_on_the_left_or_right_edge_has_no_fit(col):
 
 def test_local_to_map_names_a_wrong_center_or_shape():
     result = Localization(torch.tensor([[2.0, -1.0, 90.0]]), *(torch.zeros(1),) * 5)
-    with pytest.raises(ValueError, match=r"center must be \(row, col\) or a \(1, 2\) tensor of them, got \(5,\)"):
-        result.local_to_map((5,), (5, 5))
     with pytest.raises(ValueError, match=r"local_shape must be \(H, W\), two positive ints, got \(5,\)"):
+        result.local_to_map((5,))
+    with pytest.warns(DeprecationWarning, match="local_to_map"), pytest.raises(ValueError, match=r"center must be"):
+        result.local_to_map((5,), (5, 5))  # the former call, (center, local_shape)
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match=r"local_shape must be \(H, W\)"):
         result.local_to_map((10, 20), (5,))
+
+
+def test_the_shift_is_the_pose_less_the_cell_searched_around_and_the_former_call_adds_it_to_center():
+    # Mutations killed: shift as around - pose; the former local_to_map(center, shape) reading center as (x, y).
+    pose = torch.tensor([[32.5, 17.25, 10.0], [5.0, 6.0, -3.0]], dtype=torch.float64)
+    around = torch.tensor([[30.0, 20.0], [4.0, 9.0]], dtype=torch.float64)
+    result = Localization(pose, *(torch.zeros(2),) * 5, around)
+    assert result.shift.tolist() == [[2.5, -2.75], [1.0, -3.0]]
+    assert result.dx.tolist() == [2.5, 1.0] and result.dy.tolist() == [-2.75, -3.0]
+    assert Localization(pose, *(torch.zeros(2),) * 5).shift.tolist() == pose[:, :2].tolist()  # no around: origin
+    with pytest.warns(DeprecationWarning):
+        # Former code: the centre (row, col) it searched around plus the relative pose (now the shift).
+        former = result.local_to_map(torch.tensor([[20, 30], [9, 4]]), (6, 8))
+    torch.testing.assert_close(former, result.local_to_map((6, 8)))

@@ -54,14 +54,15 @@ def test_known_shifts_are_found_exactly_at_low_noise(gravel_map, dtype, metric):
     truths = [(3, -5), (-7, 0), (6, 6)]
     local = torch.cat([_noisy(_cut(prior_map, 80 + dy, 80 + dx), 2.0, seed) for seed, (dx, dy) in enumerate(truths)])
     variance = 4.0 if metric in ("ecr", "enmi") else None
-    result = localize(local, prior_map, variance, shifts=8, center=(80, 80), score=metric)
+    result = localize(local, prior_map, variance, shifts=8, around=(80, 80), score=metric)
     assert isinstance(result, Localization)
     assert result.surface.shape == (3, 1, 17, 17)
     assert result.pose.dtype == dtype
     for sample, (dx, dy) in enumerate(truths):
         grid_peak = divmod(int(result.surface[sample, 0].flatten().argmax()), 17)
         assert grid_peak == (dy + 8, dx + 8)
-        assert result.pose[sample, :2].tolist() == pytest.approx([dx, dy], abs=0.25)
+        assert result.shift[sample].tolist() == pytest.approx([dx, dy], abs=0.25)
+        assert result.pose[sample].tolist() == pytest.approx([80 + dx, 80 + dy, 0.0], abs=0.25)  # absolute
         assert result.pose[sample, 2].item() == 0.0
         assert result.margin[sample] > 0
         assert torch.isfinite(result.covariance[sample]).all()
@@ -69,9 +70,10 @@ def test_known_shifts_are_found_exactly_at_low_noise(gravel_map, dtype, metric):
 
 def test_yaw_is_recovered_on_a_rotated_crop(gravel_map):
     local = _noisy(_cut(gravel_map, 84, 77, size=40, yaw=7.0), 2.0)
-    result = localize(local, gravel_map, 4.0, shifts=6, center=(80, 80), yaws=range(-12, 13, 3), score=ECR(bins=32))
-    dx, dy, yaw = result.pose[0].tolist()
-    assert (round(dx), round(dy)) == (-3, 4)
+    result = localize(local, gravel_map, 4.0, shifts=6, around=(80, 80), yaws=range(-12, 13, 3), score=ECR(bins=32))
+    x, y, yaw = result.pose[0].tolist()
+    assert (round(x), round(y)) == (77, 84)
+    assert result.shift[0].round().tolist() == [-3.0, 4.0]
     assert abs(yaw - 7.0) <= 1.0
     profile = result.surface[0].flatten(1).amax(1)
     assert result.yaws[int(profile.argmax())].item() in (6.0, 9.0)
@@ -80,28 +82,29 @@ def test_yaw_is_recovered_on_a_rotated_crop(gravel_map):
 def test_batched_search_over_several_maps_and_centres_equals_single_searches(gravel_map):
     maps = torch.cat([gravel_map, gravel_map.flip(-1)])
     local = torch.cat([_cut(maps[:1], 70, 90), _cut(maps[1:], 95, 60)])
-    centers = torch.tensor([[72, 88], [92, 63]])
-    batched = localize(local, maps, 9.0, shifts=5, center=centers, yaws=[-2.0, 0.0, 2.0], score=ECR(bins=16))
+    around = torch.tensor([[88, 72], [63, 92]])  # (x, y)
+    batched = localize(local, maps, 9.0, shifts=5, around=around, yaws=[-2.0, 0.0, 2.0], score=ECR(bins=16))
     for sample in range(2):
         single = localize(
             local[sample : sample + 1],
             maps[sample : sample + 1],
             9.0,
             shifts=5,
-            center=tuple(centers[sample].tolist()),
+            around=tuple(around[sample].tolist()),
             yaws=[-2.0, 0.0, 2.0],
             score=ECR(bins=16),
         )
         torch.testing.assert_close(batched.surface[sample], single.surface[0])
         torch.testing.assert_close(batched.pose[sample], single.pose[0])
-    assert batched.pose[:, :2].round().tolist() == [[2.0, -2.0], [-3.0, 3.0]]
+    assert batched.shift.round().tolist() == [[2.0, -2.0], [-3.0, 3.0]]
+    assert batched.pose[:, :2].round().tolist() == [[90.0, 70.0], [60.0, 95.0]]
 
 
 def test_surface_at_yaw_zero_equals_the_direct_loop_over_the_window(gravel_map):
     local = _noisy(_cut(gravel_map, 80, 80, size=12), 4.0)
     variance = torch.linspace(4, 40, 144, dtype=torch.float64).reshape(1, 1, 12, 12)
     score = ENMI(bins=16)
-    result = localize(local, gravel_map, variance, shifts=3, center=(81, 79), min_overlap=0.1, score=score)
+    result = localize(local, gravel_map, variance, shifts=3, around=(79, 81), min_overlap=0.1, score=score)
     window = gravel_map[..., 81 - 6 - 3 : 81 - 6 + 12 + 3, 79 - 6 - 3 : 79 - 6 + 12 + 3]
     expected = direct_surface(score, local, window, variance)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
@@ -112,27 +115,27 @@ def test_min_overlap_excludes_candidates_with_too_little_valid_overlap(gravel_ma
     reference_mask = torch.ones(160, 160, dtype=torch.bool)
     reference_mask[:, :70] = False
     result = localize(
-        local, gravel_map, 9.0, shifts=8, center=(80, 80), reference_mask=reference_mask, min_overlap=0.75
+        local, gravel_map, 9.0, shifts=8, around=(80, 80), reference_mask=reference_mask, min_overlap=0.75
     )
     # Local columns 64 + dx .. 95 + dx; valid map columns >= 70: overlap fraction (96 + dx - 70) / 32 >= 0.75.
     allowed_dx = [dx for dx in range(-8, 9) if (96 + dx - 70) / 32 >= 0.75]
     finite = torch.isfinite(result.surface[0, 0])
     assert finite.any(0).tolist() == [dx in allowed_dx for dx in range(-8, 9)]
     assert finite.all(0).tolist() == finite.any(0).tolist()
-    assert result.pose[0, :2].round().tolist() == [0.0, 0.0]
+    assert result.pose[0, :2].round().tolist() == [80.0, 80.0]
     with pytest.raises(ValueError, match=r"no candidate passes min_overlap in sample\(s\) \[0\]"):
         localize(
-            local, gravel_map, 9.0, shifts=(2, 8), center=(80, 60), reference_mask=reference_mask, min_overlap=0.75
+            local, gravel_map, 9.0, shifts=(2, 8), around=(60, 80), reference_mask=reference_mask, min_overlap=0.75
         )
 
 
 def test_candidates_off_the_map_are_scored_on_their_overlap(gravel_map):
     local = _cut(gravel_map, 20, 20)
-    result = localize(local, gravel_map, 4.0, shifts=8, center=(16, 16), min_overlap=0.5)
-    assert result.pose[0, :2].round().tolist() == [4.0, 4.0]
+    result = localize(local, gravel_map, 4.0, shifts=8, around=(16, 16), min_overlap=0.5)
+    assert result.pose[0, :2].round().tolist() == [20.0, 20.0]
     # Shifting up/left by 8 leaves (32 - 4)^2 / 32^2 of the image on the map (centre 16 - 8 = 8: rows 8-16 .. 23).
     assert torch.isfinite(result.surface[0, 0, 0, 0])
-    tight = localize(local, gravel_map, 4.0, shifts=8, center=(16, 16), min_overlap=1.0)
+    tight = localize(local, gravel_map, 4.0, shifts=8, around=(16, 16), min_overlap=1.0)
     assert not torch.isfinite(tight.surface[0, 0, 0, 0])
     assert torch.isfinite(tight.surface[0, 0, 8:, 8:]).all()
 
@@ -144,19 +147,19 @@ def test_fractional_shift_is_refined_below_one_cell():
     shifted = 128 + 60 * torch.sin((rows + 0.3) / 5.0) * torch.cos((cols - 0.4) / 7.0)
     shifted = (shifted + 40 * torch.sin((rows + cols - 0.1) / 11.0)).double().reshape(1, 1, 96, 96)
     local = shifted[..., 32:64, 32:64]
-    result = localize(local, smooth, score="ncc", shifts=4, center=(48, 48))
-    assert result.pose[0, :2].tolist() == pytest.approx([-0.4, 0.3], abs=0.1)
+    result = localize(local, smooth, score="ncc", shifts=4, around=(48, 48))
+    assert result.shift[0].tolist() == pytest.approx([-0.4, 0.3], abs=0.1)
 
 
 def test_margin_is_the_gap_to_the_best_candidate_outside_the_exclusion_zone(gravel_map):
     local = _noisy(_cut(gravel_map, 80, 80), 8.0)
-    result = localize(local, gravel_map, 64.0, shifts=8, center=(80, 80), yaws=[-3.0, 0.0, 3.0], exclusion_radius=2)
+    result = localize(local, gravel_map, 64.0, shifts=8, around=(80, 80), yaws=[-3.0, 0.0, 3.0], exclusion_radius=2)
     best_over_yaws = result.surface[0].amax(0)
     row, col = divmod(int(best_over_yaws.argmax()), 17)
     outside = best_over_yaws.clone()
     outside[row - 2 : row + 3, col - 2 : col + 3] = -math.inf
     assert result.margin[0].item() == pytest.approx((best_over_yaws.max() - outside.max()).item())
-    whole = localize(local, gravel_map, 64.0, shifts=2, center=(80, 80), exclusion_radius=2)
+    whole = localize(local, gravel_map, 64.0, shifts=2, around=(80, 80), exclusion_radius=2)
     assert whole.margin[0].item() == math.inf
 
 
@@ -166,7 +169,7 @@ def test_brick_is_more_ambiguous_than_gravel():
     margins = []
     for prior_map in (brick, gravel):
         local = _noisy(_cut(prior_map, 80, 80), 20.0)
-        margins.append(localize(local, prior_map, 400.0, shifts=16, center=(80, 80), score=ECR(bins=16)).margin[0])
+        margins.append(localize(local, prior_map, 400.0, shifts=16, around=(80, 80), score=ECR(bins=16)).margin[0])
     assert margins[0] < margins[1]
 
 
@@ -176,10 +179,10 @@ def test_coarse_to_fine_finds_the_exhaustive_pose(gravel_map, model_variance):
     # With a fixed tau^2, a fixed delta^2 too: both estimates are read in each fine window.
     response_variance = 30.0 if model_variance is None else "estimate"
     score = ECR(bins=16, model_variance=model_variance, response_variance=response_variance)
-    options = {"shifts": 16, "center": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": score}
+    options = {"shifts": 16, "around": (80, 80), "yaws": [0.0, 3.0, 6.0], "score": score}
     exhaustive = localize(local, gravel_map, 9.0, **options)
     coarse = localize(local, gravel_map, 9.0, search=SearchStrategy(coarse_factor=4), **options)
-    assert coarse.pose[0].round().tolist() == exhaustive.pose[0].round().tolist() == [-14.0, 11.0, 3.0]
+    assert coarse.pose[0].round().tolist() == exhaustive.pose[0].round().tolist() == [66.0, 91.0, 3.0]
     evaluated = torch.isfinite(coarse.surface)
     assert 0 < evaluated.sum() < evaluated.numel() / 3
     if model_variance is None:
@@ -199,10 +202,10 @@ def test_variance_model_and_its_valid_mask_are_used(gravel_map):
 
     local = _cut(gravel_map, 83, 78)
     disc = DiscVariance()
-    modelled = localize(local, gravel_map, disc, shifts=5, center=(80, 80))
-    explicit = localize(local, gravel_map, 9.0, shifts=5, center=(80, 80), captured_mask=disc.valid_mask(local))
+    modelled = localize(local, gravel_map, disc, shifts=5, around=(80, 80))
+    explicit = localize(local, gravel_map, 9.0, shifts=5, around=(80, 80), captured_mask=disc.valid_mask(local))
     torch.testing.assert_close(modelled.surface, explicit.surface)
-    constant = localize(local, gravel_map, ConstantVariance(9.0), shifts=5, center=(80, 80))
+    constant = localize(local, gravel_map, ConstantVariance(9.0), shifts=5, around=(80, 80))
     assert not torch.equal(constant.surface, modelled.surface)
 
 
@@ -229,13 +232,15 @@ def test_command_line_prints_the_pose_and_writes_the_surface(gravel_map, tmp_pat
     np.save(tmp_path / "mask.npy", mask)
     output = tmp_path / "surface.png"
     arguments = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.png"), "--variance", "4"]
-    arguments += ["--local-mask", str(tmp_path / "mask.npy"), "--shifts", "10", "--center", "80", "80"]
+    arguments += ["--local-mask", str(tmp_path / "mask.npy"), "--shifts", "10", "--around", "80", "80"]
     arguments += ["--yaws", "-8:0:2", "--output", str(output)]  # a negative value after a space is a value
     report = _command(arguments)
     printed = json.loads(capsys.readouterr().out.splitlines()[0])
-    assert printed == report and list(report) == ["dx", "dy", "yaw_deg", "row", "col", "score", "margin"]
-    assert (round(report["dx"]), round(report["dy"])) == (-7, 4)
-    assert (report["row"], report["col"]) == (80 + report["dy"], 80 + report["dx"])
+    keys = ["x", "y", "yaw_deg", "dx", "dy", "row", "col", "score", "margin"]
+    assert printed == report and list(report) == keys
+    assert (round(report["x"]), round(report["y"])) == (73, 84)  # the pose: column, row
+    assert (round(report["dx"]), round(report["dy"])) == (-7, 4)  # its shift from --around
+    assert (report["row"], report["col"]) == (report["y"], report["x"])
     assert abs(report["yaw_deg"] + 4.0) <= 1.0
     assert output.stat().st_size > 1000
 
@@ -316,8 +321,10 @@ def _invalid_localize_cases(gravel_map):
         ({"shifts": (2, 2.5)}, ValueError, "shifts must be an int >= 0"),
         ({"yaws": []}, ValueError, "yaws must be a non-empty sequence"),
         ({"yaws": [0.0, math.nan]}, ValueError, "yaws must be a non-empty sequence"),
-        ({"center": (80.5, 80)}, ValueError, r"center must be \(row, col\) integers"),
-        ({"center": torch.tensor([[80.0, 80.0]])}, ValueError, "center must be"),
+        ({"around": (80.0, math.nan)}, ValueError, r"around must be finite map cells \(x, y\)"),
+        ({"around": (80, 80, 0.0)}, ValueError, r"around must be \(x, y\) numbers .*a pose's yaw is not taken"),
+        ({"around": torch.zeros(1, 3)}, ValueError, r"around must be \(x, y\) or a real tensor .*float32 \(1, 3\)"),
+        ({"around": "80, 80"}, ValueError, r"around must be \(x, y\) numbers or a \(B, 2\) tensor, got '80, 80'"),
         ({"min_overlap": 0.0}, ValueError, r"min_overlap must be a fraction in \(0, 1\]"),
         ({"exclusion_radius": -2}, ValueError, "exclusion_radius must be an int >= 0"),
         ({"search": lambda: SearchStrategy(coarse_factor=0)}, ValueError, "coarse_factor must be an int >= 1"),
@@ -351,7 +358,7 @@ def _invalid_localize_cases(gravel_map):
     ], local
 
 
-@pytest.mark.parametrize("index", range(37))
+@pytest.mark.parametrize("index", range(39))
 def test_invalid_inputs_raise_clear_errors(gravel_map, index):
     cases, local = _invalid_localize_cases(gravel_map)
     change, error, message = cases[index]
@@ -372,9 +379,9 @@ def test_ecr_search_with_unequal_radii_and_a_noisy_far_half_equals_the_direct_lo
         local
         + torch.randn(local.shape, generator=torch.Generator().manual_seed(5), dtype=local.dtype) * variance.sqrt()
     )
-    result = localize(local, gravel_map, variance, shifts=(3, 5), center=(80, 80), score="ecr", min_overlap=0.1)
+    result = localize(local, gravel_map, variance, shifts=(3, 5), around=(80, 80), score="ecr", min_overlap=0.1)
     assert result.surface.shape == (1, 1, 7, 11)
-    assert result.pose[0, :2].round().tolist() == [-4.0, 3.0]
+    assert result.pose[0, :2].round().tolist() == [76.0, 83.0]
     window = gravel_map[..., 80 - 12 - 3 : 80 - 12 + 24 + 3, 80 - 10 - 5 : 80 - 10 + 20 + 5]
     expected = direct_surface("ecr", local, window, variance)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
@@ -383,9 +390,9 @@ def test_ecr_search_with_unequal_radii_and_a_noisy_far_half_equals_the_direct_lo
 def test_mixture_search_rescores_its_best_shifts_exactly_and_finds_the_pose(gravel_map):
     local = _noisy(_cut(gravel_map, 83, 78, size=20)[..., :, :18], 6.0)
     variance = torch.linspace(4, 400, 20 * 18, dtype=torch.float64).reshape(20, 18)
-    result = localize(local, gravel_map, variance, shifts=(3, 4), center=(80, 80), score=Mixture(bins=16))
+    result = localize(local, gravel_map, variance, shifts=(3, 4), around=(80, 80), score=Mixture(bins=16))
     assert result.surface.shape == (1, 1, 7, 9)
-    assert result.pose[0, :2].round().tolist() == [-3.0, 3.0]
+    assert result.pose[0, :2].round().tolist() == [77.0, 83.0]
     window = gravel_map[..., 80 - 10 - 3 : 80 - 10 + 20 + 3, 80 - 9 - 4 : 80 - 9 + 18 + 4]
     expected = direct_surface(Mixture(bins=16), local, window, variance).score
     rescored = torch.isfinite(result.surface[:, 0])
@@ -402,7 +409,7 @@ def test_a_log_prior_per_sample_applies_to_that_sample_at_every_yaw(gravel_map, 
     priors = torch.stack(
         [gaussian_log_prior(90.0, 20.0, 16, (0.0, 256.0)), gaussian_log_prior(160.0, 50.0, 16, (0.0, 256.0))]
     )
-    options = {"shifts": 4, "center": (80, 80), "yaws": yaws}
+    options = {"shifts": 4, "around": (80, 80), "yaws": yaws}
     batched = localize(local, gravel_map, 36.0, score=ENMI(bins=16, log_prior=priors.double()), **options)
     for sample in range(2):
         score = ENMI(bins=16, log_prior=priors[sample].double())
@@ -411,17 +418,17 @@ def test_a_log_prior_per_sample_applies_to_that_sample_at_every_yaw(gravel_map, 
     other = localize(local[:1], gravel_map, 36.0, score=ENMI(bins=16, log_prior=priors[1].double()), **options)
     assert not torch.allclose(batched.surface[0], other.surface[0])
     module = Localizer(shifts=4, yaws=yaws, score=ENMI(bins=16, log_prior=priors[0].double()))
-    torch.testing.assert_close(module(local[:1], gravel_map, 36.0, center=(80, 80)).surface, batched.surface[:1])
+    torch.testing.assert_close(module(local[:1], gravel_map, 36.0, around=(80, 80)).surface, batched.surface[:1])
 
 
 def test_ecr_linear_response_in_the_search_equals_the_direct_loop(gravel_map):
     local = _noisy(_cut(gravel_map, 82, 79, size=16), 5.0) * 0.8 + 12
     linear = ECR(response="linear")
-    result = localize(local, gravel_map, 25.0, shifts=(2, 3), center=(80, 80), score=linear, min_overlap=0.1)
+    result = localize(local, gravel_map, 25.0, shifts=(2, 3), around=(80, 80), score=linear, min_overlap=0.1)
     window = gravel_map[..., 80 - 8 - 2 : 80 - 8 + 16 + 2, 80 - 8 - 3 : 80 - 8 + 16 + 3]
     expected = direct_surface(linear, local, window, 25.0)
     torch.testing.assert_close(result.surface[:, 0], expected.score, rtol=0, atol=1e-9)
-    assert result.pose[0, :2].round().tolist() == [-1.0, 2.0]
+    assert result.pose[0, :2].round().tolist() == [79.0, 82.0]
     with pytest.raises(TypeError, match="response"):
         localize(local, gravel_map, 25.0, score=ENMI(response="linear"))
 
@@ -429,8 +436,8 @@ def test_ecr_linear_response_in_the_search_equals_the_direct_loop(gravel_map):
 def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(gravel_map):
     # A rotated cut on a non-square local image: a swapped axis or a mirrored yaw puts pixels on other map cells.
     local = _cut(gravel_map, 86, 75, size=40, yaw=8.0)[..., 4:36, :]  # (1, 1, 32, 40)
-    center = (80, 80)
-    result = localize(local, gravel_map, 4.0, shifts=(8, 9), center=center, yaws=range(-12, 13, 2), score=ECR(bins=32))
+    options = {"shifts": (8, 9), "around": (80, 80), "yaws": range(-12, 13, 2), "score": ECR(bins=32)}
+    result = localize(local, gravel_map, 4.0, **options)
     assert result.dx.shape == result.yaw.shape == (1,)
     assert abs(result.yaw.item() - 8.0) <= 1.0
     rows, cols = torch.meshgrid(torch.arange(8.0, 24.0), torch.arange(8.0, 32.0), indexing="ij")  # interior
@@ -443,13 +450,16 @@ def test_local_to_map_transform_points_each_local_pixel_at_the_map_it_shows(grav
         sampled = torch.nn.functional.grid_sample(gravel_map, grid, align_corners=True)[0, 0, :, 0]
         return (sampled - local[0, 0, 8:24, 8:32].flatten()).abs().mean().item()
 
-    right = mismatch(result.local_to_map(center, (32, 40)))
+    right = mismatch(result.local_to_map((32, 40)))
     assert right < 3.0  # grey levels: the sampled map reproduces the local image (the texture varies by ~40)
     mirrored = Localization(result.pose * torch.tensor([1.0, 1.0, -1.0], dtype=result.pose.dtype), *result[1:])
     swapped = Localization(result.pose[:, [1, 0, 2]], *result[1:])
-    assert right < 0.5 * mismatch(mirrored.local_to_map(center, (32, 40)))
-    assert right < 0.5 * mismatch(swapped.local_to_map(center, (32, 40)))
-    assert right < 0.5 * mismatch(result.local_to_map(center, (40, 32)))
+    assert right < 0.5 * mismatch(mirrored.local_to_map((32, 40)))
+    assert right < 0.5 * mismatch(swapped.local_to_map((32, 40)))
+    assert right < 0.5 * mismatch(result.local_to_map((40, 32)))
+    with pytest.warns(DeprecationWarning, match=r"local_to_map\(center, local_shape\) is deprecated"):
+        former = result.local_to_map((80, 80), (32, 40))  # the former call: center (row, col) + the shift
+    torch.testing.assert_close(former, result.local_to_map((32, 40)))
 
 
 def test_yaw_parabola_and_yaw_ranges_are_exact():
@@ -483,7 +493,7 @@ def _two_stage_case(gravel_map, seed):
     reference_mask[65:68, 60:95] = False  # crosses the top rows of the images near the truth: min_overlap bites
     options = {
         "shifts": (4, 5),
-        "center": torch.tensor([[80, 76], [80, 76]]),
+        "around": torch.tensor([[76, 80], [76, 80]]),
         "yaws": yaws,
         "score": ECR(bins=16),
         "captured_mask": captured_mask,
@@ -522,11 +532,11 @@ def test_two_stage_search_equals_the_exhaustive_search_where_it_rescored_and_fin
 
 def test_localizer_module_runs_the_two_stage_search_like_the_function(gravel_map):
     local, variance, options = _two_stage_case(gravel_map, 1)
-    center = options.pop("center")
+    around = options.pop("around")
     masks = {name: options.pop(name) for name in ("captured_mask", "reference_mask")}
     options.update(search=SearchStrategy("two_stage", cheap_bins=8))
-    result = Localizer(**options)(local, gravel_map, variance, center=center, **masks)
-    expected = localize(local, gravel_map, variance, center=center, **options, **masks)
+    result = Localizer(**options)(local, gravel_map, variance, around=around, **masks)
+    expected = localize(local, gravel_map, variance, around=around, **options, **masks)
     assert torch.equal(result.surface, expected.surface)
     assert bool(torch.isinf(result.surface).any())
 
@@ -582,23 +592,23 @@ def test_cheap_stage_equals_the_ecr_surface_in_float64(gravel_map, reference_mas
 def test_two_stage_search_keeps_candidates_with_exactly_the_required_overlap(gravel_map):
     local = _cut(gravel_map, 82, 77)
     # With min_overlap 1 every candidate inside the map needs all its pixels: the overlap equals the requirement.
-    options = {"shifts": (4, 6), "center": (80, 80), "min_overlap": 1.0}
+    options = {"shifts": (4, 6), "around": (80, 80), "min_overlap": 1.0}
     exhaustive = localize(local, gravel_map, 25.0, **options)
     two_stage = localize(local, gravel_map, 25.0, search="two_stage", **options)
     torch.testing.assert_close(two_stage.pose, exhaustive.pose)
-    assert two_stage.pose.round().tolist() == [[-3.0, 2.0, 0.0]]
+    assert two_stage.pose.round().tolist() == [[77.0, 82.0, 0.0]]
 
 
 @pytest.mark.parametrize("name", ["ecr", "enmi", "nmi", "ncc", "mixture"])
 def test_a_score_by_name_or_by_object_gives_identical_poses(gravel_map, name):
     local = _noisy(_cut(gravel_map, 82, 77, size=20), 3.0)
     variance = None if name in ("nmi", "ncc") else 9.0
-    options = {"shifts": (3, 4), "center": (80, 80), "yaws": [-2.0, 0.0, 2.0]}
+    options = {"shifts": (3, 4), "around": (80, 80), "yaws": [-2.0, 0.0, 2.0]}
     by_name = localize(local, gravel_map, variance, score=name, **options)
     by_object = localize(local, gravel_map, variance, score=as_score(name), **options)
     assert torch.equal(by_name.surface, by_object.surface) and torch.equal(by_name.pose, by_object.pose)
-    center = options.pop("center")
-    module = Localizer(score=name, **options)(local, gravel_map, variance, center=center)
+    around = options.pop("around")
+    module = Localizer(score=name, **options)(local, gravel_map, variance, around=around)
     assert torch.equal(module.surface, by_object.surface)
     assert Localizer(score=name).score == as_score(name)
 
@@ -608,16 +618,16 @@ def test_command_line_builds_the_score_from_its_flags_and_keeps_the_old_one(grav
     local = _noisy(_cut(gravel_map, 83, 78, size=24), 3.0)
     np.save(tmp_path / "local.npy", local[0, 0].numpy())
     files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy"), "--shifts", "4"]
-    files += ["--center", "80", "80", "--dtype", "float64"]
+    files += ["--around", "80", "80", "--dtype", "float64"]
 
     def expected(score, variance=4.0):
-        result = localize(local, gravel_map, variance, score=score, shifts=4, center=(80, 80))
+        result = localize(local, gravel_map, variance, score=score, shifts=4, around=(80, 80))
         return round(float(result.score[0]), 4), [round(value, 2) for value in result.pose[0, :2].tolist()]
 
     def printed(arguments):
         report = _command([*files, *arguments])
         capsys.readouterr()
-        return report["score"], [report["dx"], report["dy"]]
+        return report["score"], [report["x"], report["y"]]
 
     density = ["--bins", "16", "--score-option", "kernel=density", "--score-option", "log_prior=None"]
     assert printed(["--variance", "4", "--score", "enmi", *density]) == expected(ENMI(bins=16, kernel="density"))
@@ -648,10 +658,10 @@ def test_command_line_hints_work_as_written(gravel_map, tmp_path, capsys):
     np.save(tmp_path / "local.npy", unit[64:96, 64:96])
     files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy"), "--variance", "0.001"]
     for score in ("ecr", "enmi"):  # ECR bins the map, ENMI the captured image: both refuse one bin, name the flag
-        error = _one_line_error(capsys, [*files, "--score", score, "--shifts", "4", "--center", "80", "80"])
+        error = _one_line_error(capsys, [*files, "--score", score, "--shifts", "4", "--around", "80", "80"])
         hint = re.search(r"\(e\.g\. (--value-range [^ ]+ [^ ]+) for", error)
         assert hint is not None, error
-        report = _command([*files, "--score", score, "--shifts", "4", "--center", "80", "80", *hint.group(1).split()])
+        report = _command([*files, "--score", score, "--shifts", "4", "--around", "80", "80", *hint.group(1).split()])
         assert (round(report["dx"]), round(report["dy"])) == (0, 0)
         capsys.readouterr()
     Image.fromarray(gravel_map[0, 0].numpy().astype(np.uint8)).save(tmp_path / "map.png")
@@ -665,11 +675,11 @@ def test_a_nan_is_refused_naming_the_mask_argument_of_the_function(gravel_map):
     local = _cut(gravel_map, 80, 80).clone()
     local[..., 3, 3] = float("nan")
     with pytest.raises(ValueError, match=r"captured must be finite where captured_mask is True.*with captured_mask"):
-        localize(local, gravel_map, 9.0, shifts=4, center=(80, 80))
+        localize(local, gravel_map, 9.0, shifts=4, around=(80, 80))
     reference = gravel_map.clone()
     reference[..., 80, 80] = float("nan")
     with pytest.raises(ValueError, match="reference must be finite where reference_mask is True"):
-        localize(_cut(gravel_map, 80, 80), reference, 9.0, shifts=4, center=(80, 80))
+        localize(_cut(gravel_map, 80, 80), reference, 9.0, shifts=4, around=(80, 80))
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (8, 8)])
@@ -715,7 +725,7 @@ def _scene():
 def test_an_off_map_window_is_told_it_lies_off_the_map():
     captured, reference = _scene()
     with pytest.raises(NoCandidateError, match=r"the search window lies off the map in sample\(s\) \[0\]"):
-        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, center=(500, 500))
+        localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, around=(500, 500))
 
 
 def test_huge_yaws_are_refused_by_name_and_turns_are_taken_modulo_360():
@@ -723,7 +733,7 @@ def test_huge_yaws_are_refused_by_name_and_turns_are_taken_modulo_360():
     with pytest.raises(ValueError, match=r"yaws must be angles within \+-1e\+06 degrees .* got 1e\+300"):
         localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[1e300])
     turned = localize(captured, reference, 64.0, score=ECR(bins=16), shifts=3, yaws=[-720.0, 5.0 - 720.0])
-    assert turned.pose[0, :2].tolist() == [3.0, -2.0]
+    assert turned.pose[0, :2].tolist() == [27.0, 22.0]  # the map's centre cell (24, 24) + (3, -2)
 
 
 @pytest.mark.parametrize(
@@ -738,3 +748,44 @@ def test_yaw_ranges_without_a_bound_end_in_one_line(capsys, yaws, message):
         main(["--map", "map.npy", "--local", "local.npy", "--yaws", yaws])
     error = capsys.readouterr().err
     assert exit_info.value.code == 2 and error.count("\n") == 1 and message in error
+
+
+def test_the_former_center_row_col_still_works_with_a_warning_that_names_around(gravel_map):
+    # Mutation killed: center=(row, col) converted to around=(row, col) (unswapped): the window lands elsewhere.
+    local = _noisy(_cut(gravel_map, 70, 90), 2.0)
+    expected = localize(local, gravel_map, 4.0, shifts=(3, 5), around=(88, 72))
+    with pytest.warns(DeprecationWarning, match=r"pass around=\(x, y\) = \(col, row\)"):
+        former = localize(local, gravel_map, 4.0, shifts=(3, 5), center=(72, 88))
+    torch.testing.assert_close(former.surface, expected.surface)
+    torch.testing.assert_close(former.pose, expected.pose)
+    assert former.pose[0, :2].round().tolist() == [90.0, 70.0] and former.shift[0].round().tolist() == [2.0, -2.0]
+    with pytest.warns(DeprecationWarning, match=r"Localizer.forward\(center=\(row, col\)\) is deprecated"):
+        by_module = Localizer(shifts=(3, 5))(local, gravel_map, 4.0, center=torch.tensor([[72, 88]]))
+    torch.testing.assert_close(by_module.pose, expected.pose)
+    with pytest.raises(TypeError, match=r"got center and around: pass around=\(x, y\) alone"):
+        localize(local, gravel_map, 4.0, center=(72, 88), around=(88, 72))
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match=r"center must be \(row, col\) integers"):
+        localize(local, gravel_map, 4.0, center=(72.5, 88))
+
+
+def test_around_is_rounded_to_the_nearest_cell_and_given_per_sample_as_floats(gravel_map):
+    # Mutation killed: the prior truncated instead of rounded (79.6 -> 79 moves the window by a cell).
+    local = torch.cat([_noisy(_cut(gravel_map, 80, 80), 2.0), _noisy(_cut(gravel_map, 75, 92), 2.0, 1)])
+    whole = localize(local, gravel_map, 4.0, shifts=4, around=torch.tensor([[80, 80], [90, 76]]))
+    fractional = localize(local, gravel_map, 4.0, shifts=4, around=torch.tensor([[80.4, 79.6], [89.7, 76.2]]))
+    torch.testing.assert_close(fractional.surface, whole.surface)
+    torch.testing.assert_close(fractional.pose, whole.pose)
+    assert fractional.around.tolist() == [[80.0, 80.0], [90.0, 76.0]]
+    assert whole.pose[:, :2].round().tolist() == [[80.0, 80.0], [92.0, 75.0]]
+
+
+def test_command_line_takes_the_former_center_with_a_note_and_refuses_both(gravel_map, tmp_path, capsys):
+    np.save(tmp_path / "map.npy", gravel_map[0, 0].numpy())
+    np.save(tmp_path / "local.npy", _cut(gravel_map, 84, 73)[0, 0].numpy())
+    files = ["--map", str(tmp_path / "map.npy"), "--local", str(tmp_path / "local.npy"), "--variance", "4"]
+    report = _command([*files, "--shifts", "8", "--center", "80", "76"])
+    assert capsys.readouterr().err.strip() == "enmi-localize: --center ROW COL is deprecated: pass --around 76 80 (X Y)"
+    assert (round(report["x"]), round(report["y"]), round(report["dx"]), round(report["dy"])) == (73, 84, -3, 4)
+    assert report == _command([*files, "--shifts", "8", "--around", "76", "80"])
+    error = _one_line_error(capsys, [*files, "--center", "80", "76", "--around", "76", "80"])
+    assert "--center ROW COL is the former spelling of --around X Y: pass --around alone" in error

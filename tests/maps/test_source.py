@@ -42,11 +42,11 @@ def test_a_crop_at_a_known_world_position_is_localized_back_to_it(tmp_path, name
         window.image,
         16.0,
         shifts=9,
-        center=window.center[::-1],
+        around=window.center,
         yaws=[0.0, 4.0, 8.0, 12.0],
         reference_mask=window.valid_mask,
     )
-    pose = [window.center[0] + found.dx.item(), window.center[1] + found.dy.item(), found.yaw.item()]
+    pose = found.pose[0].tolist()  # (x, y, yaw) in the window's cells
     world = window.to_world(pose).tolist()
     assert math.dist(world[:2], truth) < 0.2 * CELL, (world, truth)
     assert world[2] == pytest.approx(WORLD_YAW[name](yaw), abs=0.5)

@@ -23,7 +23,7 @@ def test_warp_reference_follows_localization_local_to_map(generator):
     reference = _map(generator)
     pose = torch.tensor([[40.3, 31.7, 23.0], [52.0, 40.0, -60.0]], dtype=torch.float64)
     warped, valid = warp_reference(reference, pose, SHAPE)
-    transform = Localization(pose, *(torch.zeros(2),) * 5).local_to_map((0, 0), SHAPE)
+    transform = Localization(pose, *(torch.zeros(2),) * 5).local_to_map(SHAPE)
     for sample, (row, col) in enumerate([(3, 25), (17, 2)]):
         x, y, _ = (transform[sample] @ torch.tensor([col, row, 1.0], dtype=torch.float64)).tolist()
         # bilinear interpolation at (x, y), written out
@@ -137,11 +137,12 @@ def test_localize_refines_its_peak_on_request(generator):
     reference = _map(generator, (90, 90))
     truth = torch.tensor([[44.3, 40.6, 1.3]], dtype=torch.float64)
     captured = warp_reference(reference, truth, SHAPE)[0].float()
-    options = {"shifts": 5, "center": (40, 44), "yaws": [-2.0, -1.0, 0.0, 1.0, 2.0]}
+    options = {"shifts": 5, "around": (44, 40), "yaws": [-2.0, -1.0, 0.0, 1.0, 2.0]}
     grid = localize(captured, reference.float(), 1.0, **options)
     refined = localize(captured, reference.float(), 1.0, refine=True, **options)
-    expected = [0.3, 0.6, 1.3]
+    expected = truth[0].tolist()
     assert refined.pose[0].tolist() == pytest.approx(expected, abs=2e-3)
+    assert refined.shift[0].tolist() == pytest.approx([0.3, 0.6], abs=2e-3)
     assert float((grid.pose[0] - torch.tensor(expected)).abs().max()) > 0.1
     torch.testing.assert_close(refined.surface, grid.surface)  # the search's own results stay
 

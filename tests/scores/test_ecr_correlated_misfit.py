@@ -144,7 +144,7 @@ def test_a_surface_reads_the_correlated_estimate_at_its_peak_and_the_search_agre
     fixed = ECR(model_variance=float(tau2[0]), response_variance=float(delta2[0])).surface(captured, reference, 100.0)
     torch.testing.assert_close(surface.score, fixed.score, rtol=1e-9, atol=1e-9)
     assert divmod(int(surface.score[0].argmax()), surface.score.shape[-1]) == (5, 9)
-    options = {"score": score, "shifts": (6, 8), "center": (30, 40), "yaws": [0.0]}
+    options = {"score": score, "shifts": (6, 8), "around": (40, 30), "yaws": [0.0]}
     exhaustive = localize(captured, reference, 100.0, **options).surface
     staged = localize(captured, reference, 100.0, search="two_stage", **options).surface
     rescored = torch.isfinite(staged)

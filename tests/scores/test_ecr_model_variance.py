@@ -271,7 +271,7 @@ def test_the_two_stage_search_scores_as_the_exhaustive_one(generator):
     options = {
         "score": ECR(bins=12, model_variance="estimate"),
         "shifts": (6, 8),
-        "center": (14, 17),
+        "around": (17, 14),
         "yaws": [-30.0, 0.0, 90.0],
     }
     exhaustive = localize(captured, references, variance, **options).surface
@@ -298,7 +298,7 @@ def test_each_yaw_has_its_own_estimate(generator):
         variance,
         score=ECR(bins=12, model_variance="estimate"),
         shifts=(6, 8),
-        center=(14, 17),
+        around=(17, 14),
         yaws=[0.0, 20.0],
     ).surface
     for yaw in range(2):
@@ -308,7 +308,7 @@ def test_each_yaw_has_its_own_estimate(generator):
             variance,
             score=ECR(bins=12, model_variance=float(tau2[yaw])),
             shifts=(6, 8),
-            center=(14, 17),
+            around=(17, 14),
             yaws=[0.0, 20.0],
         ).surface
         torch.testing.assert_close(surface[0, yaw], fixed[0, yaw], rtol=1e-9, atol=1e-9)

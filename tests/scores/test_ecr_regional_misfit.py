@@ -176,7 +176,7 @@ def test_a_surface_holds_the_map_of_its_peak_and_the_search_agrees(generator):
     torch.testing.assert_close(surface.score[:, 5, 9], at_truth, rtol=1e-9, atol=1e-9)
     small = (captured[..., :20, :24], reference[..., :26, :30], variance[..., :20, :24])
     torch.testing.assert_close(direct_surface(score, *small).score, score.surface(*small).score, rtol=1e-9, atol=1e-9)
-    options = {"score": score, "shifts": (6, 8), "center": (29, 41), "yaws": [0.0]}
+    options = {"score": score, "shifts": (6, 8), "around": (41, 29), "yaws": [0.0]}
     exhaustive = localize(captured, reference, variance, **options).surface
     staged = localize(captured, reference, variance, search="two_stage", **options).surface
     rescored = torch.isfinite(staged)

@@ -11,9 +11,8 @@ FRAME = (24, 32)  # non-square frames: a swapped axis fails
 
 def map_move(yaw: float, du: float, dv: float) -> tuple[float, float]:
     """The map move of an image-axes increment at ``yaw``, from Localization.local_to_map's linear part."""
-    transform = Localization(torch.tensor([[0.0, 0.0, yaw]], dtype=torch.float64), *(torch.zeros(1),) * 5).local_to_map(
-        (0, 0), (5, 5)
-    )
+    pose = torch.tensor([[0.0, 0.0, yaw]], dtype=torch.float64)
+    transform = Localization(pose, *(torch.zeros(1),) * 5).local_to_map((5, 5))
     move = transform[0, :2, :2].double() @ torch.tensor([du, dv], dtype=torch.float64)
     return float(move[0]), float(move[1])
 

@@ -42,7 +42,7 @@ def test_a_mismatch_probability_bounds_how_far_one_wrong_frame_moves_the_belief(
 def test_a_window_without_candidates_raises_no_candidate_error(generator):
     reference = texture(generator, (40, 60)).float()
     with pytest.raises(NoCandidateError, match="the search window lies off the map"):
-        localize(cut(reference, 30, 20), reference, 1.0, shifts=3, center=(20, 500))
+        localize(cut(reference, 30, 20), reference, 1.0, shifts=3, around=(500, 20))
 
 
 def test_the_default_score_is_ecr_with_a_correlated_misfit_and_weighs_a_changed_patch_less(generator):
@@ -113,9 +113,9 @@ def test_the_mismatch_mixing_takes_the_likelihood_at_a_fixed_temperature(generat
     belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=(4, 5), yaw_bins=3, std=(0.7, 0.7, 1.0))
     frame, odometry, noise = cut(reference, 46, 31), torch.zeros(1, 3), (0.5, 0.5, 0.3)
     prior = predict(belief, odometry, noise)
-    found = localize(
-        frame, reference, 1.0, score=ECR(bins=16), shifts=prior.radius, center=prior.center, yaws=prior.yaws()[0]
-    )
+    around = prior.center.flip(1)  # the window's (row, col) as (x, y)
+    options = {"score": ECR(bins=16), "shifts": prior.radius, "around": around, "yaws": prior.yaws()[0]}
+    found = localize(frame, reference, 1.0, **options)
     raw = found.surface.double() * frame.numel()
     for temperature in (3000.0, 30000.0):  # a few nats and a fraction of one between the best cells
         settings = TrackerSettings(motion_noise=noise, temperature=temperature, mismatch_probability=0.05)

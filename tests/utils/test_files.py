@@ -173,9 +173,9 @@ def test_sixteen_bit_png_keeps_its_values_for_the_pairs_and_the_command(tmp_path
             "65536",
             "--shifts",
             "2",
-            "--center",
-            "8",
+            "--around",
             "9",
+            "8",
             "--metric",
             "ncc",
         ]

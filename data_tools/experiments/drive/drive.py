@@ -161,7 +161,7 @@ def measured_odometry(increments: torch.Tensor, generator: torch.Generator) -> t
 
 def ground_patches(world: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
     """``(N, 1, 64, 64)`` ground under each pose on the frame grid, bilinear (the map's cells are 2.5 cm too)."""
-    transforms = Localization(poses, *(torch.zeros(len(poses)),) * 5).local_to_map((0, 0), FRAME)
+    transforms = Localization(poses, *(torch.zeros(len(poses)),) * 5).local_to_map(FRAME)
     rows, cols = torch.meshgrid(*(torch.arange(size, dtype=torch.float64) for size in FRAME), indexing="ij")
     points = torch.stack([cols.flatten(), rows.flatten(), torch.ones(rows.numel(), dtype=torch.float64)])
     mapped = transforms @ points
@@ -301,9 +301,12 @@ def calibrate(drive: Drive, method: str, misfit: str = MISFIT) -> Calibration:
 
 
 def search(frame, reference, variance, valid, center, yaws, score: Score) -> Localization:
-    """The benchmark's one ``localize`` call (+-8 cells): ``frame`` ``(1, 1, 64, 64)`` around map cell ``center``."""
+    """The benchmark's one ``localize`` call (+-8 cells): ``frame`` ``(1, 1, 64, 64)`` around map cell ``center``.
+
+    ``center`` is ``(row, col)``, as the belief's window keeps it.
+    """
     return localize(
-        frame, reference, variance, score=score, shifts=SHIFTS, center=center, yaws=yaws, captured_mask=valid
+        frame, reference, variance, score=score, shifts=SHIFTS, around=center.flip(0), yaws=yaws, captured_mask=valid
     )
 
 
@@ -384,8 +387,7 @@ def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: st
         except NoCandidateError:  # the guess has left the map: keep dead reckoning
             poses.append(guess)
             continue
-        pose = result.pose[0].double()
-        poses.append(torch.stack([center[1] + pose[0], center[0] + pose[1], pose[2]]))
+        poses.append(result.pose[0].double())
     return {"pose": torch.stack(poses)}
 
 

@@ -165,10 +165,11 @@ def best_match(drive: PhotoDrive, index: int, center: tuple[int, int], score, va
     """``(3,)`` pose of frame ``index``'s best candidate in the window about ``center`` (row, col); ``None`` if none."""
     frame = drive.frames[index : index + 1].float()
     try:
-        found = localize(frame, drive.map.float(), variance, score=score, shifts=SHIFTS, center=center, yaws=YAWS)
+        around = (center[1], center[0])
+        found = localize(frame, drive.map.float(), variance, score=score, shifts=SHIFTS, around=around, yaws=YAWS)
     except NoCandidateError:
         return None
-    return found.pose[0].double() + torch.tensor([center[1], center[0], 0.0], dtype=torch.float64)
+    return found.pose[0].double()
 
 
 def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:

@@ -142,7 +142,7 @@ def run_trials(map_name, model, noise_power, trials, pairs, bins, seed, response
     local = clean + torch.randn(clean.shape, generator=generator, dtype=torch.float64) * variance.sqrt()
     local = torch.where(valid, local, 0.0).float()
     learned, observed = learned_mask(prior, unit_variance, valid, noise_power, pairs, generator, response)
-    settings = {"shifts": RADIUS, "center": priors, "yaws": YAWS}
+    settings = {"shifts": RADIUS, "around": priors.flip(1), "yaws": YAWS}  # priors are (row, col)
     ecr, enmi = ECR(bins=bins), ENMI(bins=bins)
     searches = {
         METHODS[0]: localize(local, prior.float(), variance.float(), score=ecr, captured_mask=valid, **settings),
@@ -155,7 +155,7 @@ def run_trials(map_name, model, noise_power, trials, pairs, bins, seed, response
     truth = torch.cat([shifts[:, 1:], shifts[:, :1], yaws[:, None]], dim=1)
     successes = {}
     for method, result in searches.items():
-        error = (result.pose.double() - truth).abs()
+        error = (torch.cat([result.shift, result.yaw[:, None]], 1).double() - truth).abs()
         successes[method] = int(((error[:, 0] <= 1) & (error[:, 1] <= 1) & (error[:, 2] <= 1)).sum())
     return successes
 
@@ -189,8 +189,8 @@ def write_example(directory: Path, seed: int, overwrite: bool = False) -> None:
     np.save(directory / "variance.npy", variance[0, 0].numpy().astype(np.float32))
     np.save(directory / "local_mask.npy", valid[0, 0].numpy())
     print(
-        f"wrote map.npy, local.npy, variance.npy, local_mask.npy to {directory}: prior centre (300, 220), "
-        f"true pose dx=-9, dy=5, yaw=3 degrees (camera model, N0 = 3e-4)"
+        f"wrote map.npy, local.npy, variance.npy, local_mask.npy to {directory}: prior pose (x, y) = (220, 300), "
+        f"true pose (x, y, yaw) = (211, 305, 3 degrees): dx=-9, dy=5 (camera model, N0 = 3e-4)"
     )
 
 
