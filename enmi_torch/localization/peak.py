@@ -273,21 +273,36 @@ def _quadratic_peak(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor]:
     """Sub-cell ``(dx, dy)`` offset and covariance ``inverse(-H)`` from the 3 x 3 neighbourhood of a grid peak.
 
     When the fitted vertex lies more than half a cell away, the fit is re-centred on the neighbouring cell it points
-    to and refitted once (kornia's ``geometry/subpix`` habit); if that vertex is not within half a cell of its own
-    centre either, or a fit is not a maximum, the fit failed: offset 0 and an infinite covariance.
+    to and refitted once (kornia's ``geometry/subpix`` habit). If that vertex is not within half a cell of its own
+    centre either, or a fit is not a maximum (a ridge: the surface barely falls along it), the fit failed: the
+    covariance is infinite and the offset is the vertex of the parabola through the peak and its two neighbours along
+    each axis (0 on an axis where the peak lies on the window's edge or the parabola is not a maximum).
     """
-    unknown = (torch.zeros(2, dtype=torch.float64), torch.diag(torch.full((2,), math.inf, dtype=torch.float64)))
+    failed = torch.diag(torch.full((2,), math.inf, dtype=torch.float64))
     fit = _quadratic_fit(plane, row, col)
     if fit is None:
-        return unknown
+        return _axis_offsets(plane, row, col), failed
     offset, covariance = fit
     if bool((offset.abs() <= 0.5).all()):
         return offset, covariance
     step = offset.sign() * (offset.abs() > 0.5)
     fit = _quadratic_fit(plane, row + int(step[1]), col + int(step[0]))
     if fit is None or not bool((fit[0].abs() <= 0.5).all()):
-        return unknown
+        return _axis_offsets(plane, row, col), failed
     return fit[0] + step, fit[1]
+
+
+def _axis_offsets(plane: Tensor, row: int, col: int) -> Tensor:
+    """``(dx, dy)``: the vertices of the parabolas through the peak and its neighbours along each axis.
+
+    Each in ``[-0.5, 0.5]``; 0 where a neighbour is off the window or the parabola is not a maximum.
+    """
+    offsets = torch.zeros(2, dtype=torch.float64)
+    if 0 < col < plane.shape[1] - 1:
+        offsets[0] = _parabola_offset(plane[row, col - 1 : col + 2])
+    if 0 < row < plane.shape[0] - 1:
+        offsets[1] = _parabola_offset(plane[row - 1 : row + 2, col])
+    return offsets
 
 
 def _quadratic_fit(plane: Tensor, row: int, col: int) -> tuple[Tensor, Tensor] | None:

@@ -2,9 +2,10 @@
 
 :func:`localize` finds the best integer shift and yaw bin; :func:`register` moves on from there (or from any pose) to
 the continuous pose that maximises the score, batched. The map is sampled under the captured image at the pose
-(:func:`warp_reference`, bilinear, differentiable in the pose), so the noisy captured image, its variance and its mask
-are never resampled. The score is a weighted least-squares fit of the captured values by a response of the map's
-values, the likelihood behind ECR (:class:`~enmi_torch.ECR`):
+(:func:`~enmi_torch.registration.warp.warp_reference`: a cubic B-spline by default, bilinear on request; the
+gradient in the pose in closed form), so the noisy captured image, its variance and its mask are never resampled.
+The score is a weighted least-squares fit of the captured values by a response of the map's values, the likelihood
+behind ECR (:class:`~enmi_torch.ECR`):
 
 * ECR, ``response="binned"``: a piecewise-linear response with one knot per bin centre over ``value_range`` (the
   binned response made continuous in the map's values, so the score is smooth in the pose), each pixel weighed by
@@ -17,19 +18,29 @@ values, the likelihood behind ECR (:class:`~enmi_torch.ECR`):
 * NCC (:class:`~enmi_torch.NCC`): ``a + b m``, every pixel alike.
 
 The response is profiled out (refitted at every pose) and the pose moves by Levenberg-Marquardt steps on the
-Gauss-Newton normal equations (Kaufman's approximation of the variable-projection Jacobian). Histogram scores (NMI,
-ENMI, the mixture) are not least-squares fits and are refused.
+Gauss-Newton normal equations (Kaufman's approximation of the variable-projection Jacobian); each stage of ``blur``
+compares both images blurred by a Gaussian (:mod:`~enmi_torch.registration.stage`). Histogram scores (NMI, ENMI, the
+mixture) are not least-squares fits and are refused.
 
-Pixels whose map sample at the starting pose lies within ``margin`` cells of the map's border, off the map or on an
-invalid map cell do not count, nor do the captured image's invalid pixels; the set is held fixed while the pose moves
-(a score whose pixel set changed with the pose would jump), so a move of more than ``margin`` cells ends the
-refinement of that image (``Registration.converged`` is ``False``).
+Why the last stage blurs by half a cell: a map cell and a captured pixel are each the mean of the scene over a cell,
+and the scene varies within a cell, so the map's cells do not hold the scene between them: whatever interpolates
+them (bilinear, a B-spline) misses detail finer than a cell that the captured pixels moved by a fraction of a cell
+do hold (aliasing). Comparing both blurred by half a cell weighs that detail down. On 3 x 3 block means of aerial
+photographs moved by whole source pixels (the truth a third of a cell), the B-spline and the blur each about halve
+the error of a bilinear, unblurred fit (the docs' localization results page).
+
+The pixels that count and the score's weights are read at the starting pose, for every stage: pixels whose map
+sample lies within ``margin`` cells of the map's border, off the map or by an unobserved map cell do not count, nor do
+the captured image's invalid pixels; the set is held fixed while the pose moves (a score whose pixel set changed with
+the pose would jump), so a move of more than ``margin`` cells from the start ends the refinement of that image
+(``Registration.converged`` is ``False``). The last stage's score at the result is compared with its score at the
+start, with the same pixels and weights: a result that scores below the start is replaced by the start.
 
 Convention:
     A pose is ``(x, y, yaw)`` as everywhere in the library: ``x`` (column) and ``y`` (row, down) the map position of
-    the captured image's pixel ``(h // 2, w // 2)``, absolute; ``yaw`` in degrees, counter-clockwise as displayed:
-    :func:`~enmi_torch.localize`'s ``pose`` and what :meth:`~enmi_torch.Tracker.start` takes. The captured pixel
-    ``(u, v)`` shows the map at :meth:`~enmi_torch.Localization.local_to_map` of that pose.
+    the captured image's pixel ``(h // 2, w // 2)``, in cells, absolute; ``yaw`` in degrees, counter-clockwise as
+    displayed: :func:`~enmi_torch.localize`'s ``pose``, and what :meth:`~enmi_torch.Tracker.start` takes. The
+    captured pixel ``(u, v)`` shows the map at :meth:`~enmi_torch.Localization.local_to_map` of that pose.
 """
 
 from __future__ import annotations
@@ -38,19 +49,20 @@ import math
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from enmi_torch.registration.response_fit import ResponseFit
+from enmi_torch.registration.interpolation import INTERPOLATIONS
+from enmi_torch.registration.stage import Stage
+from enmi_torch.registration.warp import blur_radius, check_map_memory, check_warp_memory
 from enmi_torch.scores import Score, as_score
 from enmi_torch.utils.budget import check_cells_memory
 from enmi_torch.utils.checks import (
     check_floating,
-    check_image_shape,
     check_map,
     check_margin,
     check_mask_of,
     check_not_empty,
+    check_option,
     check_pose,
     check_positive_int,
     check_positive_number,
@@ -66,11 +78,13 @@ class Registration(NamedTuple):
 
     Attributes:
         pose: ``(B, 3)`` refined ``(x, y, yaw)``: map column and row of the captured centre pixel, yaw in degrees.
-        score: ``(B,)`` the fit's log-likelihood ratio per valid pixel at ``pose`` (half the weighted residual sum of
-            squares the response removes, over the valid pixels; larger is better).
+        score: ``(B,)`` the last stage's fit at ``pose`` with the pixels and weights read at the start: its
+            log-likelihood ratio per valid pixel (half the weighted residual sum of squares the response removes, over
+            the valid pixels; larger is better), what the refinement maximised:
+            ``registration_score(..., pose=result.pose, weights_at=start)``. It is at least the start's.
         converged: ``(B,)`` bool: the last step moved less than ``tolerance`` (cells, and degrees for the yaw), or
             the fit stopped improving, without leaving the pixels fixed at the start. A result that scores below the
-            start (a blurred stage led astray) is replaced by the start, not converged.
+            start (a stage led astray) is replaced by the start, not converged.
         iterations: ``(B,)`` int64 steps taken.
     """
 
@@ -80,101 +94,7 @@ class Registration(NamedTuple):
     iterations: Tensor
 
 
-def sample_positions(pose: Tensor, shape: tuple[int, int]) -> Tensor:
-    """``(B, h, w, 2)`` map positions ``(x, y)`` of every captured pixel at ``pose`` ``(B, 3)`` (differentiable)."""
-    height, width = shape
-    dtype, device = pose.dtype, pose.device
-    rows = torch.arange(height, dtype=dtype, device=device) - (height - 1) / 2
-    cols = torch.arange(width, dtype=dtype, device=device) - (width - 1) / 2
-    angle = torch.deg2rad(-pose[:, 2])[:, None, None]
-    cos, sin = angle.cos(), angle.sin()
-    offset_x = pose[:, 0, None, None] + (width - 1) / 2 - width // 2
-    offset_y = pose[:, 1, None, None] + (height - 1) / 2 - height // 2
-    x = cos * cols[None, None, :] + sin * rows[None, :, None] + offset_x
-    y = -sin * cols[None, None, :] + cos * rows[None, :, None] + offset_y
-    return torch.stack([x, y], -1)
-
-
-def warp_reference(
-    reference: Tensor, pose: Tensor, shape: tuple[int, int], reference_mask: Tensor | None = None, margin: float = 0.0
-) -> tuple[Tensor, Tensor]:
-    """The map under captured images of ``shape`` at ``pose``: bilinear samples and where they count.
-
-    Args:
-        reference: ``(1 or B, 1, Hm, Wm)`` map, real floating point; NaN or inf cells count as unobserved.
-        pose: ``(B, 3)`` finite floating ``(x, y, yaw)`` (see the module's convention); the samples are
-            differentiable in it.
-        shape: ``(h, w)`` of the captured images, two positive ints.
-        reference_mask: optional bool map ``(1 or B, 1, Hm, Wm)`` or ``(Hm, Wm)``, the map's size: ``False`` cells are
-            unobserved.
-        margin: cells ``>= 0`` a sample must keep from the map's border.
-
-    Returns:
-        ``(warped, valid)``: ``(B, 1, h, w)`` samples (0 off the map and on non-finite cells) and bool
-        ``(B, 1, h, w)``: the sample lies on the map, ``margin`` cells inside its border, and its four neighbouring
-        cells are observed.
-
-    Raises:
-        TypeError, ValueError: naming the argument that is not as above.
-        MemoryBudgetError: when the ``B x h x w`` samples would exceed the memory budget (nothing is allocated).
-
-    Example:
-        >>> reference = torch.arange(20.0).reshape(1, 1, 4, 5)
-        >>> warped, valid = warp_reference(reference, torch.tensor([[2.5, 1.0, 0.0]]), (1, 2))
-        >>> warped.flatten().tolist(), valid.flatten().tolist()  # centre pixel (0, 1) on column 2.5 of row 1
-        ([6.5, 7.5], [True, True])
-    """
-    pose = check_pose("pose", pose)
-    reference = check_map("reference", reference, pose.shape[0], "pose", pose)
-    shape = check_image_shape("shape", shape)
-    if reference_mask is not None:
-        reference_mask = check_mask_of("reference_mask", reference_mask, "reference", reference)
-    margin = check_margin("margin", margin)
-    check_cells_memory(
-        f"shape={shape}",
-        pose.shape[0] * shape[0] * shape[1],
-        WARP_BYTES_PER_ITEM * pose.element_size() + 2,
-        f"the map positions, samples and masks of {pose.shape[0]} image(s) of {shape[0]} x {shape[1]}",
-        "pass the captured images' own (h, w)",
-    )
-    return _warp(reference, pose, shape, reference_mask, margin)
-
-
-WARP_BYTES_PER_ITEM = 8  # per sample: positions (x, y), their normalised copy, the sample, the mask taps
-
-
-def _warp(
-    reference: Tensor, pose: Tensor, shape: tuple[int, int], reference_mask: Tensor | None, margin: float
-) -> tuple[Tensor, Tensor]:
-    """:func:`warp_reference` on checked inputs; NaN or inf map cells count as unobserved (and sample as 0)."""
-    height, width = reference.shape[-2:]
-    positions = sample_positions(pose, shape)
-    finite = torch.isfinite(reference)
-    unobserved = None if reference_mask is None else ~reference_mask
-    if not bool(finite.all()):
-        reference = torch.where(finite, reference, 0.0)
-        unobserved = ~finite if unobserved is None else unobserved | ~finite
-    warped = _sample(reference.to(pose.dtype), positions)
-    x, y = positions.detach().unbind(-1)
-    valid = (x >= margin) & (x <= width - 1 - margin) & (y >= margin) & (y <= height - 1 - margin)
-    if unobserved is not None:
-        # A cell the bilinear sample leans on at all (weight > 0) must be observed: each lies within the 3 x 3 cells
-        # around the nearest one.
-        near_unobserved = F.max_pool2d(unobserved.to(pose.dtype), 3, 1, 1)
-        near = _sample(near_unobserved, positions.detach(), mode="nearest")
-        valid = valid & (near[:, 0] <= 0)
-    return warped, valid[:, None]
-
-
-def _sample(reference: Tensor, positions: Tensor, mode: str = "bilinear") -> Tensor:
-    """Bilinear (or nearest) samples ``(B, 1, h, w)`` of a map ``(1 or B, 1, Hm, Wm)`` at positions ``(B, h, w, 2)``.
-
-    Positions are map ``(x, y)`` in cells; a sample off the map is 0.
-    """
-    height, width = reference.shape[-2:]
-    scale = torch.tensor([max(width - 1, 1), max(height - 1, 1)], dtype=positions.dtype, device=positions.device)
-    expanded = reference.expand(positions.shape[0], -1, -1, -1) if reference.shape[0] == 1 else reference
-    return F.grid_sample(expanded, positions / scale * 2 - 1, mode=mode, padding_mode="zeros", align_corners=True)
+FINAL_BLUR = 0.5  # cells: the last stage's blur (the module's note)
 
 
 def check_registration_score(score: Score | str) -> Score:
@@ -242,20 +162,6 @@ def check_same_device_of(name: str, value, captured: Tensor) -> None:
             raise ValueError(f"{name} must be on the device of captured ({captured.device}), got {value.device}")
 
 
-def _check_counting(valid: Tensor, pose: Tensor, map_shape, margin: float, masked: bool) -> None:
-    """Raise ``ValueError`` naming the pose if a sample has no pixel that counts at ``pose``."""
-    empty = ~valid.flatten(1).any(1)
-    if bool(empty.any()):
-        samples = empty.nonzero()[:, 0].tolist()
-        raise ValueError(
-            f"no captured pixel counts at pose {pose[samples[0]].tolist()} (sample(s) {samples}): its samples of the "
-            f"{map_shape[0]} x {map_shape[1]} map all lie off the map, within margin={margin} cells of its border or "
-            "by unobserved cells (reference_mask, NaN cells)"
-            + (", or are masked out by captured_mask" if masked else "")
-            + "; start from a pose on the map"
-        )
-
-
 def registration_score(
     captured: Tensor,
     reference: Tensor,
@@ -266,14 +172,19 @@ def registration_score(
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
     margin: float = 0.0,
+    blur: float = FINAL_BLUR,
+    interpolation: str = "bspline",
+    weights_at: Tensor | None = None,
 ) -> Tensor:
     """The score :func:`register` maximises, ``(B,)``, at ``pose`` ``(B, 3)``; differentiable in ``pose``.
 
-    The weights (``tau^2`` for ECR) and the pixels that count are read at ``pose`` itself, without gradient; the
-    response is refitted. Arguments as :func:`register`'s.
+    The pixels that count and the weights (``tau^2`` for ECR) are read at ``weights_at`` (``(B, 3)``; ``None``:
+    ``pose`` itself), without gradient; the response is refitted at ``pose``. ``blur``: the Gaussian (cells) both
+    images are compared through, :func:`register`'s last stage (0: none). The other arguments as :func:`register`'s.
 
     Example:
         >>> from enmi_torch import ECR
+        >>> from enmi_torch.registration import warp_reference
         >>> reference = torch.rand(1, 1, 40, 40, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 255
         >>> truth = torch.tensor([[20.3, 19.6, 4.0]], dtype=torch.float64)
         >>> captured = warp_reference(reference, truth, (16, 16))[0]
@@ -285,15 +196,20 @@ def registration_score(
     score = check_registration_score(score)
     inputs = _prepare(captured, reference, variance, captured_mask, reference_mask, score, pose)
     margin = check_margin("margin", margin)
+    blur = _check_blur((blur,), "blur", "a standard deviation >= 0")[0]
+    check_option("interpolation", interpolation, INTERPOLATIONS)
     captured, reference, variance, captured_mask, reference_mask, pose = inputs
-    warped, valid = _warp(reference, pose, tuple(captured.shape[-2:]), reference_mask, margin)
-    if captured_mask is not None:
-        valid = valid & captured_mask.expand_as(valid)
-    _check_counting(valid, pose, reference.shape[-2:], margin, captured_mask is not None)
-    values = captured.to(pose.dtype)
-    fit = ResponseFit.of(score, values, warped, variance, valid)
-    batch = captured.shape[0]
-    return fit.solve(values.reshape(batch, -1), warped.reshape(batch, -1))[2]
+    if weights_at is not None:
+        weights_at = check_pose("weights_at", weights_at, captured.shape[0]).detach()
+    check_warp_memory(captured.shape[0], tuple(captured.shape[-2:]), captured.element_size())
+    check_map_memory(reference, interpolation, captured.element_size())
+    _check_blur_memory((blur,), captured)
+    dtype = captured.dtype
+    stage = Stage(
+        captured, reference.to(dtype), variance, captured_mask, reference_mask, score, blur, margin, interpolation
+    )
+    fit = stage.setup((pose if weights_at is None else weights_at).detach())
+    return stage.score_with(fit, pose).to(dtype)
 
 
 def register(
@@ -305,10 +221,11 @@ def register(
     score: Score | str = "ecr",
     captured_mask: Tensor | None = None,
     reference_mask: Tensor | None = None,
-    blur: tuple[float, ...] = (1.0, 0.0),
+    blur: tuple[float, ...] = (FINAL_BLUR,),
     iterations: int = 30,
-    tolerance: float = 1e-4,
+    tolerance: float = 1e-3,
     margin: float = 2.0,
+    interpolation: str = "bspline",
 ) -> Registration:
     """Refine the pose of captured images in a map by Gauss-Newton through a least-squares score, batched.
 
@@ -324,23 +241,35 @@ def register(
         captured_mask: bool like ``variance``: ``False`` pixels do not count.
         reference_mask: bool ``(1 or B, 1, Hm, Wm)``: ``False`` map cells are unobserved.
         blur: the multi-resolution schedule: Gaussian standard deviations (cells) of the map and the captured images
-            for each stage, coarse to fine (0: none). A blurred stage widens the basin of attraction.
+            for each stage, coarse to fine (0: none). The last one's half a cell weighs down the detail finer than a
+            cell that no interpolation of the map holds (the module's note); from :func:`~enmi_torch.localize`'s pose
+            (within a cell) it is the only stage needed. Starting farther away, a coarser stage first widens the
+            basin of attraction: ``blur=(2.0, 0.5)``.
         iterations: Levenberg-Marquardt steps per stage at most.
-        tolerance: a step smaller than this (cells and degrees) ends a stage.
+        tolerance: a step smaller than this (cells and degrees) ends a stage: the next Gauss-Newton step would be
+            far smaller still.
         margin: cells a counting pixel's map sample keeps from the map's border and from unobserved cells at the
-            stage's start; a larger move ends the refinement.
+            start; a larger move from the start ends the refinement.
+        interpolation: how the map is sampled between its cells: ``"bspline"`` (cubic) or ``"bilinear"``
+            (:mod:`~enmi_torch.registration.interpolation`).
 
     Returns:
-        :class:`Registration` (``pose``, ``score``, ``converged``, ``iterations``).
+        :class:`Registration` (``pose``, ``score``, ``converged``, ``iterations``), in ``captured``'s dtype.
 
     Raises:
         TypeError, ValueError: naming the argument (shapes, dtypes, devices, finite values, masks the size of what
             they mask, a pose where no pixel counts).
-        MemoryBudgetError: when the score's normal equations (``ECR(bins=...)``) or the blur's taps would exceed the
-            memory budget, before anything is allocated.
+        MemoryBudgetError: when the score's normal equations (``ECR(bins=...)``), the samples or the blur's taps would
+            exceed the memory budget, before anything is allocated.
+
+    Convention:
+        No gradient flows through the result. The per-pixel work runs in ``captured``'s dtype (float32 is about twice
+        as fast), the normal equations in float64.
 
     Example:
+        >>> import torch.nn.functional as F
         >>> from enmi_torch import ECR
+        >>> from enmi_torch.registration import warp_reference
         >>> generator = torch.Generator().manual_seed(0)
         >>> reference = F.avg_pool2d(torch.rand(1, 1, 80, 80, generator=generator, dtype=torch.float64), 3, 1) * 255
         >>> truth = torch.tensor([[39.3, 40.6, 2.5]], dtype=torch.float64)
@@ -356,6 +285,35 @@ def register(
     iterations = check_positive_int("iterations", iterations)
     tolerance = check_positive_number("tolerance", tolerance)
     margin = check_margin("margin", margin, positive=True, meaning="the largest move, in cells")
+    blur = _check_blur(blur, "blur", "a non-empty sequence of standard deviations >= 0")
+    check_option("interpolation", interpolation, INTERPOLATIONS)
+    check_warp_memory(captured.shape[0], tuple(captured.shape[-2:]), captured.element_size())
+    check_map_memory(reference, interpolation, captured.element_size())
+    _check_blur_memory(blur, captured)
+    batch, dtype = captured.shape[0], captured.dtype
+    start = pose.detach().to(torch.float64)
+    current = start.clone()
+    steps = torch.zeros(batch, dtype=torch.int64, device=captured.device)
+    converged = torch.zeros(batch, dtype=torch.bool, device=captured.device)
+    reference = reference.to(dtype)
+    for sigma in blur:
+        stage = Stage(captured, reference, variance, captured_mask, reference_mask, score, sigma, margin, interpolation)
+        fit = stage.setup(start)
+        origin = current
+        current, taken, converged, after, before = stage.run(fit, current, start, iterations, tolerance)
+        steps += taken
+    # Never below the start, with the last stage's pixels and weights (read at the start) for both.
+    if not torch.equal(origin, start):  # the last stage began where an earlier one ended
+        before = stage.score_with(fit, start)
+    astray = after < before
+    current = torch.where(astray[:, None], start, current)
+    return Registration(
+        current.to(pose.dtype), torch.where(astray, before, after).to(dtype), converged & ~astray, steps
+    )
+
+
+def _check_blur(blur, name: str, expected: str) -> tuple[float, ...]:
+    """``blur`` as a tuple of floats: standard deviations ``>= 0``, finite, at least one."""
     if (
         isinstance(blur, (int, float, str))
         or not hasattr(blur, "__len__")
@@ -365,164 +323,23 @@ def register(
             for sigma in blur
         )
     ):
-        raise ValueError(f"blur must be a non-empty sequence of standard deviations >= 0, got {blur!r}")
-    _check_blur_memory(blur, captured, reference)
-    batch = captured.shape[0]
-    dtype = torch.float64
-    start = pose.detach().to(dtype)
-    current = start.clone()
-    steps = torch.zeros(batch, dtype=torch.int64, device=captured.device)
-    converged = torch.zeros(batch, dtype=torch.bool, device=captured.device)
-    noise = None if variance is None else torch.as_tensor(variance, dtype=dtype, device=captured.device)
-    for sigma in blur:
-        stage = _Stage(captured, reference, noise, captured_mask, reference_mask, score, float(sigma), margin)
-        current, taken, converged = stage.run(current, iterations, tolerance)
-        steps += taken
-    final = _Stage(captured, reference, noise, captured_mask, reference_mask, score, 0.0, margin)
-    # Never worse than the start: a blurred stage can lead astray where the scene changed (the pixels and weights of
-    # the start for both, so the two scores compare).
-    fit = final._setup(start)
-    before, after = (final.score_with(fit, at) for at in (start, current))
-    astray = after < before
-    current = torch.where(astray[:, None], start, current)
-    converged = converged & ~astray
-    return Registration(current.to(pose.dtype), final.score(current).to(captured.dtype), converged, steps)
+        shown = blur[0] if name == "blur" and expected.startswith("a standard") else blur
+        raise ValueError(f"{name} must be {expected}, got {shown!r}")
+    return tuple(float(sigma) for sigma in blur)
 
 
-def _check_blur_memory(blur, captured: Tensor, reference: Tensor) -> None:
-    """Refuse a blur whose kernels (and their unfolded copies of the images) exceed the memory budget."""
-    radius = _blur_radius(max(blur))
-    height, width = reference.shape[-2:]
-    cells = max(reference[:, 0].numel(), captured[:, 0].numel())
-    # A 1-D convolution on the CPU unfolds every output cell's taps; the map is padded by the radius on both sides.
-    needed_cells = cells * (2 * radius + 1) + reference.shape[0] * (height + 2 * radius) * (width + 2 * radius)
+def _check_blur_memory(blur, captured: Tensor) -> None:
+    """Refuse a blur whose padded images would exceed the memory budget.
+
+    The captured images, the map's samples and their three derivatives in the pose, padded by the kernel's radius.
+    """
+    radius = blur_radius(max(blur))
+    batch, _, height, width = captured.shape
+    needed_cells = 4 * batch * (height + 2 * radius) * (width + 2 * radius)
     check_cells_memory(
         f"blur={tuple(blur)!r}",
         needed_cells,
         8,
-        f"the Gaussian taps ({2 * radius + 1} per cell) over the {height} x {width} map and the captured images",
-        "blur by a few cells at most (a blur wider than the map averages it away)",
+        f"the {height} x {width} images padded by the Gaussian's radius ({radius} cells)",
+        "blur by a few cells at most (a blur wider than the images averages them away)",
     )
-
-
-def _blur_radius(sigma: float) -> int:
-    return max(1, math.ceil(3 * sigma))
-
-
-def _gaussian(images: Tensor, sigma: float, weight: Tensor) -> tuple[Tensor, Tensor]:
-    """Normalised Gaussian blur of ``images`` over ``weight`` (0 or 1), and the blurred weight."""
-    radius = _blur_radius(sigma)
-    offsets = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
-    kernel = kernel / kernel.sum()
-
-    def smooth(values: Tensor) -> Tensor:
-        values = F.conv2d(F.pad(values, (radius, radius, 0, 0)), kernel.view(1, 1, 1, -1))
-        return F.conv2d(F.pad(values, (0, 0, radius, radius)), kernel.view(1, 1, -1, 1))
-
-    mass = smooth(weight)
-    return smooth(images * weight) / mass.clamp_min(1e-12), mass
-
-
-class _Stage:
-    """One stage of :func:`register`: the (blurred) images, the weights and pixels fixed at the stage's start."""
-
-    def __init__(self, captured, reference, noise, captured_mask, reference_mask, score, sigma, margin) -> None:
-        dtype = torch.float64
-        self.captured = captured.detach().to(dtype)
-        self.reference = reference.detach().to(dtype)
-        self.noise, self.score_, self.margin, self.reference_mask = noise, score, margin, reference_mask
-        self.captured_valid = torch.ones_like(self.captured, dtype=torch.bool)
-        self.masked = captured_mask is not None
-        if captured_mask is not None:
-            self.captured_valid = self.captured_valid & captured_mask.expand_as(self.captured)
-        self.captured_valid = self.captured_valid & torch.isfinite(self.captured)
-        self.captured = torch.where(self.captured_valid, self.captured, 0.0)
-        self.sigma = sigma
-        finite = torch.isfinite(self.reference)
-        if not bool(finite.all()):  # NaN or inf map cells are unobserved, and must not bleed into the blur
-            self.reference_mask = finite if reference_mask is None else reference_mask & finite
-            self.reference = torch.where(finite, self.reference, 0.0)
-        if sigma > 0:
-            observed = torch.ones_like(self.reference)
-            if self.reference_mask is not None:
-                observed = self.reference_mask.expand_as(self.reference).to(dtype)
-            self.reference, _ = _gaussian(self.reference, sigma, observed)
-        self.shape = captured.shape[-2:]
-
-    def _setup(self, pose: Tensor) -> ResponseFit:
-        """The pixels that count at ``pose`` (the captured image blurred over them alone) and their weights."""
-        warped, valid = _warp(self.reference, pose, self.shape, self.reference_mask, self.margin)
-        self.valid = valid & self.captured_valid
-        _check_counting(self.valid, pose, self.reference.shape[-2:], self.margin, self.masked)
-        self.values = self.captured
-        if self.sigma > 0:  # pixels off the map must not bleed into the blurred image
-            self.values, _ = _gaussian(self.captured, self.sigma, self.valid.to(self.captured.dtype))
-        return ResponseFit.of(self.score_, self.values, warped, self.noise, self.valid)
-
-    def score(self, pose: Tensor) -> Tensor:
-        """The score at ``pose``, with the pixels and weights of ``pose``."""
-        return self.score_with(self._setup(pose), pose)
-
-    def score_with(self, fit: ResponseFit, pose: Tensor) -> Tensor:
-        """The score at ``pose`` with the pixels and weights of ``fit``."""
-        warped, _ = _warp(self.reference, pose, self.shape, None, 0.0)
-        return fit.solve(self.values.flatten(1), warped.flatten(1))[2]
-
-    def _residuals(self, fit: ResponseFit, pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Residuals ``(B, N)``, their Jacobian ``(B, N, 3)`` in the pose, and the scores."""
-        with torch.enable_grad():
-            positions = sample_positions(pose.detach(), self.shape).requires_grad_(True)
-            warped = _sample(self.reference, positions)
-            # Each sample depends on its own position only: the gradient of the sum is every pixel's own.
-            (gradient,) = torch.autograd.grad(warped.sum(), positions)
-        # d position / d pose per pixel: x and y move one to one; the yaw turns the pixel about the image's centre.
-        rows = torch.arange(self.shape[0], dtype=pose.dtype, device=pose.device) - (self.shape[0] - 1) / 2
-        cols = torch.arange(self.shape[1], dtype=pose.dtype, device=pose.device) - (self.shape[1] - 1) / 2
-        angle = torch.deg2rad(-pose[:, 2])[:, None, None]
-        cos, sin = angle.cos(), angle.sin()
-        x_per_yaw = (-sin * cols[None, None, :] + cos * rows[None, :, None]) * (-math.pi / 180)
-        y_per_yaw = (-cos * cols[None, None, :] - sin * rows[None, :, None]) * (-math.pi / 180)
-        per_pose = torch.stack(
-            [gradient[..., 0], gradient[..., 1], gradient[..., 0] * x_per_yaw + gradient[..., 1] * y_per_yaw], -1
-        ).flatten(1, 2)
-        residual, slope, score = fit.solve(self.values.flatten(1), warped.detach().flatten(1))
-        jacobian = -(fit.weights.sqrt() * slope)[..., None] * per_pose
-        return residual, jacobian, score
-
-    def run(self, pose: Tensor, iterations: int, tolerance: float) -> tuple[Tensor, Tensor, Tensor]:
-        start = pose.clone()
-        fit = self._setup(pose)
-        batch = pose.shape[0]
-        damping = torch.full((batch,), 1e-3, dtype=pose.dtype)
-        steps = torch.zeros(batch, dtype=torch.int64)
-        done = torch.zeros(batch, dtype=torch.bool)
-        converged = torch.zeros(batch, dtype=torch.bool)
-        residual, jacobian, _ = self._residuals(fit, pose)
-        cost = residual.square().sum(1)
-        for _ in range(iterations):
-            if bool(done.all()):
-                break
-            normal = jacobian.transpose(1, 2) @ jacobian
-            gradient = (jacobian.transpose(1, 2) @ residual[..., None])[..., 0]
-            diagonal = normal.diagonal(dim1=1, dim2=2).clamp_min(1e-12)
-            damped = normal + torch.diag_embed(damping[:, None] * diagonal)
-            step = -torch.linalg.solve(damped, gradient)
-            step = torch.where(done[:, None], 0.0, step)
-            trial = pose + step
-            left = ((trial[:, :2] - start[:, :2]).abs() > self.margin).any(1)
-            new_residual, new_jacobian, _ = self._residuals(fit, trial)
-            new_cost = new_residual.square().sum(1)
-            better = (new_cost <= cost) & ~done & ~left
-            stalled = better & (cost - new_cost <= 1e-10 * cost)  # the fit no longer improves
-            pose = torch.where(better[:, None], trial, pose)
-            residual = torch.where(better[:, None], new_residual, residual)
-            jacobian = torch.where(better[:, None, None], new_jacobian, jacobian)
-            cost = torch.where(better, new_cost, cost)
-            damping = torch.where(better, damping / 10, damping * 10).clamp(1e-9, 1e9)
-            steps += (~done).long()
-            small = step.abs().amax(1) < tolerance
-            converged = converged | (small & ~left & ~done)
-            converged = converged | (stalled & ~done)
-            done = done | small | stalled | left | (damping >= 1e9)
-        return pose, steps, converged & ~((pose[:, :2] - start[:, :2]).abs() > self.margin).any(1)

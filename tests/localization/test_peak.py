@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from enmi_torch.localization.peak import Localization, _quadratic_peak
+from enmi_torch.localization.peak import Localization, _parabola_offset, _quadratic_fit, _quadratic_peak
 
 
 def test_subcell_peak_of_an_exact_quadratic_and_its_covariance():
@@ -31,12 +31,29 @@ def test_subcell_fit_recentres_when_the_vertex_leaves_the_peak_cell():
     )
 
 
-def test_subcell_fit_that_fails_is_reported_not_clamped():
+def test_a_subcell_fit_that_fails_is_reported_and_falls_back_to_the_parabola_along_each_axis():
+    # Mutations killed: the fallback's axes swapped; no fallback (offset 0, the former behaviour).
     plane = torch.zeros(5, 5, dtype=torch.float64)
     plane[1:4, 1:4] = torch.tensor([[68.0, 75.0, 23.0], [81.0, 93.0, 20.0], [15.0, 48.0, 92.0]], dtype=torch.float64)
     offset, covariance = _quadratic_peak(plane, 2, 2)
-    assert offset.tolist() == [0.0, 0.0]
     assert torch.isinf(covariance.diagonal()).all()
+
+    def vertex(left, middle, right):  # the parabola through (-1, left), (0, middle), (1, right)
+        return 0.5 * (left - right) / (left - 2 * middle + right)
+
+    assert offset.tolist() == pytest.approx([vertex(81.0, 93.0, 20.0), vertex(75.0, 93.0, 48.0)])
+
+
+def test_a_ridge_across_the_axes_is_read_by_the_parabolas_along_them():
+    # A ridge along the diagonal falls barely along it: the 3 x 3 quadratic is no maximum (or its vertex runs off).
+    rows, cols = torch.meshgrid(torch.arange(9.0).double(), torch.arange(9.0).double(), indexing="ij")
+    along, across = (cols - 4.3 + rows - 3.8) / 2**0.5, (cols - 4.3 - rows + 3.8) / 2**0.5
+    plane = -(across**2) / 0.5 - 0.001 * along**2 + 0.3 * along
+    assert _quadratic_fit(plane, 4, 4) is None or bool((_quadratic_fit(plane, 4, 4)[0].abs() > 0.5).any())
+    offset, covariance = _quadratic_peak(plane, 4, 4)
+    assert torch.isinf(covariance.diagonal()).all()
+    expected = [_parabola_offset(plane[4, 3:6]).item(), _parabola_offset(plane[3:6, 4]).item()]
+    assert offset.tolist() == pytest.approx(expected) and expected[0] != 0 and expected[1] != 0
 
 
 def test_parabola_offset_is_clamped_on_both_sides_and_zero_without_curvature():
@@ -73,13 +90,14 @@ def test_margin_looks_just_outside_the_exclusion_radius_on_every_side(row, col):
 
 
 @pytest.mark.parametrize("col", [0, 10])
-def test_a_peak_on_the_left_or_right_edge_has_no_fit(col):
+def test_a_peak_on_the_left_or_right_edge_has_no_fit_and_only_the_parabola_along_the_edge(col):
+    # No 3 x 3 fit and no parabola across the edge (x); along it (y) the parabola through the peak finds 4.3 exactly.
     from enmi_torch.localization.peak import _quadratic_peak
 
-    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
-    plane = -((rows - 4) ** 2) - (cols - col) ** 2
+    rows, cols = torch.meshgrid(torch.arange(9.0).double(), torch.arange(11.0).double(), indexing="ij")
+    plane = -((rows - 4.3) ** 2) - (cols - col) ** 2
     offset, covariance = _quadratic_peak(plane, 4, col)
-    assert offset.tolist() == [0.0, 0.0] and torch.isinf(covariance.diagonal()).all()
+    assert offset.tolist() == pytest.approx([0.0, 0.3]) and torch.isinf(covariance.diagonal()).all()
 
 
 def test_local_to_map_names_a_wrong_center_or_shape():
