@@ -30,10 +30,10 @@ import torch
 from torch import Tensor
 
 from enmi_torch.histogram import prepare_inputs
-from enmi_torch.placement.inputs import Surface, SurfaceInputs, check_inputs
-from enmi_torch.scores.base import LeastSquaresFit, ResponseBasis, Score, reduce_loss
+from enmi_torch.placement.inputs import Surface, SurfaceInputs
+from enmi_torch.scores.base import Score, reduce_loss
 from enmi_torch.scores.censoring import check_saturation, saturated_pixels
-from enmi_torch.scores.ecr_censored import censored_ecr
+from enmi_torch.scores.ecr_censored import aligned_censored_ecr, aligned_censored_response_variance
 from enmi_torch.scores.ecr_model_variance import (
     MISFITS,
     MODEL_VARIANCE_ESTIMATE,
@@ -47,20 +47,17 @@ from enmi_torch.scores.ecr_model_variance import (
 )
 from enmi_torch.scores.ecr_options import RESPONSES, check_ecr_options, ecr_options_checked
 from enmi_torch.scores.ecr_placements import (
-    cheap_value_range,
     check_surface_inputs,
-    ecr_placement_scores,
     ecr_surface_from_inputs,
     linear_ecr_surface_from_inputs,
-    rough_ecr_surface,
     scores_with_surface_variances,
     surface_variances,
 )
 from enmi_torch.scores.ecr_statistics import BinSums, bin_sums, ecr_from_bin_sums, linear_ecr
+from enmi_torch.scores.ecr_traits import ECRTraits
 from enmi_torch.utils.checks import (
     check_floating,
     check_option,
-    check_resolved_by_bins,
     check_variance_given,
     fitted_to,
 )
@@ -191,7 +188,8 @@ def ecr(
     total_variance = noise + tau2
     valid = None if inputs.pair_weight is None else inputs.pair_weight.to(torch.float64)
     if side is not None:
-        score = _censored(captured, reference, total_variance, valid, side, inputs, response, response_variance)
+        parts = (captured, reference, total_variance, valid, side)
+        score = aligned_censored_ecr(*parts, inputs, response, response_variance)
     elif response == "linear":
         score = linear_ecr(captured, reference, total_variance, valid)
     else:
@@ -202,36 +200,6 @@ def ecr(
         score = ecr_from_bin_sums(sums, response=response, value_range=inputs.value_range, response_variance=delta2)
     remedy = "the noise variance is too small for the values' spread in this dtype; pass captured in float64"
     return fitted_to("ecr", score if inputs.with_candidates else score[0], inputs.out_dtype, remedy)
-
-
-def _censored(captured, reference, total_variance, valid, side, inputs, response, response_variance) -> Tensor:
-    """:func:`ecr` ``(C, B)``, saturated readings censored (:func:`~enmi_torch.scores.ecr_censored.censored_ecr`)."""
-    shape, pixels = reference.shape, reference.shape[-1]
-    rows = [
-        part.expand(shape).reshape(-1, pixels)
-        for part in (captured, reference, total_variance, torch.ones_like(captured) if valid is None else valid)
-    ]
-    delta2 = check_response_variance(response_variance)
-    score, _ = censored_ecr(*rows, side, inputs.bins, inputs.value_range, response, delta2)
-    return score.view(shape[:-1])
-
-
-def _censored_response_variance(inputs, tau2, side: Tensor) -> Tensor:
-    """The shrunk response's ``delta^2`` ``(C, B)`` with the saturated readings censored, at ``tau2`` ``(C, B)``."""
-    with torch.no_grad():
-        captured, reference, noise = (
-            part.detach().to(torch.float64) for part in (inputs.captured, inputs.reference, inputs.variance)
-        )
-        tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=captured.device)
-        total = noise + (tau2 if tau2.dim() == reference.dim() else tau2.expand(reference.shape[:-1])[..., None])
-        valid = None if inputs.pair_weight is None else inputs.pair_weight.detach().to(torch.float64)
-        shape, pixels = reference.shape, reference.shape[-1]
-        rows = [
-            part.expand(shape).reshape(-1, pixels)
-            for part in (captured, reference, total, torch.ones_like(captured) if valid is None else valid)
-        ]
-        _, delta2 = censored_ecr(*rows, side, inputs.bins, inputs.value_range, "shrunk", RESPONSE_VARIANCE_ESTIMATE)
-    return delta2.view(shape[:-1])
 
 
 @ecr_options_checked
@@ -428,7 +396,7 @@ def ecr_loss(
     return ECR(**options).loss(captured, reference, variance, valid_mask=valid_mask, reduction=reduction)
 
 
-class ECR(Score):
+class ECR(ECRTraits, Score):
     """ECR as an object: :func:`ecr`, :func:`ecr_surface` and :func:`ecr_loss` with its options.
 
     Args:
@@ -528,7 +496,7 @@ class ECR(Score):
             if side is None:
                 delta2 = aligned_response_variance(inputs, tau2)
             else:
-                delta2 = _censored_response_variance(inputs, tau2, side)
+                delta2 = aligned_censored_response_variance(inputs, tau2, side)
         return delta2 if inputs.with_candidates else delta2[0]
 
     def surface_response_variance(
@@ -576,81 +544,3 @@ class ECR(Score):
         """
         fixed_response = self.response != "shrunk" or self.response_variance != RESPONSE_VARIANCE_ESTIMATE
         return self.model_variance != MODEL_VARIANCE_ESTIMATE and fixed_response and self.saturation is None
-
-    def rough_score(self, bins: int, window: Tensor, window_mask: Tensor | None = None) -> ECR:
-        """This score with ``bins`` bins over the window's 2nd to 98th percentile and their default model variance.
-
-        ``window`` ``(1, 1, Hw, Ww)`` is the map section a two-stage search scores in, ``window_mask`` its valid cells
-        (bool, same shape; ``None``: all). Few bins still split the window's values. Raises ``ValueError`` if this
-        score's own bins leave every valid cell in one bin (its exact stage could not tell placements apart).
-        """
-        self._check_two_stage("first stage")
-        if window_mask is None:
-            window_mask = torch.ones_like(window, dtype=torch.bool)
-        flat, flat_valid = window.reshape(1, -1), window_mask.reshape(1, -1)
-        check_resolved_by_bins("reference", flat, flat_valid, self.bins, self.value_range)
-        value_range = cheap_value_range(window, window_mask)  # its fixed tau^2 has no misfit to shape
-        return self.replace(bins=bins, value_range=value_range, model_variance=None, misfit="independent")
-
-    def rough_surface(
-        self,
-        captured: Tensor,
-        reference: Tensor,
-        variance: Tensor | float | None = None,
-        *,
-        captured_mask: Tensor | None = None,
-        reference_mask: Tensor | None = None,
-    ) -> Surface:
-        """:meth:`surface` ranked by free bin means, with the occupied bins read from the weight sums (a cheap stage).
-
-        See :func:`~enmi_torch.scores.ecr_placements.rough_ecr_surface`.
-        """
-        self._check_two_stage("rough surface")
-        self.check_variance(variance)
-        inputs = check_inputs(captured, reference, captured_mask, reference_mask, self.value_range, variance)
-        return rough_ecr_surface(inputs, self._options)
-
-    def placement_scores(
-        self, placements: Tensor, *, rotations: tuple, window: tuple, min_overlap: float, rough: Tensor
-    ) -> Tensor:
-        """Exact ECR ``(P,)`` at placements ``(P, 3)``.
-
-        See :func:`~enmi_torch.scores.ecr_placements.ecr_placement_scores`.
-        """
-        self._check_two_stage("exact rescoring")
-        return ecr_placement_scores(placements, rotations, window, min_overlap, rough, self._options)
-
-    def _check_two_stage(self, what: str) -> None:  # the linear response has no bins to rank by
-        self.require("two_stage", f"the {what} of a two-stage search")
-
-    def response_basis(self) -> ResponseBasis:
-        """A knot on each bin centre over ``value_range`` (the binned and shrunk responses), or the affine response."""
-        return ResponseBasis(0) if self.response == "linear" else ResponseBasis(self.bins, self.value_range)
-
-    def least_squares_fit(
-        self, captured: Tensor, reference: Tensor, variance: Tensor | None, valid: Tensor
-    ) -> LeastSquaresFit:
-        """Weights ``1 / (sigma^2 + tau^2)`` and, for the shrunk response, the pull ``1 / delta^2`` toward a line.
-
-        ``tau^2`` and ``delta^2`` are this alignment's estimates (:meth:`model_variance_of`,
-        :meth:`response_variance_of`) or the fixed numbers. A ``delta^2`` of 0 (the line) is taken as ``10^-6`` bin
-        widths squared: a pull that leaves the knots on a line within round-off.
-        """
-        batch = captured.shape[0]
-        reference = reference.detach()
-        noise = torch.as_tensor(variance, dtype=captured.dtype, device=captured.device).expand_as(captured)
-        if self.model_variance == MODEL_VARIANCE_ESTIMATE:
-            tau2 = self.model_variance_of(captured, reference, noise, valid_mask=valid)
-        else:
-            fixed = self.model_variance
-            if fixed is None:
-                fixed = default_model_variance(self.bins, self.value_range)
-            tau2 = torch.full((batch,), fixed, dtype=torch.float64, device=captured.device)
-        mask = valid.reshape(batch, -1).to(captured.dtype)
-        total = noise.reshape(batch, -1) + tau2.to(captured.dtype).reshape(batch, -1)  # (B, 1) or a regional map
-        weights = torch.where(mask > 0, mask / total.clamp_min(torch.finfo(captured.dtype).tiny), 0.0)
-        if self.response != "shrunk":
-            return LeastSquaresFit(weights)
-        response_variance = self.response_variance_of(captured, reference, noise, valid_mask=valid)
-        floor = 1e-6 * ((self.value_range[1] - self.value_range[0]) / self.bins) ** 2
-        return LeastSquaresFit(weights, response_variance.to(captured.dtype).clamp_min(floor).reciprocal())

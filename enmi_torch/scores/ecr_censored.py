@@ -25,7 +25,7 @@ from torch import Tensor
 
 from enmi_torch.binning import hard_bin_index
 from enmi_torch.scores.censoring import tobit_expansion
-from enmi_torch.scores.ecr_model_variance import RESPONSE_VARIANCE_ESTIMATE
+from enmi_torch.scores.ecr_model_variance import RESPONSE_VARIANCE_ESTIMATE, check_response_variance
 from enmi_torch.scores.ecr_statistics import ecr_from_sums, linear_ecr
 from enmi_torch.scores.shrunk_response import bin_positions, shrunk_llr
 
@@ -184,3 +184,39 @@ def censored_ecr(
         gaussian = ecr_from_sums(rows.count, weights, sums, -1, shrunk=shrunk)
     correction = 0.5 * (_spread(null_pseudo, null_weight) - _spread(pseudo, weight)) + (constant - null_constant).sum(1)
     return torch.where(count > 0.5, gaussian + correction / count.clamp_min(1), 0.0), delta2
+
+
+def aligned_censored_ecr(
+    captured, reference, total_variance, valid, side, inputs, response, response_variance
+) -> Tensor:
+    """:func:`~enmi_torch.scores.ecr.ecr` ``(C, B)`` of its checked inputs, saturated readings censored.
+
+    ``captured`` ``(B, N)``, ``reference`` ``(C, B, N)``, ``total_variance`` and ``valid`` broadcast to it, float64;
+    ``side`` ``(C B, N)``: :func:`censored_ecr` row by row.
+    """
+    shape, pixels = reference.shape, reference.shape[-1]
+    rows = [
+        part.expand(shape).reshape(-1, pixels)
+        for part in (captured, reference, total_variance, torch.ones_like(captured) if valid is None else valid)
+    ]
+    delta2 = check_response_variance(response_variance)
+    score, _ = censored_ecr(*rows, side, inputs.bins, inputs.value_range, response, delta2)
+    return score.view(shape[:-1])
+
+
+def aligned_censored_response_variance(inputs, tau2, side: Tensor) -> Tensor:
+    """The shrunk response's ``delta^2`` ``(C, B)`` with the saturated readings censored, at ``tau2`` ``(C, B)``."""
+    with torch.no_grad():
+        captured, reference, noise = (
+            part.detach().to(torch.float64) for part in (inputs.captured, inputs.reference, inputs.variance)
+        )
+        tau2 = torch.as_tensor(tau2, dtype=torch.float64, device=captured.device)
+        total = noise + (tau2 if tau2.dim() == reference.dim() else tau2.expand(reference.shape[:-1])[..., None])
+        valid = None if inputs.pair_weight is None else inputs.pair_weight.detach().to(torch.float64)
+        shape, pixels = reference.shape, reference.shape[-1]
+        rows = [
+            part.expand(shape).reshape(-1, pixels)
+            for part in (captured, reference, total, torch.ones_like(captured) if valid is None else valid)
+        ]
+        _, delta2 = censored_ecr(*rows, side, inputs.bins, inputs.value_range, "shrunk", RESPONSE_VARIANCE_ESTIMATE)
+    return delta2.view(shape[:-1])
