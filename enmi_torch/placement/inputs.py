@@ -29,10 +29,14 @@ class Surface(NamedTuple):
     Attributes:
         score: ``(B, Sy, Sx)`` score per placement.
         overlap: ``(B, Sy, Sx)`` number of valid captured pixels that land on valid reference cells (integer-valued).
+        scored: ``(B, Sy, Sx)`` bool: the placements whose ``score`` holds the family's value, the others ``-inf``
+            (a surface that scores a few placements exactly and ranks the rest by a cheap score, such as the
+            mixture score's); ``None``: every placement is scored.
     """
 
     score: Tensor
     overlap: Tensor
+    scored: Tensor | None = None
 
 
 class SurfaceInputs(NamedTuple):

@@ -222,7 +222,7 @@ def mixture_surface(
         :class:`~enmi_torch.placement.Surface` ``(B, Hw - h + 1, Ww - w + 1)``: ``score[b, u, v]`` equals
         ``mixture_information(captured[b], reference[b, :, u:u + h, v:v + w], variance, valid_mask=...)`` where rescored
         (0 where nothing overlaps) and is ``-inf`` elsewhere, so that the surface keeps its shape and its argmax;
-        ``overlap`` is given everywhere.
+        ``scored`` says which placements were rescored; ``overlap`` is given everywhere.
 
     Convention:
         As :mod:`~enmi_torch.placement.inputs`: ``[b, u, v]`` places the captured image's top-left pixel on
@@ -233,8 +233,8 @@ def mixture_surface(
         >>> reference = torch.rand(1, 1, 12, 12, generator=generator) * 256
         >>> captured = reference[..., 3:9, 2:8] + 4 * torch.randn(1, 1, 6, 6, generator=generator)
         >>> surface = mixture_surface(captured, reference, 16.0, bins=8)
-        >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7)
-        (torch.Size([1, 7, 7]), (3, 2))
+        >>> surface.score.shape, divmod(int(surface.score.flatten().argmax()), 7), int(surface.scored.sum())
+        (torch.Size([1, 7, 7]), (3, 2), 35)
     """
     check_variance_given(variance)
     bins = check_bins(bins)
@@ -270,7 +270,8 @@ def mixture_surface(
                 em_steps=em_steps,
             )
             scores.append(rescore_peaks(cheap.score[sample], exact, candidates, max_candidates))
-        return Surface(torch.stack(scores), cheap.overlap)
+        scores = torch.stack(scores)
+        return Surface(scores, cheap.overlap, torch.isfinite(scores))
 
 
 def _placement_scores(

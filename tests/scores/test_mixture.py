@@ -321,7 +321,8 @@ def test_two_stage_surface_equals_direct_where_rescored_and_has_its_argmax(seed,
     local, window, variance, options = _surface_case(seed, batch, windows, masks)
     fast = mixture_surface(local, window, variance, bins=8, em_steps=em_steps, candidates=2, **options)
     slow = direct_surface(Mixture(bins=8, em_steps=em_steps), local, window, variance, **options)
-    rescored = torch.isfinite(fast.score)
+    rescored = fast.scored  # the surface says which placements it scored
+    assert torch.equal(rescored, torch.isfinite(fast.score)) and slow.scored is None
     assert fast.score.shape == slow.score.shape == (batch, 7, 6)
     assert rescored.sum() >= 9 * batch and (~rescored).any()
     torch.testing.assert_close(fast.score[rescored], slow.score[rescored], rtol=1e-9, atol=1e-9)
