@@ -60,7 +60,7 @@ def test_each_finalist_is_scored_by_the_score_on_its_aligned_pair_and_the_best_i
         strict=True,
     )
     captured, variance = torch.cat(captured), variance[0]
-    result = localize(captured, photo_map, variance, shifts=radius, center=center, yaws=yaws)
+    result = localize(captured, photo_map, variance, shifts=radius, around=center[::-1], yaws=yaws)
     finalists = result.finalists
     assert isinstance(finalists, Finalists) and finalists.placements.shape == (2, 8, 3)
     assert int((captured == CLIP[1]).sum() + (captured == 0).sum()) > 50  # saturated readings: a censored fit
@@ -71,8 +71,8 @@ def test_each_finalist_is_scored_by_the_score_on_its_aligned_pair_and_the_best_i
     # The pose is read at the chosen placement: the sub-cell fit about it (re-centred once at most) stays within
     # one and a half cells of that placement's shift.
     best = finalists.best()
-    assert bool(((result.pose[:, 0] - (best[:, 2] - radius[1])).abs() <= 1.5).all())
-    assert bool(((result.pose[:, 1] - (best[:, 1] - radius[0])).abs() <= 1.5).all())
+    assert bool(((result.shift[:, 0] - (best[:, 2] - radius[1])).abs() <= 1.5).all())
+    assert bool(((result.shift[:, 1] - (best[:, 1] - radius[0])).abs() <= 1.5).all())
     surface_values = result.surface[torch.arange(2), best[:, 0], best[:, 1], best[:, 2]]
     torch.testing.assert_close(result.score, surface_values)
     # The finalists are local maxima of the surface, best surface value first.
@@ -92,15 +92,15 @@ class _PrefersTheSecond(ECR):
 
 def test_the_pose_follows_the_chosen_finalist_even_where_the_surface_ranks_another_higher(photo_map, generator):
     captured, variance = _captured(photo_map, 62, 70, 24, 32, generator, sigma=20.0)
-    plain = localize(captured, photo_map, variance, shifts=(5, 7), center=(60, 75), search=SearchStrategy(finalists=0))
+    plain = localize(captured, photo_map, variance, shifts=(5, 7), around=(75, 60), search=SearchStrategy(finalists=0))
     assert plain.finalists is None
-    result = localize(captured, photo_map, variance, shifts=(5, 7), center=(60, 75), score=_PrefersTheSecond())
+    result = localize(captured, photo_map, variance, shifts=(5, 7), around=(75, 60), score=_PrefersTheSecond())
     second = result.finalists.placements[0, 1]
     assert int(result.finalists.chosen[0]) == 1
     shift = torch.tensor([int(second[2]) - 7, int(second[1]) - 5], dtype=result.pose.dtype)
-    assert bool(((result.pose[0, :2] - shift).abs() <= 1.5).all())
+    assert bool(((result.shift[0] - shift).abs() <= 1.5).all())
     assert float(result.margin[0]) < 0  # the surface ranked the first finalist higher
-    assert result.pose[0, :2].round().tolist() != plain.pose[0, :2].round().tolist()
+    assert result.shift[0].round().tolist() != plain.shift[0].round().tolist()
 
 
 @pytest.mark.parametrize(
@@ -112,7 +112,7 @@ def test_a_search_whose_surface_is_exact_has_no_finalist_stage(photo_map, score,
     captured, variance = _captured(photo_map, 62, 70, 24, 32, generator, sigma=10.0)
     assert score.surface_is_exact
     result = localize(
-        captured, photo_map, variance if score.uses_variance else None, shifts=4, center=(60, 75), score=score
+        captured, photo_map, variance if score.uses_variance else None, shifts=4, around=(75, 60), score=score
     )
     assert result.finalists is None
 
@@ -124,7 +124,7 @@ def test_the_strategies_and_localizer_carry_the_finalist_count(photo_map, genera
         SearchStrategy("two_stage", finalists=3),
         SearchStrategy(coarse_factor=2, finalists=3),
     ):
-        result = localize(captured, photo_map, variance, shifts=8, center=(60, 75), search=search)
+        result = localize(captured, photo_map, variance, shifts=8, around=(75, 60), search=search)
         assert result.finalists.placements.shape == (1, 3, 3)
         placements = result.finalists.placements[0]
         found = placements[:, 0] >= 0  # fewer local maxima than asked for: the rest is padding
@@ -133,7 +133,7 @@ def test_the_strategies_and_localizer_carry_the_finalist_count(photo_map, genera
         rescored = result.surface[0][tuple(placements[found].T)]
         assert bool(torch.isfinite(rescored).all())  # finalists lie where the strategy scored
     found = Localizer(score=ECR(), shifts=8, search=SearchStrategy(finalists=2))(
-        captured, photo_map, variance, center=(60, 75)
+        captured, photo_map, variance, around=(75, 60)
     )
     assert found.finalists.placements.shape == (1, 2, 3)
     with pytest.raises(ValueError, match="finalists must be"):
