@@ -5,9 +5,11 @@
 Reads the ``results.csv`` files that ``scene_change.py`` writes (one outcome bit per trial and method; the committed
 ones are in ``data_tools/results/``), pairs every method with ``ECR true`` (the default ``ECR()`` with the sensor's
 variance) trial by trial, and draws the mean difference with one standard error per cell: left, the controls a user
-would try (a uniform variance, the linear response, NCC, the former binned default); right, what would change the
-other-date cells (a fixed large ``tau^2``, the misfit counted per patch, the variance capped at the clipping range,
-the regional misfit read at the first pass's peak and, an oracle, at the true placement).
+would try (a uniform variance, the linear response, NCC, the binned response); right, the default without each of
+its parts (the last release's default, the surface without the finalist stage, saturated readings as Gaussian) and,
+in issue 33's files (``scene_change_issue33*.csv``), the remedies tried for the other-date cells then (a fixed large
+``tau^2``, the misfit counted per patch, the variance capped at the clipping range, the regional misfit read at the
+first pass's peak and, an oracle, at the true placement).
 A point right of zero is a control ahead of the default. Prints the same numbers as a table.
 """
 
@@ -26,7 +28,11 @@ DEFAULT_INPUTS = (RESULTS / "scene_change_default.csv", RESULTS / "scene_change_
 DEFAULT = "ECR true"
 PANELS = {
     "controls a user would try": ("ECR uniform x1", "ECR linear true", "NCC", "ECR binned true"),
-    "what would change the other-date cells": (
+    # Issue 41's parts of the default (their rows in its runs), and issue 33's remedies (in its runs' files).
+    "the default without its parts, and other remedies": (
+        "ECR before true",
+        "ECR surface true",
+        "ECR Gaussian true",
         "ECR tau 4096",
         "ECR correlated true",
         "ECR capped true",
@@ -35,6 +41,9 @@ PANELS = {
     ),
 }
 LABELS = {
+    "ECR before true": "the last release's default",
+    "ECR surface true": "without the finalist stage",
+    "ECR Gaussian true": "saturated readings as Gaussian",
     "ECR uniform x1": "uniform variance (its mean)",
     "ECR linear true": 'ECR(response="linear"), true variance',
     "NCC": "NCC",

@@ -411,14 +411,14 @@ def _variance(context: Context, kind):
 
 def searched(score, context: Context, variance, finalists: int = FINALISTS) -> torch.Tensor:
     """``(T, 2)`` the placement (row, column) ``localize`` picks in each trial's window: the surface, its finalists."""
-    center = (LOCAL // 2 + RADIUS, LOCAL // 2 + RADIUS)  # shift 0 puts the captured image on the window's middle
+    middle = LOCAL // 2 + RADIUS  # shift 0 puts the captured image on the window's middle cell (x, y)
     found = localize(
         context.local,
         context.window,
         variance,
         score=score,
         shifts=RADIUS,
-        center=center,
+        around=(middle, middle),
         captured_mask=context.mask,
         search=SearchStrategy(finalists=finalists),
     )
