@@ -67,7 +67,7 @@ def test_localize_and_localizer_refuse_the_score_keywords_of_0_1_naming_the_scor
     with pytest.raises(TypeError, match=r"localize\(\) takes coarse_peaks in search=SearchStrategy\(\.\.\.\)"):
         localize(captured, reference, 4.0, shifts=2, coarse_peaks=2)
     found = localize(captured, reference, 4.0, shifts=2, score=ENMI(bins=16, kernel="density"))
-    assert found.pose[0].round().tolist() == [0.0, 0.0, 0.0]
+    assert [*found.shift[0].round().tolist(), float(found.yaw[0])] == [0.0, 0.0, 0.0]
 
 
 def test_a_checked_strategy_cannot_be_changed_past_its_checks():

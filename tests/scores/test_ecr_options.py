@@ -214,4 +214,4 @@ def test_a_two_stage_search_with_a_correlated_misfit_keeps_it_where_it_applies(g
     found = localize(
         captured, reference, 16.0, score=score, shifts=6, center=(22, 18), search=SearchStrategy("two_stage")
     )
-    assert found.pose[0].round().tolist() == [0.0, 0.0, 0.0]
+    assert [*found.shift[0].round().tolist(), float(found.yaw[0])] == [0.0, 0.0, 0.0]
