@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from enmi_torch.data.example_pair import FILES, SIDECAR
+from enmi_torch.data.example import FILES, SIDECAR
 from enmi_torch.maps import GeoTransform
 from enmi_torch.utils.command import ArgumentParser, run_command
 

@@ -141,8 +141,10 @@ def _check(args, shape: tuple[int, int]) -> Path:
     out = check_folder_to_write(args.out, "OUT")
     if out.is_dir() and any(out.iterdir()):
         raise ValueError(f"OUT must be a new or empty folder, got {args.out!r}, which holds files: name another one")
-    if not all(math.isfinite(value) for value in (*args.center_world, args.heading)):
-        raise ValueError(f"--center-world and --heading must be finite, got {args.center_world} {args.heading}")
+    if not all(math.isfinite(value) for value in args.center_world):
+        raise ValueError(f"--center-world must be two finite numbers (metres), got {_numbers(args.center_world)}")
+    if not math.isfinite(args.heading):
+        raise ValueError(f"--heading must be a finite number of degrees, got {args.heading}")
     for name, sides in (("--size", args.size), ("--pair-size", [args.pair_size])):
         if not all(MIN_SIDE <= side <= min(shape) for side in sides):
             raise ValueError(f"{name} must be from {MIN_SIDE} to {min(shape)} cells, got {' '.join(map(str, sides))}")
@@ -164,7 +166,7 @@ def _check_on_map(pair, pose: Tensor, size: tuple[int, int], center: list[float]
         rows, cols = pair.later.shape[-2:]
         corners = pair.transform.to_world([[-0.5, -0.5], [cols - 0.5, rows - 0.5]])
         raise ValueError(
-            f"--center-world {center[0]:g} {center[1]:g} (map cell x {pose[0, 0]:.1f}, y {pose[0, 1]:.1f}) puts part "
+            f"--center-world {_numbers(center)} (map cell x {pose[0, 0]:.1f}, y {pose[0, 1]:.1f}) puts part "
             f"of the {size[0]} x {size[1]} captured image off the {rows} x {cols} map, which spans easting "
             f"{corners[0, 0]:.0f} to {corners[1, 0]:.0f} and northing {corners[1, 1]:.0f} to {corners[0, 1]:.0f}"
         )
@@ -213,6 +215,11 @@ def make_example(argv: Sequence[str]) -> dict:
     (out / "example.json").write_text(json.dumps(record, indent=2) + "\n")
     _report(args, pair, out, files, world, cells, geotiff)
     return record
+
+
+def _numbers(values: Sequence[float]) -> str:
+    """``670690 3546940``: numbers as typed, without an exponent."""
+    return " ".join(f"{value:.10g}" for value in values)
 
 
 def _has_rasterio() -> bool:

@@ -8,7 +8,7 @@ so that the rest of the package works with the core install.
 
 from typing import Any
 
-from enmi_torch.data.example_pair import ExamplePair, example_pair
+from enmi_torch.data.example import ExamplePair, example_pair
 from enmi_torch.data.intensity import match_intensity
 from enmi_torch.data.pairs import PairDataset, write_pairs
 from enmi_torch.data.synthetic import KeptPairs, SyntheticPairs, gravel_texture, road_patch
