@@ -62,7 +62,8 @@ SUBPACKAGES = {
     "enmi_torch.tracking": "The filter's steps: belief, health, calibration.",
     "enmi_torch.placement": "The FFT machinery the score surfaces share.",
     "enmi_torch.maps": "Real maps: windows of GeoTIFF/COG, .npy and PNG maps, and world coordinates (the geo extra).",
-    "enmi_torch.data": "Pairs for fitting a variance mask: folders, synthetic data, the Lightning data module.",
+    "enmi_torch.data": "Pairs for fitting a variance mask: folders, synthetic data, the Lightning data module; the "
+    "example pair bundled with the library (Landsat 5 over Nanjing, 2000 and 2002).",
     "enmi_torch.simulation": "The paper's simulation (Fig. simPerformance).",
 }
 # Modules whose docstrings a subpackage's page shows (each opens with its model and links to docs/model.md).

@@ -116,6 +116,14 @@ def test_the_wheel_ships_the_configs_inside_the_package(wheel):
     assert not any(name.startswith(("configs/", "tests/", "data_tools/", "train/")) for name in names)
 
 
+def test_the_wheel_ships_the_example_pair(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    folder = ROOT / "enmi_torch" / "data" / "nanjing"
+    bundled = sorted(path.name for path in folder.iterdir())
+    assert bundled == ["nanjing.json", "nanjing_2000.png", "nanjing_2002.png", "nanjing_change.png"]
+    assert {f"enmi_torch/data/nanjing/{name}" for name in bundled} <= names
+
+
 @pytest.mark.slow
 def test_the_installed_wheel_runs_its_commands_from_another_folder(wheel, tmp_path):
     """Installed (no clone on the path), the commands find their default configs in the package."""

@@ -1,10 +1,13 @@
-"""README's and docs/examples.md's examples run and print what they say they print; README stays short.
+"""The examples of README, docs/examples.md and docs/getting_started.md print what they say; README stays short.
 
 An example is a ``python`` block followed by the ``text`` block of its output, or a ``console`` block of ``$ ``
-commands, each followed by its output. ``...`` in an output stands for any text (doctest's ELLIPSIS). An example
-after a ``<!-- slow -->`` line runs with ``pytest -m slow``. Each document's examples run in a folder of their own that
-sees the repository's ``configs``, ``data_tools`` and ``train``, in the document's order (the mask example reads what
-the command before it wrote).
+commands, each followed by its output; a console script (``enmi-localize``) runs as ``python -m`` of its module
+(pyproject.toml's ``[project.scripts]``), as the installed script would. ``...`` in an output stands for any text
+(doctest's ELLIPSIS). An example after a ``<!-- slow -->`` line runs with ``pytest -m slow``. Each document's examples
+run in a folder of their own that sees the repository's ``configs``, ``data_tools`` and ``train``, in the document's
+order (the mask example reads what the command before it wrote); a slow example first runs the fast ones before it
+that have not run in this session (``pytest -m slow`` deselects them, and the slow steps of docs/getting_started.md
+read what they wrote).
 """
 
 import contextlib
@@ -20,7 +23,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BLOCK = re.compile(r"^(<!-- slow -->\n)?```(\w+)\n(.*?)^```\n", re.MULTILINE | re.DOTALL)
-DOCUMENTS = ("README.md", "docs/examples.md")
+DOCUMENTS = ("README.md", "docs/examples.md", "docs/getting_started.md")
+SECTION = (ROOT / "pyproject.toml").read_text().split("[project.scripts]\n")[1].split("\n[")[0]
+SCRIPTS = dict(re.findall(r'^([\w-]+) = "([\w.]+):main"$', SECTION, re.MULTILINE))  # console script: its module
 README_LINES = 150
 
 
@@ -38,9 +43,9 @@ def readme_examples(document: str = "README.md") -> list:
                 f"{document} line {line}: no output after the example"
             )
             assert text[block.end() : after.start()].strip() == "", f"{document} line {line}: text before the output"
-            example = (document, "python", body, after.group(3))
+            example = (document, "python", body, after.group(3), len(examples), slow)
         elif language == "console":
-            example = (document, "console", body, None)
+            example = (document, "console", body, None, len(examples), slow)
         else:
             continue
         marks = [pytest.mark.slow] if slow else []
@@ -50,7 +55,7 @@ def readme_examples(document: str = "README.md") -> list:
 
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory) -> dict:
-    """One working folder per document, made on first use."""
+    """One working folder per document, made on first use; ``folder.ran`` holds each document's examples run there."""
     made = {}
 
     def folder(document: str) -> Path:
@@ -61,6 +66,7 @@ def folders(tmp_path_factory) -> dict:
             made[document] = working
         return made[document]
 
+    folder.ran = {document: set() for document in DOCUMENTS}
     return folder
 
 
@@ -86,6 +92,9 @@ def test_examples_exist():
     assert languages.count("python") >= 5 and languages.count("console") >= 1
     languages = [param.values[0][1] for param in readme_examples("docs/examples.md")]
     assert languages.count("python") >= 2 and languages.count("console") >= 3
+    languages = [param.values[0][1] for param in readme_examples("docs/getting_started.md")]
+    assert languages.count("python") >= 2 and languages.count("console") >= 3
+    assert {"enmi-example", "enmi-localize", "enmi-fit-mask"} <= set(SCRIPTS)
 
 
 def test_readme_is_short():
@@ -97,9 +106,21 @@ def test_readme_is_short():
 
 @pytest.mark.parametrize("example", [param for document in DOCUMENTS for param in readme_examples(document)])
 def test_readme_example(example, folders, monkeypatch):
-    document, language, body, expected = example
+    document, _, _, _, index, slow = example
     folder = folders(document)
     monkeypatch.chdir(folder)
+    if slow:
+        for earlier in readme_examples(document)[:index]:
+            if not earlier.values[0][5] and earlier.values[0][4] not in folders.ran[document]:
+                run_example(earlier.values[0], folder)
+                folders.ran[document].add(earlier.values[0][4])
+    run_example(example, folder)
+    folders.ran[document].add(index)
+
+
+def run_example(example: tuple, folder: Path) -> None:
+    """Run one example in ``folder`` (the current folder) and compare what it prints with the document."""
+    document, language, body, expected, _, _ = example
     if language == "python":
         printed = io.StringIO()
         with contextlib.redirect_stdout(printed):
@@ -109,6 +130,9 @@ def test_readme_example(example, folders, monkeypatch):
     environment = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
     for command, output in console_commands(body):
         python_command = re.sub(r"^python ", f"{sys.executable} ", command)
+        script = command.split()[0]
+        if script in SCRIPTS:  # the console script as its module: this checkout's, installed or not
+            python_command = f"{sys.executable} -m {SCRIPTS[script]} {command[len(script) :].strip()}"
         completed = subprocess.run(
             python_command, shell=True, cwd=folder, env=environment, capture_output=True, text=True, timeout=600
         )

@@ -7,6 +7,7 @@ enmi-fit-mask         ``enmi_torch.cli.fit_mask:main``               ``python -m
 enmi-localize         ``enmi_torch.cli.localize:main``               ``python -m enmi_torch.cli.localize``
 enmi-reproduce-paper  ``enmi_torch.cli.reproduce_paper:main``        ``python -m enmi_torch.cli.reproduce_paper``
 enmi-make-pairs       ``enmi_torch.cli.make_pairs:main``             ``python -m enmi_torch.cli.make_pairs``
+enmi-example          ``enmi_torch.cli.example:main``                ``python -m enmi_torch.cli.example``
 ====================  =============================================  ==============================================
 
 Every command explains itself with ``--help`` (what it does, an example, the defaults), writes under ``runs/`` of

@@ -15,6 +15,7 @@ WRAPPERS = {
     "enmi-localize": [["-m", "enmi_torch.cli.localize"]],
     "enmi-reproduce-paper": [["-m", "enmi_torch.cli.reproduce_paper"], ["-m", "data_tools.reproduce_paper"]],
     "enmi-make-pairs": [["-m", "enmi_torch.cli.make_pairs"], ["-m", "data_tools.make_pairs"]],
+    "enmi-example": [["-m", "enmi_torch.cli.example"]],
 }
 
 
