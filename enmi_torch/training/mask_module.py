@@ -245,7 +245,12 @@ class MaskFitModule(LightningModule):
         items = [val_set[index] for index in range(count)]
         batch = {key: torch.stack([item[key] for item in items]) for key in ("local", "prior", "valid")}
         shift, value_range = self.hparams.localization_shift, tuple(self.hparams.value_range)
-        show = self.trainer.is_global_zero and self.trainer.progress_bar_callback is not None
+        bar = self.trainer.progress_bar_callback if self.trainer.is_global_zero else None
+
+        def show(text: str) -> None:  # on the progress bar's stream, between its lines
+            if bar is not None:
+                bar.print(text, file=sys.stderr)
+
         start = time.perf_counter()
         with torch.no_grad():
             local, prior, valid = self._pair(batch)
@@ -260,18 +265,15 @@ class MaskFitModule(LightningModule):
                     set_local, view.prior, view.usable, variances, max_shift=shift, scores=self._scores()
                 )
                 rates = {method: float(trial.located.double().mean()) for method, trial in results.items()}
-                if show:
-                    print(f"held-out level x{factor:g}: best share {max(rates.values()):.2f}", file=sys.stderr)
+                show(f"held-out level x{factor:g}: best share {max(rates.values()):.2f}")
                 return rates
 
             self.calibration = calibrate_levels(rates_at, count)
         self.levels = self.calibration.levels()
-        if show:
-            print(
-                f"held-out levels: level_hard x{self.calibration.hard:g}, level_easy x{self.calibration.easy:g} "
-                f"({time.perf_counter() - start:.0f} s)",
-                file=sys.stderr,
-            )
+        show(
+            f"held-out levels: level_hard x{self.calibration.hard:g}, level_easy x{self.calibration.easy:g} "
+            f"({time.perf_counter() - start:.0f} s)"
+        )
         return self.calibration
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:

@@ -477,7 +477,7 @@ class CheapScores(MaskFitModule):
 
 
 def fit_cheaply(folder, epochs=2, ckpt_path=None, **options):
-    datamodule = PairDataModule(train_pairs=32, val_pairs=12, size=24, batch_size=16, noise_std=40.0)
+    datamodule = PairDataModule(train_pairs=32, val_pairs=12, size=24, batch_size=4, noise_std=40.0)  # 3 batches
     model = CheapScores(shape=datamodule.shape, localization_pairs=10, localization_shift=3, **options)
     trainer = Trainer(
         accelerator="cpu",

@@ -163,6 +163,29 @@ def test_the_default_score_is_searched_with_its_finalist_stage(monkeypatch):
     assert calls == [1]
 
 
+def test_a_pair_is_located_by_the_finalist_localize_chose_not_by_the_surfaces_maximum(monkeypatch):
+    """Where the finalist stage overrules the surface, the finalist's placement counts."""
+    from enmi_torch.localization.peak import Finalists, Localization
+    from enmi_torch.training import held_out
+
+    surface = torch.zeros(3, 1, 5, 5)
+    surface[:, 0, 0, 0] = 5.0  # the surface's maximum: two cells off on both axes
+    # (yaw, row, col) of two finalists per pair; the chosen one: the zero shift, one row off, two columns off.
+    placements = torch.tensor([[[0, 0, 0], [0, 2, 2]], [[0, 3, 1], [0, 0, 0]], [[0, 0, 0], [0, 2, 4]]])
+    chosen = torch.tensor([1, 0, 1])
+
+    def fake_localize(captured, reference, variance, **options):
+        assert options["shifts"] == 2 and captured.shape[0] == 3
+        finalists = Finalists(placements, torch.zeros(3, 2), chosen)
+        zeros = torch.zeros(3)
+        return Localization(torch.zeros(3, 3), zeros, surface, torch.zeros(3, 2, 2), zeros, torch.zeros(1), finalists)
+
+    monkeypatch.setattr(held_out, "localize", fake_localize)
+    window = torch.rand(3, 1, 10, 12)
+    crop, valid = window[..., 2:8, 2:10], torch.ones(3, 1, 6, 8, dtype=torch.bool)
+    assert held_out._search(NCC(), crop, window, None, valid, 2).located.tolist() == [True, True, False]
+
+
 def test_a_crop_holding_one_value_is_missed_and_the_others_searched():
     generator = torch.Generator().manual_seed(4)
     prior = torch.rand(3, 1, 14, 18, generator=generator) * 255
