@@ -63,6 +63,13 @@ def test_pairs_beyond_half_as_they_are_halve_the_factor_below_one():
     assert calibration.hard == float(f"{expected:.2g}") == 0.44 and calibration.easy == 0.11
 
 
+def test_exactly_half_counts_as_finding_half():
+    rates_at, asked = table({1.0: {"ncc": 1.0}, 2.0: {"ncc": 0.5}, 4.0: {"ncc": 0.25}})
+    assert calibrate_levels(rates_at, 4).hard == 2.0 and asked == [1.0, 2.0, 4.0]  # on up from a level at one half
+    rates_at, asked = table({1.0: {"ncc": 0.25}, 0.5: {"ncc": 0.5}, 0.25: {"ncc": 1.0}})
+    assert calibrate_levels(rates_at, 4).hard == 0.5 and asked == [1.0, 0.5]  # down to the first level at one half
+
+
 @pytest.mark.parametrize(
     ("share", "factors", "hard", "bracketed"), [(1.0, 9, LADDER_HIGHEST, "above"), (0.0, 4, LADDER_LOWEST, "below")]
 )
