@@ -153,10 +153,10 @@ def _level_lines(summary: dict) -> list[str]:
     hard, easy = f"x{levels[LEVEL_HARD]:g}", f"x{levels[LEVEL_EASY]:g}"
     where = {
         "yes": f"where the best method finds {TARGET:g} of the pairs (L50)",
-        "below": f"the lowest factor tried: even there the best method finds less than {TARGET:g} of the pairs",
-        "above": f"the highest factor tried: even there the best method finds {TARGET:g} of the pairs or more",
+        "below": f"the lowest factor tried, where the best method still finds less than {TARGET:g} of the pairs",
+        "above": f"the highest factor tried, where the best method still finds {TARGET:g} of the pairs or more",
     }[calibration["bracketed"]]
-    lines.append(f"    {LEVEL_HARD} {hard}: {where}; {LEVEL_EASY} {easy}: a quarter of it")
+    lines += [f"    {LEVEL_HARD} {hard}: {where}", f"    {LEVEL_EASY} {easy}: a quarter of {LEVEL_HARD}'s factor"]
     return lines
 
 

@@ -80,7 +80,10 @@ def test_strong_clipped_noise_runs_to_the_end_and_writes_its_mask(tmp_path, stro
         low = max(factor for factor, share in zip(factors, best, strict=True) if share >= 0.5)
         assert low <= levels["level_hard"] <= 2 * low and best[factors.index(2 * low)] < 0.5
     assert "    best share " + "".join(f"{share:>7.2f}" for share in best) in printed
-    assert f"    level_hard x{levels['level_hard']:g}: " in printed
+    assert (
+        f"    level_hard x{levels['level_hard']:g}: " in printed
+        and f"    level_easy x{levels['level_easy']:g}: " in printed
+    )
 
 
 def test_held_out_sets_are_clipped_to_the_value_range_as_a_sensor_clips():

@@ -322,9 +322,10 @@ def test_the_printout_says_which_levels_were_chosen_and_why_and_ends_with_how_to
     assert lines[start + 1 : start + 4] == [
         "    factor        x0.5     x1",
         "    best share    0.90   0.30",
-        "    level_hard x0.7: where the best method finds 0.5 of the pairs (L50); level_easy x0.18: a quarter of it",
+        "    level_hard x0.7: where the best method finds 0.5 of the pairs (L50)",
     ]
-    table = lines[start + 4 :]
+    assert lines[start + 4] == "    level_easy x0.18: a quarter of level_hard's factor"
+    table = lines[start + 5 :]
     assert (
         table[0] == "  held-out pairs located within one pixel by localize, share of 40 (standard error at most 0.08):"
     )
@@ -354,6 +355,6 @@ def test_the_printout_names_factors_given_by_hand_and_the_ends_of_the_ladder(cap
     calibration = {"factors": [0.125, 0.25, 0.5, 1.0], "best": [0.2, 0.2, 0.1, 0.0], "bracketed": "below", "pairs": 8}
     print_summary(_summary(calibration, {"level_easy": 0.031, "level_hard": 0.125}))
     assert (
-        "    level_hard x0.125: the lowest factor tried: even there the best method finds less than 0.5 of the pairs; "
-        "level_easy x0.031: a quarter of it"
+        "    level_hard x0.125: the lowest factor tried, where the best method still finds less than 0.5 of the pairs\n"
+        "    level_easy x0.031: a quarter of level_hard's factor\n"
     ) in capsys.readouterr().out
