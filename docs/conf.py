@@ -75,7 +75,8 @@ MODULE_DOCSTRINGS = {
     ],
 }
 TRAINING = {
-    "enmi_torch.training.mask_module": ["MaskFitModule", "localization_trials"],
+    "enmi_torch.training.mask_module": ["MaskFitModule"],
+    "enmi_torch.training.held_out": ["localization_trials", "calibrate_levels", "LevelCalibration"],
     "enmi_torch.training.logger": ["MaskLogger"],
     "enmi_torch.training.fit_mask": ["fit_mask"],
 }

@@ -234,10 +234,16 @@ def check_model_options(options: Mapping[str, Any], defaults: Mapping[str, Any])
     check_positive_int("localization_crop", options["localization_crop"])
     for name in ("localization_noise", "localization_grid"):
         factors = options[name]
-        if not all(isinstance(factor, (int, float)) and 0 < factor < math.inf for factor in factors) or (
-            name == "localization_noise" and not factors
-        ):
-            raise ValueError(f"{name} must be finite factors > 0, got {list(factors)}")
+        if name == "localization_noise" and factors is None:
+            continue  # the held-out levels are read from the held-out pairs
+        if not all(
+            isinstance(factor, (int, float)) and not isinstance(factor, bool) and 0 < factor < math.inf
+            for factor in factors
+        ) or (name == "localization_noise" and not factors):
+            what = "null (levels read from the data) or " if name == "localization_noise" else ""
+            raise ValueError(f"{name} must be {what}finite factors > 0, got {list(factors)}")
+        if len({float(factor) for factor in factors}) < len(factors):
+            raise ValueError(f"{name} must be distinct factors, got {list(factors)}")
     analytic = options["analytic_variance"]
     if analytic is not None and Path(analytic).is_dir():
         raise ValueError(f"analytic_variance must name an .npy file, got the folder {str(analytic)!r}")

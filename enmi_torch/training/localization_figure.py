@@ -2,42 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import numpy as np
 
-# The methods of the dashboards, in the order the figure and the summary list them: each is named the same in
-# TensorBoard's tags (localization/<set>/<method>), the console table, summary.json and the figure. What the names mean:
-METHOD_MEANINGS = {
-    "enmi_learned": "ENMI with the learned mask",
-    "enmi_true": "ENMI with the true variance (where the pairs name it: synthetic ones, meta.json truth)",
-    "enmi_best_uniform": "ENMI with the best uniform variance (the mask's mean times 0.25, 1 or 4: best here)",
-    "enmi_uniform": "ENMI with one uniform variance, the learned mask's mean",
-    "best_other": "the best of the other scores (ECR with any variance, NMI, NCC)",
-    "ecr_learned": "ECR with the learned mask",
-    "ecr_true": "ECR with the true variance",
-    "ecr_uniform": "ECR with the learned mask's mean",
-    "nmi": "NMI (no variance)",
-    "ncc": "NCC (no variance)",
-}
-# The lines that answer "does the learned mask beat a uniform variance?", one chart per held-out set.
-ANSWER_METHODS = ("enmi_learned", "enmi_true", "enmi_best_uniform", "best_other")
-# The methods best_other is the best of.
-OTHER_METHODS = ("ecr_learned", "ecr_true", "ecr_uniform", "nmi", "ncc")
-
-
-def held_out_order(names) -> list[str]:
-    """Held-out set names, ``noise_x<k>`` by ``k`` (others first, by name)."""
-
-    def key(name: str) -> tuple[float, str]:
-        factor = name.rsplit("_x", 1)[-1] if "_x" in name else ""
-        try:
-            return float(factor), name
-        except ValueError:
-            return -math.inf, name
-
-    return sorted(names, key=key)
+from enmi_torch.training.held_out import METHOD_MEANINGS, held_out_order
 
 
 def localization_figure(rates: Mapping[str, Mapping[str, float]], pairs: int, *, title: str = ""):
@@ -67,7 +36,7 @@ def localization_figure(rates: Mapping[str, Mapping[str, float]], pairs: int, *,
     for (row, column), share in np.ndenumerate(shares):
         if np.isfinite(share):
             axis.text(column, row, f"{share:.2f}", ha="center", va="center", fontsize=FONT - 1)
-    axis.set_xticks(range(len(sets)), [name.replace("_x", " x") for name in sets], fontsize=FONT - 1)
+    axis.set_xticks(range(len(sets)), [name.replace("_", " ") for name in sets], fontsize=FONT - 1)
     axis.xaxis.tick_top()
     axis.set_yticks(range(len(methods)), methods, fontsize=FONT - 2)
     axis.tick_params(length=0)

@@ -2,10 +2,11 @@
 
 TensorBoard's logger with, for this command: runs named by their data (``runs/fit_mask/lidar_0``, not
 ``version_0``), no ``epoch`` staircase, no ``hp_metric = -1``; a custom-scalars layout (the Custom Scalars tab) that
-opens on the answer, per held-out set one chart of ENMI with the learned mask, the true variance, the best uniform
-variance and the best other score, each line its own colour (a sub-run per method), then the mask's error against its
-empirical floor, and every score and variance folded below; and, at the end of a fit, the hyperparameters with the
-run's real final metrics, the answer's first (the HParams tab reads each metric's last value).
+opens on the answer, per held-out set one chart of the library's default score (ECR) with the learned mask, the true
+variance, one uniform variance and the best uniform variance, and ENMI with its best uniform variance, each line its
+own colour (a sub-run per method), then the mask's error against its empirical floor, and every score and variance
+folded below; and, at the end of a fit, the hyperparameters with the run's real final metrics, the answer's first
+(the HParams tab reads each metric's last value).
 """
 
 from __future__ import annotations
@@ -57,7 +58,10 @@ def next_version(folder: str | Path, name: str) -> str:
 
 
 # The Custom Scalars category that answers the run's question, and the tag of its chart per held-out set.
-ANSWER = "does the learned mask beat a uniform variance? share of held-out pairs located, per noise level"
+ANSWER = (
+    "with the default score, does the learned mask beat a uniform variance (and ENMI)? share of held-out pairs located,"
+    " per noise level"
+)
 
 
 def answer_tag(held_out: str) -> str:
@@ -65,20 +69,25 @@ def answer_tag(held_out: str) -> str:
     return f"answer/{held_out}"
 
 
-def layout(sets: Sequence[str], masked_truth: bool) -> dict[str, dict[str, tuple[str, list[str]]]]:
+def layout(sets: Mapping[str, str], masked_truth: bool) -> dict[str, dict[str, tuple[str, list[str]]]]:
     """The Custom Scalars layout: category -> chart title -> ``("Multiline", [tag regex, ...])``.
 
-    ``sets``: the held-out sets, hardest first; ``masked_truth``: whether the true variance is known (synthetic data).
-    The first category answers the question: per held-out set, one chart whose lines are
-    :data:`~enmi_torch.training.localization_figure.ANSWER_METHODS`, each logged to its own sub-run (TensorBoard colours
-    a chart's lines by run, so each method gets its own colour, named in the chart's legend).
+    ``sets``: the held-out sets, hardest first, each with its label (``"level_hard (x24)"``: the name and its noise
+    factor); ``masked_truth``: whether the true variance is known. The first category answers the question: per
+    held-out set, one chart whose lines are :data:`~enmi_torch.training.held_out.ANSWER_METHODS`, each logged to its
+    own sub-run (TensorBoard colours a chart's lines by run, so each method gets its own colour, named in the chart's
+    legend).
     """
-    from enmi_torch.training.localization_figure import ANSWER_METHODS
+    from enmi_torch.training.held_out import ANSWER_METHODS
 
-    lines = [method for method in ANSWER_METHODS if masked_truth or method != "enmi_true"]
-    answer = {f"{name}: {', '.join(lines)}": ("Multiline", [rf"^{re.escape(answer_tag(name))}$"]) for name in sets}
+    lines = [method for method in ANSWER_METHODS if masked_truth or not method.endswith("_true")]
+    answer = {
+        f"{label}: {', '.join(lines)}": ("Multiline", [rf"^{re.escape(answer_tag(name))}$"])
+        for name, label in sets.items()
+    }
     every = {
-        f"{name}: every score and variance": ("Multiline", [rf"localization/{re.escape(name)}/.*"]) for name in sets
+        f"{label}: every score and variance": ("Multiline", [rf"localization/{re.escape(name)}/.*"])
+        for name, label in sets.items()
     }
     mask = {}
     if masked_truth:
@@ -88,11 +97,11 @@ def layout(sets: Sequence[str], masked_truth: bool) -> dict[str, dict[str, tuple
         )
     mask["learned mask vs the paper's empirical mask (convergence)"] = ("Multiline", ["mask/rel_rms_vs_empirical"])
     margins = {
-        f"{name}: margin of the true shift (z-score), every score and variance": (
+        f"{label}: margin of the true shift (z-score), every score and variance": (
             "Multiline",
             [rf"localization_z/{re.escape(name)}/.*"],
         )
-        for name in sets
+        for name, label in sets.items()
     }
     training = {
         "Gaussian NLL per valid pixel, training and held-out": ("Multiline", ["train/nll", "val/nll"]),
@@ -151,7 +160,7 @@ class MaskLogger(TensorBoardLogger):
         super().log_metrics({key: value for key, value in metrics.items() if key != "epoch"}, step)
 
     @rank_zero_only
-    def log_layout(self, sets: Sequence[str], masked_truth: bool) -> None:
+    def log_layout(self, sets: Mapping[str, str], masked_truth: bool) -> None:
         """Write the Custom Scalars layout (:func:`layout`); all but the answer and the mask start folded."""
         categories = layout(sets, masked_truth)
         summary = layout_summary(categories, closed=list(categories)[2:])
@@ -165,7 +174,7 @@ class MaskLogger(TensorBoardLogger):
         """
         from torch.utils.tensorboard import SummaryWriter
 
-        from enmi_torch.training.localization_figure import ANSWER_METHODS
+        from enmi_torch.training.held_out import ANSWER_METHODS
 
         for name, rate in rates.items():
             held_out, method = name.split("/")

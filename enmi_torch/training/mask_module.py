@@ -10,14 +10,17 @@ single-process gradient of the same global batch: the fitted mask does not depen
 Dashboards (TensorBoard, written by :class:`~enmi_torch.training.logger.MaskLogger`): ``train/nll`` and ``val/nll``
 (the one loss, per valid pixel); ``mask/rel_rms_vs_empirical``, ``mask/rel_rms_vs_truth`` and its floor
 ``mask/empirical_rel_rms_vs_truth``; ``localization/<held-out set>/<method>`` (share of held-out pairs located
-within one pixel by a whole-image search, the localization yardstick's protocol) and
+within one pixel by :func:`~enmi_torch.localize`, the localization yardstick's protocol) and
 ``localization_z/<held-out set>/<method>`` (the mean z-score of the true shift's score among the others: the margin)
-for ECR and ENMI with the learned mask (``*_learned``), the true field (``*_true``, synthetic data) and the
-uniform controls (``*_uniform``: the learned mask's mean; ``enmi_best_uniform``: the best of the mean times
-``localization_grid``), hard NMI and NCC. The held-out sets are the validation pairs with their residuals
-``local - prior`` scaled by each of ``localization_noise`` (``noise_x16``: 16 times the noise, 256 times the
-variance; every variance map is scaled alike), so that the methods part ways; the methods that do not depend on the
-mask are scored at a fit's first validation and reused (the same pairs give the same scores).
+for the methods of :data:`~enmi_torch.training.held_out.METHOD_MEANINGS`: the library's default score ``ECR()``
+first, then ENMI (the paper's), each with the learned mask (``*_learned``), the true field (``*_true``, where the
+pairs name one), one uniform variance (``*_uniform``: the learned mask's mean) and the best of the mean times
+``localization_grid`` (``*_best_uniform``, an oracle), then hard NMI and NCC. The held-out sets are the validation
+pairs with their residuals ``local - prior`` amplified (the variance by the factor squared; every variance map
+scaled alike) and clipped to ``value_range``: at levels read from those pairs at the fit's start
+(:func:`~enmi_torch.training.held_out.calibrate_levels`: ``level_hard``, where the best method finds half the pairs,
+and ``level_easy``, a quarter of it), or at the factors of ``localization_noise`` (``noise_x16``). The methods that
+do not depend on the mask are scored at a fit's first validation and reused (the same pairs give the same scores).
 ``speed/pairs_per_second`` (training only, validation left out); the mask figure; histograms of raw and
 standardised residuals.
 """
@@ -26,8 +29,9 @@ from __future__ import annotations
 
 import inspect
 import math
+import sys
 import time
-from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -38,7 +42,19 @@ from enmi_torch.data import match_intensity
 from enmi_torch.data.truth import FLAVOURS
 from enmi_torch.scores import ECR, ENMI, NCC, NMI, Score
 from enmi_torch.training.fit_checks import check_model_options
-from enmi_torch.training.localization_figure import ANSWER_METHODS, OTHER_METHODS, held_out_order, localization_figure
+from enmi_torch.training.held_out import (
+    ANSWER_METHODS,
+    CALIBRATION_PAIRS,
+    HeldOutSummary,
+    HeldOutTally,
+    LevelCalibration,
+    amplified,
+    calibrate_levels,
+    held_out_order,
+    localization_trials,
+    trial_methods,
+)
+from enmi_torch.training.localization_figure import localization_figure
 from enmi_torch.training.logger import MaskLogger
 from enmi_torch.training.mask_figure import mask_figure, masked_residual
 from enmi_torch.utils.checks import check_option
@@ -54,76 +70,15 @@ def relative_rms(estimate: Tensor, reference: Tensor, valid: Tensor) -> float:
     return float((ratio - 1).square().mean().sqrt())
 
 
-def localization_trials(
-    local: Tensor,
-    prior: Tensor,
-    valid: Tensor,
-    variances: dict[str, Tensor | float],
-    *,
-    max_shift: int,
-    scores: Sequence[Score],
-    uniform_grid: tuple[float, ...] = (),
-    grid_score: Score | None = None,
-) -> dict[str, tuple[int, float]]:
-    """Whole-image localization of aligned pairs, the yardstick's protocol: hits and peak z-scores.
+class HeldOutView(NamedTuple):
+    """Held-out pairs' searched window (:meth:`MaskFitModule._held_out_view`), the variances cropped alike."""
 
-    Each pair's local image, less a border of ``max_shift`` pixels, is searched in its prior image at every shift in
-    ``[-max_shift, max_shift]^2`` (the scores' FFT surfaces); the pair is located when the best shift is within one
-    pixel of the zero shift. The peak z-score, ``(score at zero shift - mean) / std`` over the shifts more than one
-    pixel away, measures the margin where every method locates the pair.
-
-    Args:
-        local: ``(B, 1, H, W)``.
-        prior: ``(B, 1, H, W)``, aligned with ``local``.
-        valid: bool ``(B, 1, H, W)``, pixels usable by every method.
-        variances: name -> ``(H, W)`` variance map or a number (one uniform variance); each score that uses a
-            variance is scored with each (methods ``"<score name>_<variance name>"``, e.g. ``"ecr_learned"``).
-        max_shift: largest shift in pixels.
-        scores: the scores searched (e.g. ``ECR(bins=32)``, ``ENMI(bins=32)``, ``NMI(bins=32)``, ``NCC()``); those
-            without a variance once each (method ``"<score name>"``).
-        uniform_grid: factors for the best-uniform control: ``grid_score`` at the variance named ``"uniform"`` times
-            each factor (``"<grid score name>_uniform_x<factor>"``).
-        grid_score: the score of the best-uniform control (needed with ``uniform_grid``).
-
-    Returns:
-        Method -> ``(hits, sum of peak z-scores)`` over the pairs, for the methods above.
-    """
-    if uniform_grid and grid_score is None:
-        raise ValueError(f"uniform_grid needs a grid_score, got uniform_grid={uniform_grid!r} and grid_score=None")
-    height, width = local.shape[-2:]
-    inner = (..., slice(max_shift, height - max_shift), slice(max_shift, width - max_shift))
-    crop, crop_valid = local[inner].float(), valid[inner]
-    window = prior.float()
-    surfaces = {}
-    for name, variance in variances.items():
-        if isinstance(variance, Tensor):
-            variance = variance[inner].float()
-        for score in scores:
-            if score.uses_variance:
-                surfaces[f"{score.name}_{name}"] = score.surface(crop, window, variance, captured_mask=crop_valid)
-        if name == "uniform":
-            for factor in uniform_grid:
-                surface = grid_score.surface(crop, window, variance * factor, captured_mask=crop_valid)
-                surfaces[f"{grid_score.name}_uniform_x{factor:g}"] = surface
-    for score in scores:
-        if not score.uses_variance:
-            surfaces[score.name] = score.surface(crop, window, captured_mask=crop_valid)
-    span = 2 * max_shift + 1
-    offsets = torch.arange(span, device=local.device) - max_shift
-    far = (offsets.abs().view(-1, 1) > 1) | (offsets.abs().view(1, -1) > 1)
-    results = {}
-    for method, surface in surfaces.items():
-        score = surface.score.double()
-        peak = score.flatten(1).argmax(1)
-        rows, cols = peak // span - max_shift, peak % span - max_shift
-        hits = int(((rows.abs() <= 1) & (cols.abs() <= 1)).sum())
-        others = score[:, far]
-        if others.shape[1] < 2:  # max_shift 1 leaves no shift farther than a pixel: no margin to measure
-            results[method] = (hits, math.nan)
-            continue
-        z = (score[:, max_shift, max_shift] - others.mean(1)) / others.std(1).clamp_min(1e-12)
-        results[method] = (hits, float(z.sum()))
-    return results
+    local: Tensor
+    prior: Tensor
+    usable: Tensor  # bool: valid, learned and (where the pairs name a truth) in its field
+    learned: Tensor  # the learned mask
+    truth: Tensor | None  # the true variance, where the pairs name one
+    uniform: float  # the learned mask's mean
 
 
 class MaskFitModule(LightningModule):
@@ -141,8 +96,11 @@ class MaskFitModule(LightningModule):
         localization_pairs: held-out pairs searched per validation (the first ones; 0 turns the search off).
         localization_shift: the shifts searched are ``[-s, s]^2`` pixels.
         localization_crop: side of the central square searched in each held-out pair (smaller: harder).
-        localization_noise: factors of the held-out noise, one held-out set each (1: as it is).
-        localization_grid: factors of the uniform variance tried by the best-uniform ENMI control.
+        localization_noise: ``None`` (null, the default) reads the held-out levels from the held-out pairs at the
+            fit's first validation: ``level_hard``, where the best method finds half the pairs, and ``level_easy``, a
+            quarter of its factor (:func:`~enmi_torch.training.held_out.calibrate_levels`); factors (``[1, 16, 32]``)
+            give them by hand, one held-out set each (``noise_x<k>``; 1: the pairs as they are).
+        localization_grid: factors of the uniform variance tried by the best-uniform controls (with 1).
         bins: ECR/ENMI/NMI bins for the localization score.
         value_range: bin range.
     """
@@ -159,7 +117,7 @@ class MaskFitModule(LightningModule):
         localization_pairs: int = 64,
         localization_shift: int = 4,
         localization_crop: int = 32,
-        localization_noise: tuple[float, ...] = (1.0, 16.0, 32.0),
+        localization_noise: tuple[float, ...] | None = None,
         localization_grid: tuple[float, ...] = (0.25, 4.0),
         bins: int = 32,
         value_range: tuple[float, float] = (0.0, 256.0),
@@ -170,21 +128,27 @@ class MaskFitModule(LightningModule):
         check_model_options(options, signature_defaults(MaskFitModule.__init__))  # every option, before any work
         # Lists, not tuples: hparams.yaml stays plain YAML (no !!python/tuple tags).
         shape, value_range = [int(size) for size in shape], [float(value) for value in value_range]
-        localization_noise = [float(factor) for factor in localization_noise]
+        if localization_noise is not None:
+            localization_noise = [float(factor) for factor in localization_noise]
         localization_grid = [float(factor) for factor in localization_grid]
         self.save_hyperparameters()
         self.shape = (shape[0], shape[1])
         self.mask: LearnedVariance | None = None
         self.statistics = EmpiricalVariance(self.shape)
         self.register_buffer("statistics_ready", torch.tensor(False))
-        self._hits: dict[str, float] = {}
-        self._z_sums: dict[str, float] = {}
+        self._tally: HeldOutTally | None = None
         self._trials = 0
+        self.held_out: HeldOutSummary | None = None  # the last validation's comparison
+        # The held-out sets' factors by name, and how they were read (None: given by hand).
+        self.levels: dict[str, float] | None = None
+        if localization_noise is not None:
+            self.levels = {f"noise_x{factor:g}": factor for factor in localization_noise}
+        self.calibration: LevelCalibration | None = None
         self._histogram_batch: tuple[Tensor, Tensor] | None = None
         self._clock, self._train_seconds, self._epoch_pairs = 0.0, 0.0, 0
         self.epoch_seconds: list[float] = []
         self._figure_pair: tuple[Tensor, Tensor, Tensor] | None = None
-        self._fixed_results: dict[tuple, dict[str, tuple[int, float]]] = {}
+        self._fixed_results: dict[tuple, dict] = {}
 
     # ----- set-up -------------------------------------------------------------------------------------------------
     @property
@@ -248,22 +212,82 @@ class MaskFitModule(LightningModule):
 
     def on_fit_start(self) -> None:
         """One pass over the training pairs: empirical mask, learnable pixels, starting variance."""
-        if bool(self.statistics_ready):
-            return
-        self.statistics.reset()
+        if not bool(self.statistics_ready):
+            self.statistics.reset()
+            with torch.no_grad():
+                for batch in self.trainer.datamodule.statistics_dataloader():
+                    local, prior, valid = self._pair(batch)
+                    self.statistics.update(local, prior, valid)
+            self.statistics.all_reduce()
+            _, observed = self.statistics.compute()
+            learnable = observed & self.mask.valid
+            if not bool(learnable.any()):
+                raise ValueError("no pixel is valid in two training pairs or more: nothing to learn a variance from")
+            self.mask.set_valid(learnable)
+            sum_squares, count = self.statistics.sum_squares[learnable].sum(), self.statistics.count[learnable].sum()
+            self.mask.reset_parameters(max(float(sum_squares / count), 1e-12))
+            self.statistics_ready.fill_(True)
+
+    def read_levels(self) -> LevelCalibration:
+        """Read the held-out levels from the first held-out pairs (:func:`~.held_out.calibrate_levels`).
+
+        Called at the fit's first validation. ECR and ENMI with the true map (where the pairs name one) and with one
+        uniform variance (the mask's mean then), NMI and NCC search the first :data:`~.held_out.CALIBRATION_PAIRS`
+        pairs of the held-out set at each factor of the ladder; every process reads the same pairs, so all get the
+        same levels. Sets :attr:`levels` (``level_easy``, ``level_hard``) and :attr:`calibration`, and returns the
+        latter (``None`` without held-out pairs to search).
+        """
+        val_set = self.trainer.datamodule.val_set
+        count = min(self.hparams.localization_pairs, CALIBRATION_PAIRS, len(val_set))
+        if count == 0:
+            self.levels = {}
+            return None
+        items = [val_set[index] for index in range(count)]
+        batch = {key: torch.stack([item[key] for item in items]) for key in ("local", "prior", "valid")}
+        shift, value_range = self.hparams.localization_shift, tuple(self.hparams.value_range)
+        bar = self.trainer.progress_bar_callback if self.trainer.is_global_zero else None
+
+        def show(text: str) -> None:  # on the progress bar's stream, between its lines
+            if bar is not None:
+                bar.print(text, file=sys.stderr)
+
+        start = time.perf_counter()
         with torch.no_grad():
-            for batch in self.trainer.datamodule.statistics_dataloader():
-                local, prior, valid = self._pair(batch)
-                self.statistics.update(local, prior, valid)
-        self.statistics.all_reduce()
-        _, observed = self.statistics.compute()
-        learnable = observed & self.mask.valid
-        if not bool(learnable.any()):
-            raise ValueError("no pixel is valid in two training pairs or more: nothing to learn a variance from")
-        self.mask.set_valid(learnable)
-        sum_squares, count = self.statistics.sum_squares[learnable].sum(), self.statistics.count[learnable].sum()
-        self.mask.reset_parameters(max(float(sum_squares / count), 1e-12))
-        self.statistics_ready.fill_(True)
+            local, prior, valid = self._pair(batch)
+            view = self._held_out_view(local, prior, valid)
+
+            def rates_at(factor: float) -> dict[str, float]:
+                variances = {"uniform": view.uniform * factor**2}
+                if view.truth is not None:
+                    variances["true"] = view.truth * factor**2
+                set_local = amplified(view.local, view.prior, factor, value_range)
+                results = localization_trials(
+                    set_local, view.prior, view.usable, variances, max_shift=shift, scores=self._scores()
+                )
+                rates = {method: float(trial.located.double().mean()) for method, trial in results.items()}
+                show(f"held-out level x{factor:g}: best share {max(rates.values()):.2f}")
+                return rates
+
+            self.calibration = calibrate_levels(rates_at, count)
+        self.levels = self.calibration.levels()
+        show(
+            f"held-out levels: level_hard x{self.calibration.hard:g}, level_easy x{self.calibration.easy:g} "
+            f"({time.perf_counter() - start:.0f} s)"
+        )
+        return self.calibration
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """The held-out levels read at the fit's start: a resumed fit searches the same sets."""
+        calibration = None if self.calibration is None else self.calibration._asdict()
+        checkpoint["held_out_levels"] = {"levels": self.levels, "calibration": calibration}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Restore the held-out levels of :meth:`on_save_checkpoint` (given by hand: this run's options rule)."""
+        saved = checkpoint.get("held_out_levels")
+        if saved is None or self.hparams.localization_noise is not None:
+            return
+        self.levels = saved["levels"]
+        self.calibration = None if saved["calibration"] is None else LevelCalibration(**saved["calibration"])
 
     def on_fit_end(self) -> None:
         """Hand the final metrics to HParams; forget the localization results kept between validations."""
@@ -292,10 +316,16 @@ class MaskFitModule(LightningModule):
             self.logger.log_final_metrics(metrics, {"data": str(source), "epochs": self.current_epoch}, defaults)
 
     def on_train_start(self) -> None:
-        """Lay out the Custom Scalars tab: the held-out sets, hardest first, and the mask's errors."""
+        """Lay out the Custom Scalars tab, once the held-out levels are known (else at the first validation)."""
+        if self.levels is not None:
+            self._log_layout()
+
+    def _log_layout(self) -> None:
+        """The Custom Scalars tab: the held-out sets, hardest first, each with its factor, and the mask's errors."""
         if isinstance(self.logger, MaskLogger):
-            noise = sorted(self.hparams.localization_noise, reverse=True) if self.hparams.localization_pairs else []
-            self.logger.log_layout([f"noise_x{factor:g}" for factor in noise], self.truth is not None)
+            levels = self.levels or {}
+            sets = {name: f"{name} (x{levels[name]:g})" for name in held_out_order(levels)[::-1]}
+            self.logger.log_layout(sets, self.truth is not None)
 
     def _pair(self, batch: dict) -> tuple[Tensor, Tensor, Tensor]:
         local, prior, valid = batch["local"].to(self.device), batch["prior"].to(self.device), batch["valid"]
@@ -347,90 +377,98 @@ class MaskFitModule(LightningModule):
             standardised = residual / self.mask(local).expand_as(local)[keep].sqrt()
         return residual.detach().cpu(), standardised.detach().cpu()
 
-    def held_out_sets(self, local: Tensor, prior: Tensor, valid: Tensor) -> dict[str, tuple[Tensor, Tensor, float]]:
-        """The held-out sets searched at each validation: name -> ``(local, prior, variance factor)``.
-
-        One per factor ``k`` of ``localization_noise``: the residuals ``local - prior`` scaled by ``k`` (the variance by
-        ``k^2``), named ``noise_x<k>``. Each is cropped to the central ``localization_crop`` square plus the search
-        border. Another kind of held-out pairs (scene changes, say) is one more entry.
-
-        A scaled local image is clipped to ``value_range``, as a sensor's output saturates: strong noise on real pairs
-        would otherwise leave the range by many widths, which the scores refuse. The variance factor stays ``k^2``
-        (clipping lowers the true variance where it bites; every variance map is scaled alike, so the comparison
-        between them stays fair). ``noise_x1`` is the data as it is.
-        """
+    def _window(self) -> tuple:
+        """The central ``localization_crop`` square plus the search border, as an index of ``(..., H, W)`` images."""
         shift = self.hparams.localization_shift
         side = min(self.hparams.localization_crop + 2 * shift, *self.shape)
         top, left = (self.shape[0] - side) // 2, (self.shape[1] - side) // 2
-        window = (..., slice(top, top + side), slice(left, left + side))
+        return (..., slice(top, top + side), slice(left, left + side))
+
+    def held_out_sets(self, local: Tensor, prior: Tensor, valid: Tensor) -> dict[str, tuple[Tensor, Tensor, float]]:
+        """The held-out sets searched at each validation: name -> ``(local, prior, variance factor)``.
+
+        One per held-out level (:attr:`levels`: ``level_easy`` and ``level_hard`` read at the fit's start, or the
+        factors ``k`` of ``localization_noise``, ``noise_x<k>``): the residuals ``local - prior`` scaled by ``k`` (the
+        variance by ``k^2``). Each is cropped to the central ``localization_crop`` square plus the search border.
+
+        A scaled local image is clipped to ``value_range``, as a sensor's output saturates (the default score reads
+        those pixels as censored): strong noise on real pairs would otherwise leave the range by many widths, which
+        the scores refuse. The variance factor stays ``k^2`` (clipping lowers the true variance where it bites; every
+        variance map is scaled alike, so the comparison between them stays fair). A factor of 1 is the data as it is.
+        """
+        if self.levels is None:
+            raise RuntimeError("the held-out levels are read at the fit's start (on_fit_start): none yet")
+        window = self._window()
         local, prior = local[window], prior[window]
-        low, high = self.hparams.value_range
+        value_range = self.hparams.value_range
         return {
-            f"noise_x{factor:g}": (
-                local if factor == 1 else (prior + factor * (local - prior)).clamp(low, high),
-                prior,
-                factor**2,
-            )
-            for factor in self.hparams.localization_noise
+            name: (amplified(local, prior, factor, value_range), prior, factor**2)
+            for name, factor in self.levels.items()
         }
 
-    def _fixed(self, key: tuple, compute) -> dict[str, tuple[int, float]]:
+    def _held_out_view(self, local: Tensor, prior: Tensor, valid: Tensor) -> HeldOutView:
+        """The searched window of held-out pairs, their usable pixels and the variances cropped alike."""
+        window = self._window()
+        learned = self.mask.variance_map().to(local.device)
+        usable = valid & self.mask.valid_mask(local)  # the learned pixels are fixed from the fit's start
+        truth = self.truth
+        if truth is not None:
+            usable = usable & truth.valid.to(local.device)
+        uniform = float(learned[torch.isfinite(learned)].mean())
+        true_map = None if truth is None else truth.variance.to(local.device)[window]
+        return HeldOutView(local[window], prior[window], usable[window], learned[window], true_map, uniform)
+
+    def _scores(self) -> tuple[Score, ...]:
+        """The scores of the comparison: the library's default ``ECR()``, ENMI (the paper's), hard NMI, NCC."""
+        bins, value_range = self.hparams.bins, tuple(self.hparams.value_range)
+        return (
+            ECR(bins=bins, value_range=value_range),
+            ENMI(bins=bins, value_range=value_range),
+            NMI(bins=bins, value_range=value_range, kernel="hard"),
+            NCC(),
+        )
+
+    def _fixed(self, key: tuple, compute) -> dict:
         """``compute()``, once per ``key`` in a fit: the methods that do not depend on the mask."""
         if key not in self._fixed_results:
             self._fixed_results[key] = compute()
         return self._fixed_results[key]
 
     def _localize(self, local: Tensor, prior: Tensor, valid: Tensor, index: Tensor) -> None:
-        room = self.hparams.localization_pairs - self._trials * self.trainer.world_size
+        world = self.trainer.world_size
+        room = self.hparams.localization_pairs - self._trials * world
         if room <= 0:
             return
-        take = min(local.shape[0], -(-room // self.trainer.world_size))
+        take = min(local.shape[0], -(-room // world))
         local, prior, valid = local[:take], prior[:take], valid[:take]
-        bins, value_range = self.hparams.bins, tuple(self.hparams.value_range)
-        variance_scores = (ECR(bins=bins, value_range=value_range), ENMI(bins=bins, value_range=value_range))
+        # Each pair's place in the held-out set: the shard sampler gives this process every world-th one.
+        positions = self.trainer.global_rank + world * (self._trials + torch.arange(take))
+        scores = self._scores()
+        variance_scores = tuple(score for score in scores if score.uses_variance)
         shift = self.hparams.localization_shift
         with torch.no_grad():
-            learned = self.mask.variance_map().to(local.device)
-            usable = valid & self.mask.valid_mask(local)  # the learned pixels are fixed from the fit's start
-            truth = self.truth
-            if truth is not None:
-                usable = usable & truth.valid.to(local.device)
-            sets = self.held_out_sets(local, prior, usable)
-            side = next(iter(sets.values()))[0].shape[-1]
-            top, left = (self.shape[0] - side) // 2, (self.shape[1] - side) // 2
-            window = (..., slice(top, top + side), slice(left, left + side))
-            usable, learned = usable[window], learned[window]
-            uniform = float(learned[torch.isfinite(learned)].mean())
-            for set_name, (set_local, set_prior, factor) in sets.items():
+            view = self._held_out_view(local, prior, valid)
+            for set_name, (set_local, set_prior, factor) in self.held_out_sets(local, prior, valid).items():
 
                 def fixed(set_local=set_local, set_prior=set_prior, factor=factor):
-                    analytic = {} if truth is None else {"true": truth.variance.to(local.device)[window] * factor}
+                    analytic = {} if view.truth is None else {"true": view.truth * factor}
                     return localization_trials(
-                        set_local,
-                        set_prior,
-                        usable,
-                        analytic,
-                        max_shift=shift,
-                        scores=(*variance_scores, NMI(bins=bins, value_range=value_range, kernel="hard"), NCC()),
+                        set_local, set_prior, view.usable, analytic, max_shift=shift, scores=scores
                     )
 
                 # The true map, NMI and NCC score the same pairs the same way at every validation of a fit: once.
-                key = (set_name, tuple(index[:take].tolist()), shift, bins, side)
+                key = (set_name, tuple(index[:take].tolist()), shift, self.hparams.bins, set_local.shape[-1])
                 results = localization_trials(
                     set_local,
                     set_prior,
-                    usable,
-                    {"learned": learned * factor, "uniform": uniform * factor},
+                    view.usable,
+                    {"learned": view.learned * factor, "uniform": view.uniform * factor},
                     max_shift=shift,
                     scores=variance_scores,
                     uniform_grid=tuple(self.hparams.localization_grid),
-                    grid_score=variance_scores[1],
                 )
                 results.update(self._fixed(key, fixed))
-                for method, (hits, z_sum) in results.items():
-                    name = f"{set_name}/{method}"
-                    self._hits[name] = self._hits.get(name, 0) + hits
-                    self._z_sums[name] = self._z_sums.get(name, 0.0) + z_sum
+                self._tally.add(set_name, results, positions)
         self._trials += take
 
     # ----- epoch ends: dashboards ---------------------------------------------------------------------------------
@@ -482,37 +520,33 @@ class MaskFitModule(LightningModule):
             self.logger.experiment.add_histogram("residuals/standardised", standardised, self.global_step)
 
     def on_validation_epoch_start(self) -> None:
-        """Reset the localization counts."""
-        self._hits, self._z_sums, self._trials, self._figure_pair = {}, {}, 0, None
+        """Start the held-out tally: every method of every held-out set, by the pair's place in the held-out set.
+
+        The first validation of a fit that reads its held-out levels from the data reads them first.
+        """
+        self._trials, self._figure_pair = 0, None
+        if self.levels is None:
+            self.read_levels()
+            self._log_layout()
+        variance_names = ["learned", "uniform"] + (["true"] if self.truth is not None else [])
+        methods = trial_methods(self._scores(), variance_names, tuple(self.hparams.localization_grid))
+        names = [f"{held_out}/{method}" for held_out in (self.levels or {}) for method in methods]
+        self._tally = HeldOutTally(len(self.trainer.datamodule.val_set), names)
 
     def on_validation_epoch_end(self) -> None:
-        """Sum the localization counts over processes, log the accuracies and the mask figure."""
+        """Sum the held-out tally over processes; log the shares, the margins, the answer and the figures."""
         if self.trainer.sanity_checking:
             return
-        names = sorted(self._hits)
-        totals = [self._hits[name] for name in names] + [self._z_sums[name] for name in names] + [self._trials]
-        totals = torch.tensor(totals, dtype=torch.float64)
-        totals = self.trainer.strategy.reduce(totals.to(self.device), reduce_op="sum")
-        pairs = float(totals[-1])
-        if pairs > 0:
-            rates = {name: float(totals[index]) / pairs for index, name in enumerate(names)}
-            margins = {name: float(totals[len(names) + index]) / pairs for index, name in enumerate(names)}
-            for set_name in sorted({name.split("/")[0] for name in names}):
-                others = [f"{set_name}/{method}" for method in OTHER_METHODS]
-                for best_name, group in (
-                    ("enmi_best_uniform", [name for name in names if name.startswith(f"{set_name}/enmi_uniform")]),
-                    ("best_other", [name for name in others if name in rates]),
-                ):
-                    best = max(group, key=lambda name: (rates[name], margins[name]))
-                    rates[f"{set_name}/{best_name}"], margins[f"{set_name}/{best_name}"] = rates[best], margins[best]
-            for name in sorted(rates):
-                if "/enmi_uniform_x" in name:
-                    continue
-                self.log(f"localization/{name}", rates[name], sync_dist=False)
-                if math.isfinite(margins[name]):
-                    self.log(f"localization_z/{name}", margins[name], sync_dist=False)
-            if isinstance(self.logger, MaskLogger):
-                self.logger.log_answer(rates, self.global_step)
+        strategy = self.trainer.strategy
+        tally = self._tally.reduce(lambda tensor: strategy.reduce(tensor.to(self.device), reduce_op="sum"))
+        self.held_out = tally.summary()
+        rates, margins, pairs = self.held_out.rates, self.held_out.margins, self.held_out.pairs
+        for name in sorted(rates):
+            self.log(f"localization/{name}", rates[name], sync_dist=False)
+            if math.isfinite(margins[name]):
+                self.log(f"localization_z/{name}", margins[name], sync_dist=False)
+        if rates and isinstance(self.logger, MaskLogger):
+            self.logger.log_answer(rates, self.global_step)
         if self.trainer.is_global_zero and self._figure_pair is not None and self.logger is not None:
             figure = self.figure()
             self.logger.experiment.add_figure("masks", figure, self.global_step)
@@ -520,11 +554,10 @@ class MaskFitModule(LightningModule):
                 nested: dict[str, dict[str, float]] = {}
                 for name, rate in rates.items():
                     held_out, method = name.split("/")
-                    if not method.startswith("enmi_uniform_x"):
-                        nested.setdefault(held_out, {})[method] = rate
+                    nested.setdefault(held_out, {})[method] = rate
                 shift = self.hparams.localization_shift
-                title = f"epoch {self.current_epoch}: held-out pairs searched within ±{shift} pixels"
-                figure = localization_figure(nested, int(pairs), title=title)
+                title = f"epoch {self.current_epoch}: held-out pairs searched within ±{shift} pixels by localize"
+                figure = localization_figure(nested, pairs, title=title)
                 self.logger.experiment.add_figure("localization", figure, self.global_step)
 
     def figure(self):

@@ -88,6 +88,9 @@ def refusals(tmp_path_factory):
         "shift": ["--model.localization_shift", "-1"],
         "crop": ["--model.localization_shift", "20"],
         "grid": ["--model.localization_grid", "[0.25, -4]"],
+        "noise": ["--model.localization_noise", "[1, 0]"],
+        "noise_twice": ["--model.localization_noise", "[16, 16.0]"],
+        "noise_empty": ["--model.localization_noise", "[]"],
         "degree": ["--model.degree", "3"],
         "analytic": ["--model.form", "perspective", "--model.analytic_variance", str(base / "a_folder.npy")],
         "perspective": ["--model.form", "perspective", "--data.root", str(folders["two"])],
@@ -148,6 +151,9 @@ def refusals(tmp_path_factory):
         ("shift", "--model.localization_shift must be an int >= 1, got -1"),
         ("crop", "the pairs are 32x32 pixels: too small for the held-out search"),
         ("grid", "--model.localization_grid must be finite factors > 0, got [0.25, -4.0]"),
+        ("noise", "--model.localization_noise must be null (levels read from the data) or finite factors > 0, got"),
+        ("noise_twice", "--model.localization_noise must be distinct factors, got [16.0, 16.0]"),
+        ("noise_empty", "--model.localization_noise must be null (levels read from the data) or finite factors > 0"),
         (
             "degree",
             "--model.degree 3 has no effect with --model.form pixel: it is the degree of the radial form's polynomial; "

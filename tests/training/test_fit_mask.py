@@ -17,11 +17,12 @@ from lightning.pytorch import Callback, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from enmi_torch import ECR, ENMI, NCC, NMI
+from enmi_torch import NCC
 from enmi_torch.cli.fit_mask import main
 from enmi_torch.data import PairDataModule
 from enmi_torch.training.fit_mask import fit_mask
-from enmi_torch.training.mask_module import MaskFitModule, localization_trials
+from enmi_torch.training.held_out import amplified, localization_trials
+from enmi_torch.training.mask_module import MaskFitModule
 from enmi_torch.variance import LearnedVariance, empirical_variance
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -48,7 +49,13 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     assert summary_lines[1].startswith("  relative RMS error vs the paper's empirical mask")
     assert any(line.startswith("  not converged after 2 epochs") for line in summary_lines)
     assert "tensorboard --logdir" in printed and "Tip" not in logged and "deprecated" not in logged
-    assert summary_lines[-1] == f'  ENMILoss(variance_model=LearnedVariance.load("{summary["files"]["pt"]}"))'
+    assert summary_lines[-5:] == [
+        "Use the mask, with the library's default score first:",
+        f'  mask = LearnedVariance.load("{summary["files"]["pt"]}")',
+        "  localize(captured, prior_map, mask)   # ECR(), localize's default score",
+        "  ECRLoss(variance_model=mask)          # its loss (registration, training)",
+        "  ENMILoss(variance_model=mask)         # ENMI, the paper's score",
+    ]
     files = {suffix: Path(path) for suffix, path in summary["files"].items()}
     assert all(path.is_file() for path in files.values())
     assert json.loads((files["pt"].parent / "summary.json").read_text())["train_pairs"] == 64
@@ -59,9 +66,9 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     events = EventAccumulator(summary["log_dir"], size_guidance={"images": 0, "histograms": 0, "scalars": 0})
     events.Reload()
     tags = events.Tags()
-    methods = ["ecr_learned", "ecr_true", "ecr_uniform", "enmi_learned", "enmi_true", "enmi_uniform"]
-    methods += ["enmi_best_uniform", "best_other", "nmi", "ncc"]
-    held_out = ["noise_x1", "noise_x16", "noise_x32"]
+    methods = ["ecr_learned", "ecr_true", "ecr_uniform", "ecr_best_uniform"]
+    methods += ["enmi_learned", "enmi_true", "enmi_uniform", "enmi_best_uniform", "nmi", "ncc"]
+    held_out = ["noise_x1", "noise_x4"]  # the smoke config's levels, by hand
     expected_scalars = {"train/nll", "val/nll", "mask/rel_rms_vs_empirical", "mask/rel_rms_vs_truth"}
     expected_scalars |= {"mask/empirical_rel_rms_vs_truth", "speed/pairs_per_second"}
     expected_scalars |= {f"localization/{name}/{method}" for name in held_out for method in methods}
@@ -83,8 +90,12 @@ def test_smoke_run_writes_mask_files_and_dashboards(tmp_path, capsys):
     errors = summary["errors"]
     logged = events.Scalars("mask/rel_rms_vs_truth")[-1].value
     assert logged == pytest.approx(errors["rel_rms_vs_truth"], rel=1e-5)
-    assert set(summary["localization"]) == set(held_out)
-    assert all(set(rates) == set(methods) for rates in summary["localization"].values())
+    assert set(summary["localization"]) == set(held_out) == set(summary["localization_paired"])
+    assert all(list(rates) == methods for rates in summary["localization"].values())  # the default score first
+    assert summary["localization_levels"] == {"noise_x1": 1.0, "noise_x4": 4.0}
+    assert summary["localization_calibration"] is None
+    on_disk = json.loads((files["pt"].parent / "summary.json").read_text())
+    assert list(on_disk["localization"]["noise_x4"]) == methods
     assert all(0 <= rate <= 1 for rates in summary["localization"].values() for rate in rates.values())
     assert Path(summary["log_dir"]).name == "lidar_0"  # named by its data
 
@@ -115,13 +126,13 @@ def test_dashboards_open_on_the_answer(tmp_path):
     layout = layout_pb2.Layout.FromString(layouts[0].tensor.string_val[0])
     answer, mask, every = layout.category[0], layout.category[1], layout.category[2]
     assert not answer.closed and not mask.closed and all(category.closed for category in layout.category[2:])
-    assert answer.title.startswith("does the learned mask beat a uniform variance?")
-    assert [chart.title.split(":")[0] for chart in answer.chart] == ["noise_x32", "noise_x16", "noise_x1"]
-    lines = ["enmi_learned", "enmi_true", "enmi_best_uniform", "best_other"]
+    assert answer.title.startswith("with the default score, does the learned mask beat a uniform variance (and ENMI)?")
+    assert [chart.title.split(":")[0] for chart in answer.chart] == ["noise_x4 (x4)", "noise_x1 (x1)"]
+    lines = ["ecr_learned", "ecr_true", "ecr_uniform", "ecr_best_uniform", "enmi_best_uniform"]
     for chart in answer.chart:  # one line per method: a sub-run each, so that TensorBoard gives each its colour
         (pattern,) = chart.multiline.tag
-        held_out = chart.title.split(":")[0]
-        assert chart.title == f"{held_out}: {', '.join(lines)}"
+        held_out = chart.title.split(" ")[0]
+        assert chart.title == f"{held_out} (x{held_out[7:]}): {', '.join(lines)}"
         for method in lines:
             sub_run = EventAccumulator(str(Path(summary["log_dir"]) / method), size_guidance={"scalars": 0})
             sub_run.Reload()
@@ -131,7 +142,7 @@ def test_dashboards_open_on_the_answer(tmp_path):
     for chart in every.chart:  # every score and variance of one held-out set (TensorBoard searches the regex)
         (pattern,) = chart.multiline.tag
         matched = {tag for tag in scalars if re.search(pattern, tag)}
-        held_out = chart.title.split(":")[0]
+        held_out = chart.title.split(" ")[0]
         assert matched == {tag for tag in scalars if tag.startswith(f"localization/{held_out}/")}
         assert len(matched) == 10
     floor = mask.chart[0].multiline.tag
@@ -143,9 +154,9 @@ def test_dashboards_open_on_the_answer(tmp_path):
     start = next(content.session_start_info for content in contents if content.HasField("session_start_info"))
     metrics = [info.name.tag for info in experiment.metric_infos]
     assert "hp_metric" not in metrics and "hp_metric" not in scalars
-    assert metrics[:4] == [f"localization/noise_x32/{method}" for method in lines]  # the answer first
-    assert metrics[4:8] == [f"localization/noise_x16/{method}" for method in lines]
-    assert metrics[12:15] == ["mask/empirical_rel_rms_vs_truth", "mask/rel_rms_vs_empirical", "mask/rel_rms_vs_truth"]
+    assert metrics[:5] == [f"localization/noise_x4/{method}" for method in lines]  # the answer first
+    assert metrics[5:10] == [f"localization/noise_x1/{method}" for method in lines]
+    assert metrics[10:13] == ["mask/empirical_rel_rms_vs_truth", "mask/rel_rms_vs_empirical", "mask/rel_rms_vs_truth"]
     assert {tag for tag in scalars if tag.startswith("localization/")} <= set(metrics)
     assert {"val/nll", "speed/pairs_per_second"} <= set(metrics) <= scalars
     # HParams shows each metric's last value: the summary's numbers, not a placeholder.
@@ -272,7 +283,7 @@ class StopAfterEpoch(Callback):
 
 def fit_directly(folder, callbacks=(), ckpt_path=None):
     datamodule = PairDataModule(train_pairs=48, val_pairs=8, size=16, batch_size=16)
-    model = MaskFitModule(shape=datamodule.shape)
+    model = MaskFitModule(shape=datamodule.shape, localization_pairs=0)  # the mask alone: no held-out search
     trainer = Trainer(
         accelerator="cpu",
         max_epochs=4,
@@ -331,45 +342,6 @@ def test_an_earlier_runs_mask_files_are_kept_unless_overwrite(tmp_path):
     summary = run(tmp_path, "--output_dir", str(output_dir), "--overwrite", "true")
     assert LearnedVariance.load(output_dir / "variance_mask.pt").shape == (32, 32)
     assert json.loads((output_dir / "summary.json").read_text()) == summary
-
-
-def test_localization_trials_find_aligned_pairs_and_miss_shifted_ones():
-    generator = torch.Generator().manual_seed(0)
-    prior = torch.rand(3, 1, 20, 24, generator=generator) * 255
-    valid = torch.ones(3, 1, 20, 24, dtype=torch.bool)
-    variance = torch.linspace(1, 100, 20 * 24).reshape(20, 24)
-    noisy = prior + torch.randn(prior.shape, generator=generator) * variance.sqrt()
-    scores = (ECR(bins=16), ENMI(bins=16), NMI(bins=16), NCC())
-    options = {"max_shift": 3, "scores": scores, "uniform_grid": (0.25, 4.0), "grid_score": ENMI(bins=16)}
-    results = localization_trials(noisy, prior, valid, {"learned": variance, "uniform": 50.0}, **options)
-    expected = {"ecr_learned", "enmi_learned", "ecr_uniform", "enmi_uniform", "nmi", "ncc"}
-    assert set(results) == expected | {"enmi_uniform_x0.25", "enmi_uniform_x4"}
-    assert all(hits == 3 and z_sum > 3 * 3 for hits, z_sum in results.values())
-    # The local image sits two pixels off along the columns only: the zero shift loses, for every method.
-    shifted = noisy.roll(2, dims=-1)
-    results = localization_trials(shifted, prior, valid, {"learned": variance, "uniform": 50.0}, **options)
-    assert all(hits == 0 for hits, _ in results.values())
-    # A one-pixel offset still counts as located (the yardstick's rule).
-    results = localization_trials(noisy.roll(1, dims=-2), prior, valid, {"uniform": 50.0}, **options)
-    assert results["ecr_uniform"][0] == 3
-
-
-def test_localization_of_fixed_methods_apart_equals_one_call():
-    """The module scores the true map, NMI and NCC once per fit and the mask's methods at every validation."""
-    generator = torch.Generator().manual_seed(1)
-    prior = torch.rand(2, 1, 18, 22, generator=generator) * 255
-    valid = torch.rand(2, 1, 18, 22, generator=generator) > 0.1
-    truth = torch.linspace(1, 400, 18 * 22).reshape(18, 22)
-    noisy = prior + torch.randn(prior.shape, generator=generator) * truth.sqrt()
-    variance_scores = (ECR(bins=16), ENMI(bins=16))
-    scores = (*variance_scores, NMI(bins=16), NCC())
-    grid = {"uniform_grid": (0.5,), "grid_score": ENMI(bins=16)}
-    mine = {"learned": truth * 1.5, "uniform": 120.0}
-    together = localization_trials(noisy, prior, valid, {**mine, "true": truth}, max_shift=2, scores=scores, **grid)
-    apart = localization_trials(noisy, prior, valid, mine, max_shift=2, scores=variance_scores, **grid)
-    assert "nmi" not in apart and "ecr_true" not in apart
-    apart.update(localization_trials(noisy, prior, valid, {"true": truth}, max_shift=2, scores=scores))
-    assert apart == together
 
 
 def test_help_lists_this_commands_options_in_plain_text(capsys):
@@ -495,3 +467,59 @@ def test_summary_json_holds_null_where_a_value_is_not_finite_and_says_so(tmp_pat
     assert json.loads(text)["errors"]["rel_rms_vs_empirical"] is None
     assert summary["errors"]["rel_rms_vs_empirical"] == math.inf
     assert "summary.json: errors.rel_rms_vs_empirical not finite, written as null" in capsys.readouterr().out
+
+
+class CheapScores(MaskFitModule):
+    """The module with NCC alone in its held-out comparison: the levels' plumbing without ECR's cost."""
+
+    def _scores(self):
+        return (NCC(),)
+
+
+def fit_cheaply(folder, epochs=2, ckpt_path=None, **options):
+    datamodule = PairDataModule(train_pairs=32, val_pairs=12, size=24, batch_size=4, noise_std=40.0)  # 3 batches
+    model = CheapScores(shape=datamodule.shape, localization_pairs=10, localization_shift=3, **options)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_epochs=epochs,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+        check_val_every_n_epoch=1,
+        callbacks=[ModelCheckpoint(dirpath=folder, save_last=True)],
+    )
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+    return model, datamodule
+
+
+def test_levels_are_read_from_the_first_held_out_pairs_and_kept_on_resume(tmp_path, monkeypatch):
+    from enmi_torch.training import mask_module
+
+    model, datamodule = fit_cheaply(tmp_path / "first")
+    calibration = model.calibration
+    assert calibration.pairs == 10 and model.levels == {"level_easy": calibration.easy, "level_hard": calibration.hard}
+    assert set(model.held_out.rates) == {"level_easy/ncc", "level_hard/ncc"} and model.held_out.pairs == 10
+    assert calibration.bracketed == "yes" and calibration.factors[0] == 1.0 and len(calibration.factors) > 2
+    # The ladder's shares are those of localize on the first 10 held-out pairs, amplified and clipped, cropped as
+    # the validation crops them (24 x 24 pairs: the whole image, a border of 3 pixels searched).
+    items = [datamodule.val_set[index] for index in range(10)]
+    local, prior, valid = (torch.stack([item[key] for item in items]) for key in ("local", "prior", "valid"))
+    usable = valid & model.mask.valid_mask(local) & datamodule.truth.valid
+    for factor, share in zip(calibration.factors, calibration.best, strict=True):
+        searched = localization_trials(
+            amplified(local, prior, factor, (0.0, 256.0)), prior, usable, {}, max_shift=3, scores=(NCC(),)
+        )
+        assert float(searched["ncc"].located.double().mean()) == share
+    checkpoint = torch.load(tmp_path / "first" / "last.ckpt", weights_only=True)
+    assert checkpoint["held_out_levels"]["levels"] == model.levels
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a resumed fit reads its levels again")
+
+    monkeypatch.setattr(mask_module, "calibrate_levels", refused)
+    resumed, _ = fit_cheaply(tmp_path / "second", epochs=3, ckpt_path=tmp_path / "first" / "last.ckpt")
+    assert resumed.levels == model.levels and resumed.calibration == calibration
+    by_hand, _ = fit_cheaply(tmp_path / "third", epochs=1, localization_noise=(1.0, 3.0))  # no ladder either
+    assert by_hand.levels == {"noise_x1": 1.0, "noise_x3": 3.0} and by_hand.calibration is None

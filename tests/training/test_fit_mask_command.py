@@ -1,5 +1,6 @@
 """The fit-mask command on a user's own pairs: it finishes, keeps its mask, fails fast and cleanly (issues 34, 35)."""
 
+import json
 import os
 import subprocess
 import sys
@@ -58,14 +59,31 @@ def exit_code(arguments) -> int:
     return 0
 
 
+@pytest.mark.slow
 def test_strong_clipped_noise_runs_to_the_end_and_writes_its_mask(tmp_path, strong_noise_pairs, capsys):
-    # The default held-out noise (x1, x16, x32) of the default config, on pairs whose noise is already strong.
-    arguments = command(tmp_path, "--data.root", str(strong_noise_pairs), "--output_dir", str(tmp_path / "out"))
+    """Levels read from pairs whose noise is already strong (the default), by the command, to the end."""
+    arguments = command(
+        tmp_path, "--data.root", str(strong_noise_pairs), "--output_dir", str(tmp_path / "out"),
+        "--model.localization_noise", "null", "--model.localization_shift", "4", "--data.val_fraction", "0.2",
+    )  # fmt: skip
     assert exit_code(arguments) == 0, capsys.readouterr().err
     mask = LearnedVariance.load(tmp_path / "out" / "variance_mask.pt")
     assert mask.shape == (32, 32) and (tmp_path / "out" / "summary.json").is_file()
     printed = capsys.readouterr().out
-    assert "noise_x32" in printed
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    calibration, levels = summary["localization_calibration"], summary["localization_levels"]
+    assert calibration["pairs"] == 4 and list(summary["localization"]) == ["level_easy", "level_hard"]
+    assert levels == {"level_easy": calibration["easy"], "level_hard": calibration["hard"]}
+    assert levels["level_easy"] == float(f"{levels['level_hard'] / 4:.2g}")
+    factors, best = calibration["factors"], calibration["best"]
+    if calibration["bracketed"] == "yes":  # the hard level lies between the last factor at half or above and the next
+        low = max(factor for factor, share in zip(factors, best, strict=True) if share >= 0.5)
+        assert low <= levels["level_hard"] <= 2 * low and best[factors.index(2 * low)] < 0.5
+    assert "    best share " + "".join(f"{share:>7.2f}" for share in best) in printed
+    assert (
+        f"    level_hard x{levels['level_hard']:g}: " in printed
+        and f"    level_easy x{levels['level_easy']:g}: " in printed
+    )
 
 
 def test_held_out_sets_are_clipped_to_the_value_range_as_a_sensor_clips():
