@@ -51,7 +51,7 @@ class FrameSearch:
     ) -> None:
         self.captured, self.reference, self.variance, self.mask = captured, reference, variance, captured_mask
         held = held or (None,) * captured.shape[0]
-        self.scores = [score if one is None else one for one in held]
+        self.score, self.scores = score, [score if one is None else one for one in held]
         valid = torch.ones_like(captured, dtype=torch.bool)
         if captured_mask is not None:
             valid = valid & self._per_vehicle(captured_mask, slice(None)).expand_as(captured)
@@ -130,7 +130,7 @@ class FrameSearch:
         return refined
 
     def held_fit(self, vehicle: int, belief: Belief, log_likelihood: Tensor) -> Score:
-        """The vehicle's score with its noise model fitted at the peak of ``log_likelihood`` ``(Y, Sy, Sx)`` and held.
+        """The tracker's score with its noise model fitted at the peak of ``log_likelihood`` ``(Y, Sy, Sx)``, held.
 
         The peak is the best cell and yaw bin of the belief's window; the pair there is the captured image, its
         variance and mask turned by ``-yaw`` as :func:`~enmi_torch.localize` turns them (nearest neighbour), and the
@@ -153,7 +153,7 @@ class FrameSearch:
         captured, variance, valid = rotate_captured(captured, variance, valid, [yaw], "nearest")
         section, on_map = map_section(self.reference, top, left, height, width)
         variance = None if variance is None else variance.double()
-        return self.scores[vehicle].held_fit(captured.double(), section, variance, valid_mask=valid & on_map)
+        return self.score.held_fit(captured.double(), section, variance, valid_mask=valid & on_map)
 
     def wide(self, vehicle: int, belief: Belief, shifts: int, yaw_bins: int, coarse_factor: int) -> Tensor | None:
         """``(3,)`` pose ``(x, y, yaw)`` of the best match over the wide window around the belief's centre.

@@ -7,6 +7,7 @@ import torch
 from _tracking import FRAME, cut, texture
 
 from enmi_torch import ECR, NCC, localize
+from enmi_torch.localization import SearchStrategy
 from enmi_torch.localization.candidates import rotate_captured
 from enmi_torch.scores.ecr import ecr_model_variance
 from enmi_torch.tracking import initial_belief
@@ -43,7 +44,8 @@ def test_the_held_noise_model_is_ecrs_own_estimate_on_the_pair_at_the_peak(gener
     belief = initial_belief(torch.tensor([[40.0, 31.0, 0.0]]), shifts=(2, 3), yaw_bins=3, yaw_step=4.0)
     likelihood = torch.zeros(3, 5, 7, dtype=torch.float64)
     likelihood[peak] = 1.0
-    search = FrameSearch(frame, reference, variance, valid, ECR(bins=16))
+    stale = ECR(bins=16, model_variance=5.0, response_variance=1.0)  # held before: read afresh, by the score itself
+    search = FrameSearch(frame, reference, variance, valid, ECR(bins=16), (stale,))
     held = search.held_fit(0, belief, likelihood)
     _, row, col = peak
     x, y = 40 + col - 3, 31 + row - 2  # the peak's cell
@@ -91,3 +93,24 @@ def test_the_window_surface_is_the_held_scores_exact_value_on_each_pair(generato
             torch.testing.assert_close(raw[0, 0, row, col], expected[0], rtol=2e-5, atol=1e-3)
     found = localize(frame, reference, 25.0, score=held, shifts=(2, 3), around=(35, 25))
     assert found.finalists is None and float(best[0]) == pytest.approx(float(found.score[0]))
+
+
+def test_the_window_search_has_no_finalist_stage_and_the_wide_search_keeps_localizes(generator, monkeypatch):
+    # The window's surface is the belief's likelihood; a finalist would only choose a pose, which the belief does
+    # not take. The wide search chooses a pose: it keeps localize's finalists.
+    import enmi_torch.tracking.search as search_module
+
+    strategies = []
+
+    def recording(*args, **kwargs):
+        strategies.append(kwargs.get("search"))
+        return localize(*args, **kwargs)
+
+    monkeypatch.setattr(search_module, "localize", recording)
+    reference = texture(generator, (60, 90)).float()
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=2, yaw_bins=1)
+    search = FrameSearch(cut(reference, 45, 30), reference, 1.0, None, ECR(bins=16))
+    search.window(belief)
+    search.wide(0, belief, 6, 1, 2)
+    assert strategies[0].finalists == 0
+    assert strategies[1].finalists == SearchStrategy().finalists and strategies[1].coarse_factor == 2
