@@ -499,6 +499,46 @@ class ECR(ECRTraits, Score):
                 delta2 = aligned_censored_response_variance(inputs, tau2, side)
         return delta2 if inputs.with_candidates else delta2[0]
 
+    def held_fit(
+        self, captured: Tensor, reference: Tensor, variance: Tensor | float, *, valid_mask: Tensor | None = None
+    ) -> ECR:
+        """This ECR with ``tau^2`` and ``delta^2`` estimated on one aligned pair and held fixed (fixed ones kept).
+
+        ``self.replace(model_variance=tau2, response_variance=delta2)`` with this pair's :meth:`model_variance_of` and
+        :meth:`response_variance_of` (a fixed ``tau^2`` takes the independent misfit: a number is used as it is). Its
+        surface is then ECR of each aligned pair under that one model, every reading a Gaussian value.
+
+        Raises:
+            ValueError: for more than one pair, or an estimated regional misfit (a map of ``tau^2``, not one number).
+
+        Example:
+            >>> generator = torch.Generator().manual_seed(0)
+            >>> reference = torch.rand(1, 1, 16, 16, generator=generator, dtype=torch.float64) * 256
+            >>> captured = reference + 8 * torch.randn(1, 1, 16, 16, generator=generator, dtype=torch.float64)
+            >>> held = ECR(bins=8).held_fit(captured, reference, 64.0)
+            >>> held.model_variance == float(ECR(bins=8).model_variance_of(captured, reference, 64.0)[0])
+            True
+        """
+        self.check_variance(variance)
+        if captured.shape[0] != 1 or reference.shape != captured.shape:
+            raise ValueError(
+                "held_fit needs one aligned pair: captured and reference of one shape with one sample, got "
+                f"{tuple(captured.shape)} and {tuple(reference.shape)}"
+            )
+        changes = {}
+        if self.model_variance == MODEL_VARIANCE_ESTIMATE:
+            if self.misfit == "regional":
+                raise ValueError(
+                    "held_fit holds one tau^2, got misfit='regional' (a tau^2 per captured pixel): hold another "
+                    "misfit, or re-estimate it on every pair (Tracker: TrackerSettings(noise_model='per_frame'))"
+                )
+            tau2 = self.model_variance_of(captured, reference, variance, valid_mask=valid_mask)
+            changes.update(model_variance=float(tau2[0]), misfit="independent")
+        if self.response == "shrunk" and self.response_variance == RESPONSE_VARIANCE_ESTIMATE:
+            delta2 = self.response_variance_of(captured, reference, variance, valid_mask=valid_mask)
+            changes["response_variance"] = float(delta2[0])
+        return self.replace(**changes) if changes else self
+
     def surface_response_variance(
         self,
         captured: Tensor,

@@ -6,7 +6,7 @@ the belief cannot hold a likelihood sharper than its own bins, and the sub-cell 
 them. :func:`grid_temperature`, the tracker's default, flattens each frame's log-likelihood just enough that no axis
 is sharper than a pose spread uniformly over one bin (variance ``width^2 / 12``); nothing is fitted.
 :func:`calibrate_temperature` fits one temperature on surveyed frames instead, for any score. :class:`Calibration`
-saves it with the peak threshold next to a map.
+saves it with the peak threshold and the noise model it was fitted with next to a map.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from torch import Tensor
 
 from enmi_torch.scores import score_names
 from enmi_torch.tracking.belief import finite_floor
+from enmi_torch.tracking.settings import NOISE_MODELS
 from enmi_torch.utils.checks import check_floating, check_positive_number
 from enmi_torch.utils.files import describe_json, read_json
 
@@ -139,11 +140,21 @@ class Calibration(NamedTuple):
         score: the name of the score they belong to (:func:`~enmi_torch.scores.as_score`).
         temperature: divide ``score * n_valid`` by it to get a log-likelihood.
         min_peak_z: the smallest robust z-score of a surface's peak that counts as a match.
+        noise_model: the tracker's ``noise_model`` the surfaces were scored with
+            (:class:`~enmi_torch.tracking.TrackerSettings`: ``"held"`` or ``"per_frame"``); the scale of a
+            log-likelihood depends on it. ``None``: not recorded, as in calibrations made before it was: those were
+            fitted per frame (the only way then), and a tracker takes them so.
     """
 
     score: str
     temperature: float
     min_peak_z: float
+    noise_model: str | None = None
+
+    @property
+    def fitted_noise_model(self) -> str:
+        """The noise model the calibration was fitted with: ``noise_model``, ``"per_frame"`` where not recorded."""
+        return self.noise_model or "per_frame"
 
     def save(self, path: str | Path) -> Path:
         """Write the calibration as JSON (e.g. ``map_calibration.json`` next to the map), unless it could not load it.
@@ -159,11 +170,14 @@ class Calibration(NamedTuple):
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
-        """Read a calibration written by :meth:`save` (files that name the score ``metric`` too).
+        """Read a calibration written by :meth:`save`, or before (its score named ``metric``, no ``noise_model``).
+
+        A file without ``noise_model`` was written before it was recorded: fitted per frame, :attr:`fitted_noise_model`.
 
         Raises:
-            ValueError: naming the file (and the key), when it is not a JSON object with exactly the keys ``score``
-                (a score's name), ``temperature`` (a finite number > 0) and ``min_peak_z`` (a finite number).
+            ValueError: naming the file (and the key), when it is not a JSON object with the keys ``score`` (a score's
+                name), ``temperature`` (a finite number > 0), ``min_peak_z`` (a finite number) and, optionally,
+                ``noise_model`` (``"held"``, ``"per_frame"`` or null), and no other.
         """
         values = read_json(path, "calibration file")
         named = f"calibration file {str(path)!r}"
@@ -173,14 +187,17 @@ class Calibration(NamedTuple):
             )
         if "metric" in values and "score" not in values:
             values["score"] = values.pop("metric")
-        if set(values) != set(cls._fields):
-            raise ValueError(f"{named}: a calibration needs keys {list(cls._fields)}, got {sorted(values)}")
-        return checked_calibration(cls(values["score"], values["temperature"], values["min_peak_z"]), named)
+        if not set(cls._fields[:3]) <= set(values) <= set(cls._fields):
+            raise ValueError(
+                f"{named}: a calibration needs keys {list(cls._fields[:3])} (and may have 'noise_model'), got "
+                f"{sorted(values)}"
+            )
+        return checked_calibration(cls(**values), named)
 
 
 def checked_calibration(calibration: Calibration, named: str) -> Calibration:
     """``calibration`` with float fields once each field is checked, else a ValueError that starts with ``named``."""
-    score, temperature, min_peak_z = calibration
+    score, temperature, min_peak_z, noise_model = calibration
     if not isinstance(score, str) or score not in score_names():
         raise ValueError(f"{named}: score must be one of {list(score_names())}, got {score!r}")
     for key, value in (("temperature", temperature), ("min_peak_z", min_peak_z)):
@@ -191,4 +208,6 @@ def checked_calibration(calibration: Calibration, named: str) -> Calibration:
             raise ValueError(f"{named}: {key} must be a finite number, got {value!r}")
     if temperature <= 0:
         raise ValueError(f"{named}: temperature must be a finite number > 0, got {temperature!r}")
-    return Calibration(score, float(temperature), float(min_peak_z))
+    if noise_model is not None and noise_model not in NOISE_MODELS:
+        raise ValueError(f"{named}: noise_model must be one of {list(NOISE_MODELS)} or None, got {noise_model!r}")
+    return Calibration(score, float(temperature), float(min_peak_z), noise_model)

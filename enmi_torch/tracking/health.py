@@ -6,7 +6,8 @@ A frame whose surface has no clear peak (the robust z-score of its log-likelihoo
 :func:`clearness` says how much of it the belief takes (none where the prediction rules it out); :class:`Health`
 counts such frames per vehicle (after ``patience`` of them the tracker
 relocalizes) and keeps the running peak z-score and likelihood temperature of the used matches
-(:func:`next_health`).
+(:func:`next_health`), and the score each vehicle holds (its noise model fitted at a frame the tracker trusted,
+:class:`~enmi_torch.tracking.TrackerSettings`' ``noise_model``).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+from enmi_torch.scores import Score
 
 
 class Health(NamedTuple):
@@ -30,12 +33,18 @@ class Health(NamedTuple):
         candidate: ``(B, 3)`` float64 where the last frame's wide search found its best match, ``(x, y, yaw)``
             relative to that frame's predicted window centre (NaN when the last frame made no wide search): the
             tracker relocalizes only where two frames' wide searches agree.
+        held: per vehicle, the score it holds for the coming frames (``noise_model="held"``: the tracker's score with
+            its noise model fitted at the peak of a frame it trusted, :meth:`~enmi_torch.scores.Score.held_fit`), or
+            ``None``: the tracker's score as it is, each frame estimating its own (before the first used frame,
+            after the tracker is lost, and always with ``noise_model="per_frame"``). ``None`` for all when made
+            without it.
     """
 
     weak_frames: Tensor
     typical_z: Tensor
     typical_temperature: Tensor
     candidate: Tensor
+    held: tuple[Score | None, ...] | None = None
 
 
 def check_health(health: object, batch: int, device: torch.device) -> Health:
@@ -43,17 +52,20 @@ def check_health(health: object, batch: int, device: torch.device) -> Health:
     if health is None:
         nothing = torch.full((batch,), math.nan, dtype=torch.float64, device=device)
         no_candidate = torch.full((batch, 3), math.nan, dtype=torch.float64, device=device)
-        return Health(torch.zeros(batch, dtype=torch.int64, device=device), nothing, nothing.clone(), no_candidate)
+        weak_frames = torch.zeros(batch, dtype=torch.int64, device=device)
+        return Health(weak_frames, nothing, nothing.clone(), no_candidate, (None,) * batch)
     if (
         not isinstance(health, Health)
         or any(part.shape != (batch,) for part in health[:3])
         or health.candidate.shape != (batch, 3)
+        or not (health.held is None or (isinstance(health.held, tuple) and len(health.held) == batch))
+        or not all(score is None or isinstance(score, Score) for score in health.held or ())
     ):
         raise ValueError(
-            f"health must be a Health of ({batch},) tensors and a ({batch}, 3) candidate from the previous step or "
-            f"None, got {health!r}"
+            f"health must be a Health of ({batch},) tensors, a ({batch}, 3) candidate and {batch} held scores (or "
+            f"None) from the previous step, or None; got {health!r}"
         )
-    return health
+    return health if health.held is not None else health._replace(held=(None,) * batch)
 
 
 def peak_z_score(surface: Tensor, min_spread: float = 0.0) -> Tensor:
@@ -110,7 +122,7 @@ def next_health(
     typical_z = _running(health.typical_z, peak_z, healthy, relocalized)
     typical_temperature = _running(health.typical_temperature, temperature, healthy, relocalized)
     candidate = torch.where(healthy[:, None], math.nan, candidate)
-    return Health(weak_frames, typical_z, typical_temperature, candidate)
+    return Health(weak_frames, typical_z, typical_temperature, candidate, health.held)
 
 
 def _running(old: Tensor, new: Tensor, healthy: Tensor, relocalized: Tensor) -> Tensor:

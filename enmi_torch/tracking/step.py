@@ -133,7 +133,7 @@ def track_step(
     if captured_mask is not None:
         captured_mask = check_mask_of("captured_mask", captured_mask, "captured", captured)
     health = check_health(health, captured.shape[0], captured.device)
-    search = FrameSearch(captured, reference, variance, captured_mask, score)
+    search = FrameSearch(captured, reference, variance, captured_mask, score, health.held)
     prior = predict(belief, odometry, coasting_noise(settings.motion_noise, health.weak_frames, settings.coasting))
     raw, best_score, peak_z, frame_temperature = search.window(prior)
     temperature = settings.temperature
@@ -151,6 +151,7 @@ def track_step(
     log_prob = prior.log_prob.clone()
     center, yaw_center = prior.center.clone(), prior.yaw_center.clone()
     candidate = torch.full_like(health.candidate, math.nan)
+    held = list(health.held)
     for vehicle in (weak_frames >= settings.patience).nonzero()[:, 0].tolist():
         found = search.wide(
             vehicle, prior, settings.relocalize_shifts, settings.relocalize_yaw_bins, settings.coarse_factor
@@ -182,6 +183,8 @@ def track_step(
             center[vehicle], yaw_center[vehicle] = fresh.center[vehicle], fresh.yaw_center[vehicle]
             best_score[vehicle], peak_z[vehicle], relocalized[vehicle] = fresh_score[0], fresh_z[0], True
             frame_temperature[vehicle] = fresh_temperature[0]  # the match the belief restarts from
+            if settings.noise_model == "held":
+                held[vehicle] = search.held_fit(vehicle, fresh, fresh_likelihood[0])
     # How much of the frame the belief takes: all of a used match (a wide search may have confirmed a weak peak),
     # its clearness of a weak one when nudging, none of a relocalized frame (its belief restarted from it).
     nudge = weight if settings.weak_update == "nudge" else 0.0
@@ -194,8 +197,13 @@ def track_step(
     healthy = healthy | relocalized
     posterior = Belief(log_prob, center, yaw_center, prior.yaw_step)
     pose, covariance = belief_pose(posterior)
+    if settings.noise_model == "held":
+        for vehicle in (healthy & ~relocalized).nonzero()[:, 0].tolist():
+            if held[vehicle] is None:  # the first frame used in full since the start or since lost
+                held[vehicle] = search.held_fit(vehicle, prior, log_likelihood[vehicle])
     health = next_health(health, healthy, relocalized, weak_frames, peak_z, frame_temperature, candidate)
     lost = health.weak_frames >= settings.patience
+    health = health._replace(held=tuple(None if gone else one for one, gone in zip(held, lost.tolist(), strict=True)))
     refined = torch.full_like(pose, math.nan)
     if settings.refine:
         refined = search.refined(pose, healthy, refined)

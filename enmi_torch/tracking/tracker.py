@@ -148,6 +148,13 @@ def _calibrated(settings: TrackerSettings, score: Score | None, calibration: obj
             f"calibration sets {', '.join(CALIBRATED)}, got settings with {', '.join(overlap)} set too: "
             "pass one or the other"
         )
+    fitted = calibration.fitted_noise_model
+    if settings.noise_model not in (defaults.noise_model, fitted):
+        # A log-likelihood's scale depends on how the noise model is read: held, or every frame its own.
+        raise ValueError(
+            f"calibration was fitted with noise_model={fitted!r}, got settings with noise_model="
+            f"{settings.noise_model!r}: leave noise_model out (the calibration sets it), or calibrate with it"
+        )
     if score is None:
         score = as_score(calibration.score)
     elif as_score(calibration.score).name != score.name:
@@ -157,4 +164,4 @@ def _calibrated(settings: TrackerSettings, score: Score | None, calibration: obj
             f"pass score={calibration.score!r} (or leave score out), or calibrate {score.name!r}"
         )
     changes = {name: getattr(calibration, name) for name in CALIBRATED}
-    return dataclasses.replace(settings, **changes), score
+    return dataclasses.replace(settings, noise_model=fitted, **changes), score

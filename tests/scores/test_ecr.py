@@ -278,3 +278,40 @@ def test_ecr_that_overflows_the_output_dtype_is_refused_not_inf():
     assert ecr(image.half(), image.half(), 1.0, model_variance=0.0).dtype == torch.float16
     with pytest.raises(ValueError, match=r"ecr reaches .*, beyond the largest torch.float16 \(6.55e\+04\)"):
         ecr((image + 1).half(), image.half(), 1e-3, model_variance=0.0)
+
+
+@pytest.mark.parametrize("misfit", ["independent", "correlated"])
+def test_held_fit_holds_the_pairs_own_estimates_and_scores_later_pairs_with_them(dtype, tolerance, misfit):
+    # A tracker holds the noise model of one pair (Score.held_fit): tau^2 and delta^2 are that pair's estimates,
+    # the held score equals the estimating one there, and scores another pair with the first pair's model.
+    captured, reference, variance, valid = _case(dtype, shape=(2, 1, 9, 13))
+    first = (captured[:1], reference[:1], variance[:1])
+    score = ECR(bins=6, misfit=misfit)
+    held = score.held_fit(*first, valid_mask=valid[:1])
+    tau2 = score.model_variance_of(*(part.double() for part in first), valid_mask=valid[:1])
+    delta2 = score.response_variance_of(*(part.double() for part in first), valid_mask=valid[:1])
+    assert held == ECR(bins=6, model_variance=float(tau2[0]), response_variance=float(delta2[0]))
+    torch.testing.assert_close(held(*first, valid_mask=valid[:1]), score(*first, valid_mask=valid[:1]), **tolerance)
+    second = (captured[1:], reference[1:], variance[1:])
+    assert float(score.model_variance_of(*second, valid_mask=valid[1:])[0]) != pytest.approx(float(tau2[0]))
+    # The binned response has no delta^2: its held tau^2 scores the second pair as the numpy group means do.
+    binned = ECR(bins=6, response="binned", misfit=misfit).held_fit(*first, valid_mask=valid[:1])
+    assert binned.response_variance == "estimate" and binned.misfit == "independent"
+    expected = _numpy_ecr(*(part[0, 0] for part in second), 6, (0.0, 256.0), binned.model_variance, valid[1, 0])
+    expected = torch.tensor([expected], dtype=dtype)
+    torch.testing.assert_close(binned(*second, valid_mask=valid[1:]), expected, **tolerance)
+
+
+def test_held_fit_keeps_what_is_fixed_and_refuses_what_it_cannot_hold():
+    captured, reference, variance, _ = _case(torch.float64, shape=(2, 1, 9, 13))
+    fixed = ECR(bins=6, model_variance=40.0, response_variance=2.0)
+    assert fixed.held_fit(captured[:1], reference[:1], variance[:1]) is fixed
+    half = ECR(bins=6, model_variance=40.0).held_fit(captured[:1], reference[:1], variance[:1])
+    delta2 = ECR(bins=6, model_variance=40.0).response_variance_of(captured[:1], reference[:1], variance[:1])
+    assert half == ECR(bins=6, model_variance=40.0, response_variance=float(delta2[0]))
+    with pytest.raises(ValueError, match=r"held_fit needs one aligned pair.*got \(2, 1, 9, 13\)"):
+        ECR().held_fit(captured, reference, variance)
+    with pytest.raises(ValueError, match=r"misfit='regional'.*noise_model='per_frame'"):
+        ECR(misfit="regional").held_fit(captured[:1], reference[:1], variance[:1])
+    with pytest.raises(ValueError, match="variance must be given for score 'ecr'"):
+        ECR().held_fit(captured[:1], reference[:1], None)

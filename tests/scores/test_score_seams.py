@@ -139,3 +139,11 @@ def test_the_default_finalists_score_each_aligned_pair_of_the_crops_with_both_ma
 )
 def test_a_score_says_whether_its_surface_is_its_value_on_each_aligned_pair(score, exact):
     assert score.surface_is_exact is exact
+
+
+def test_a_score_that_estimates_nothing_from_the_pair_is_held_as_it_is():
+    image = torch.arange(64.0).reshape(1, 1, 8, 8) * 4
+    for score, variance in ((NCC(), None), (NMI(bins=8), None)):
+        assert score.held_fit(image, image.mT, variance) is score
+    with pytest.raises(ValueError, match="variance is not used by score 'ncc'"):
+        NCC().held_fit(image, image, 1.0)

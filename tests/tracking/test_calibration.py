@@ -39,8 +39,9 @@ def test_calibrate_temperature_recovers_the_scale_of_an_overconfident_likelihood
     assert calibrate_temperature(log_likelihood[:, None].double(), index) == pytest.approx(scale, rel=0.3)
 
 
-def test_calibration_round_trips_through_json(tmp_path):
-    calibration = Calibration("ecr", 123.5, 2.5)
+@pytest.mark.parametrize("noise_model", [None, "held", "per_frame"])
+def test_calibration_round_trips_through_json(tmp_path, noise_model):
+    calibration = Calibration("ecr", 123.5, 2.5, noise_model)
     assert Calibration.load(calibration.save(tmp_path / "calibration.json")) == calibration
     (tmp_path / "bad.json").write_text('{"metric": "ecr"}')
     with pytest.raises(ValueError, match="needs keys"):
@@ -72,6 +73,11 @@ def test_calibration_round_trips_through_json(tmp_path):
             "temperature must be a finite number, got a boolean",
         ),
         ('{"score": "nope", "temperature": 2, "min_peak_z": 1}', "score must be one of"),
+        (
+            '{"score": "ecr", "temperature": 2, "min_peak_z": 1, "noise_model": "fixed"}',
+            r"noise_model must be one of \['held', 'per_frame'\] or None, got 'fixed'",
+        ),
+        ('{"score": "ecr", "temperature": 2, "min_peak_z": 1, "bins": 16}', r"may have 'noise_model'\), got \['bins'"),
     ],
 )
 def test_a_bad_calibration_file_is_refused_naming_the_file_and_the_key(tmp_path, text, match):
@@ -94,6 +100,13 @@ def test_a_calibration_that_could_not_load_is_not_saved(tmp_path, temperature, m
     with pytest.raises(ValueError, match="must be a finite number"):
         Calibration("ecr", temperature, min_peak_z).save(tmp_path / "calibration.json")
     assert not (tmp_path / "calibration.json").exists()
+
+
+def test_a_calibration_written_before_the_noise_model_was_recorded_loads_as_fitted_per_frame(tmp_path):
+    (tmp_path / "old.json").write_text('{"score": "ecr", "temperature": 9.5, "min_peak_z": 3.5}')
+    old = Calibration.load(tmp_path / "old.json")
+    assert old == Calibration("ecr", 9.5, 3.5) and old.noise_model is None and old.fitted_noise_model == "per_frame"
+    assert Calibration("ecr", 9.5, 3.5, "held").fitted_noise_model == "held"
 
 
 def test_a_calibration_file_that_names_its_score_metric_still_loads(tmp_path):

@@ -59,3 +59,20 @@ def test_clearness_is_one_for_a_usable_peak_the_squared_ratio_below_and_zero_whe
     torch.testing.assert_close(
         weight, torch.tensor([(4 / 12) ** 2, (1.5 / 12) ** 2, 0.0, 0.0, 0.25], dtype=torch.float64)
     )
+
+
+def test_a_health_made_without_held_scores_holds_none_and_a_wrong_one_is_refused():
+    import pytest
+
+    from enmi_torch import ECR
+    from enmi_torch.tracking.health import Health, check_health
+
+    fresh = check_health(None, 2, torch.device("cpu"))
+    assert fresh.held == (None, None)
+    made = Health(*fresh[:4])  # as made before the held scores: none held
+    assert made.held is None and check_health(made, 2, torch.device("cpu")).held == (None, None)
+    kept = fresh._replace(held=(ECR(model_variance=3.0), None))
+    assert check_health(kept, 2, torch.device("cpu")) is kept
+    for held in ((None,), (None, "ecr"), [None, None]):
+        with pytest.raises(ValueError, match=r"2 held scores \(or None\) from the previous step"):
+            check_health(fresh._replace(held=held), 2, torch.device("cpu"))

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from _tracking import cut, texture
+from _tracking import FRAME, cut, texture
 
 from enmi_torch import ECR, localize
 from enmi_torch.localization import NoCandidateError
@@ -202,3 +202,98 @@ def _bad_call(case: str):
 def test_bad_inputs_raise_naming_the_argument(case, error, match):
     with pytest.raises(error, match=match):
         _bad_call(case)()
+
+
+def _aligned_estimate(frame, reference, x, y, variance, score):
+    """ECR's own ``tau^2`` and ``delta^2`` on the frame and the map section under cell ``(x, y)`` (yaw 0), float64."""
+    height, width = frame.shape[2:]
+    section = reference[..., y - height // 2 : y - height // 2 + height, x - width // 2 : x - width // 2 + width]
+    pair = (frame.double(), section.double(), variance)
+    return float(score.model_variance_of(*pair)[0]), float(score.response_variance_of(*pair)[0])
+
+
+def test_the_noise_model_is_read_at_the_first_used_frame_and_held_across_the_next(generator):
+    # Frames of changing noise (a per-frame estimate would change with them): the first used frame's tau^2 and
+    # delta^2 are ECR's own on its pair, and every later frame is scored with them, not its own.
+    reference = texture(generator, (80, 140)).float()
+    score, settings = ECR(bins=16), TrackerSettings(motion_noise=(0.5, 0.5, 0.3))
+    tracker = Tracker(reference, score=score, settings=settings, shifts=(3, 4), yaw_bins=1)
+    tracker.start(torch.tensor([[40.0, 40.0, 0.0]]))
+    assert tracker.settings.noise_model == "held"
+    x, first = 40, None
+    for step, sigma in enumerate((3.0, 12.0, 1.0, 20.0)):
+        x += 3
+        frame = (cut(reference, x, 40) + sigma * torch.randn(1, 1, *FRAME, generator=generator)).float()
+        belief, health = tracker.belief, tracker.health
+        output = tracker(frame, torch.tensor([[3.0, 0.0, 0.0]]), sigma**2)
+        assert bool(output.healthy[0])
+        held = tracker.health.held[0]
+        if step == 0:
+            first = held
+            tau2, delta2 = _aligned_estimate(frame, reference, x, 40, sigma**2, score)
+            assert (held.model_variance, held.response_variance) == pytest.approx((tau2, delta2), rel=1e-12)
+            assert held == score.replace(model_variance=tau2, response_variance=delta2)
+            continue
+        assert held is first  # held, not re-read
+        # The frame's likelihood is the held score's surface: the same step with the held score given outright.
+        _, alone, _ = track_step(
+            belief,
+            frame,
+            reference,
+            torch.tensor([[3.0, 0.0, 0.0]]),
+            sigma**2,
+            score=first,
+            settings=settings.replace(noise_model="per_frame"),
+            health=health._replace(held=(None,)),
+        )
+        torch.testing.assert_close(output.score, alone.score, rtol=0, atol=0)
+        torch.testing.assert_close(output.pose, alone.pose)
+        own, _ = _aligned_estimate(frame, reference, x, 40, sigma**2, score)
+        assert abs(own - first.model_variance) > 1e-3 * first.model_variance  # a per-frame read would differ
+
+
+def test_the_held_noise_model_is_dropped_when_lost_and_read_again_at_the_next_used_frame(generator):
+    reference = texture(generator, (80, 140)).float()
+    score, settings = ECR(bins=16), TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2)
+    tracker = Tracker(reference, score=score, settings=settings, shifts=3, yaw_bins=1)
+    tracker.start(torch.tensor([[40.0, 40.0, 0.0]]))
+    blind = torch.zeros(1, 1, *FRAME, dtype=torch.bool)
+    held, x = [], 40
+    for step in range(6):
+        x += 2
+        sigma = 2.0 if step < 3 else 12.0  # the noise beyond the variance given (1) is the model's misfit, tau^2
+        frame = (cut(reference, x, 40) + sigma * torch.randn(blind.shape, generator=generator)).float()
+        output = tracker(frame, torch.tensor([[2.0, 0.0, 0.0]]), 1.0, None if step not in (1, 2) else blind)
+        held.append(tracker.health.held[0])
+        if step == 3:
+            tau2, delta2 = _aligned_estimate(frame, reference, x, 40, 1.0, score)
+    assert [one is None for one in held] == [False, False, True, False, False, False]  # lost at the second blind one
+    assert held[1] is held[0]  # one blind frame: not lost, still held
+    assert bool(output.healthy[0]) and held[4] is held[3] and held[5] is held[3]
+    assert (held[3].model_variance, held[3].response_variance) == pytest.approx((tau2, delta2), rel=1e-12)
+    assert held[3].model_variance > 4 * held[0].model_variance  # read anew, at the frame of the larger misfit
+
+
+def test_per_frame_noise_models_hold_nothing_and_score_each_frame_with_the_score_itself(generator):
+    reference = texture(generator, (80, 120)).float()
+    belief = initial_belief(torch.tensor([[60.0, 40.0, 0.0]]), shifts=3, yaw_bins=1)
+    frame, odometry = cut(reference, 61, 41).float(), torch.tensor([[1.0, 1.0, 0.0]])
+    settings = TrackerSettings(motion_noise=(0.5, 0.5, 0.3), noise_model="per_frame")
+    _, output, health = track_step(belief, frame, reference, odometry, 4.0, score=ECR(bins=16), settings=settings)
+    assert bool(output.healthy[0]) and health.held == (None,)
+    prior = predict(belief, odometry, (0.5, 0.5, 0.3))
+    found = localize(frame, reference, 4.0, score=ECR(bins=16), shifts=3, around=prior.center.flip(1), yaws=[0.0])
+    assert float(output.score[0]) == pytest.approx(float(found.surface.max()), rel=1e-12)
+
+
+def test_a_held_regional_misfit_is_refused_naming_the_setting_that_reads_it_per_frame(generator):
+    reference = texture(generator, (60, 90)).float()
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=2, yaw_bins=1)
+    frame = cut(reference, 45, 30).float() + 1.0
+    score = ECR(bins=16, misfit="regional")
+    with pytest.raises(ValueError, match=r"misfit='regional'.*TrackerSettings\(noise_model='per_frame'\)"):
+        track_step(belief, frame, reference, torch.zeros(1, 3), 1.0, score=score)
+    _, output, _ = track_step(
+        belief, frame, reference, torch.zeros(1, 3), 1.0, score=score, settings=TrackerSettings(noise_model="per_frame")
+    )
+    assert bool(output.healthy[0])

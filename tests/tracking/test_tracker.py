@@ -343,6 +343,33 @@ def test_a_tracker_refuses_a_calibration_of_another_score():
     assert tracker.settings.temperature == 2.0 and tracker.score == ECR(bins=16)
 
 
+@pytest.mark.parametrize(
+    ("recorded", "given", "expected"),
+    [
+        (None, None, "per_frame"),  # written before the noise model was recorded: fitted per frame, used so
+        ("per_frame", None, "per_frame"),
+        ("held", None, "held"),
+        ("per_frame", "per_frame", "per_frame"),
+        ("held", "per_frame", None),
+        (None, "held", "per_frame"),  # "held" is the default: not told apart from no setting, like temperature's
+    ],
+)
+def test_a_calibration_sets_the_noise_model_it_was_fitted_with(recorded, given, expected):
+    reference = torch.rand(1, 1, 32, 32) * 255
+    settings = TrackerSettings() if given is None else TrackerSettings(noise_model=given)
+    calibration = Calibration("ecr", 2.0, 3.0, recorded)
+    if expected is None:
+        with pytest.raises(
+            ValueError,
+            match=r"calibration was fitted with noise_model='held', got settings with "
+            r"noise_model='per_frame': leave noise_model out",
+        ):
+            Tracker(reference, settings=settings, calibration=calibration)
+        return
+    tracker = Tracker(reference, settings=settings, calibration=calibration)
+    assert tracker.settings.noise_model == expected and tracker.score == ECR()
+
+
 def test_a_tracker_refuses_a_belief_over_the_memory_budget_before_allocating():
 
     reference = torch.rand(1, 1, 64, 64) * 255
@@ -382,3 +409,33 @@ def _bad_call(case: str):
 def test_bad_inputs_raise_naming_the_argument(case, error, match):
     with pytest.raises(error, match=match):
         _bad_call(case)()
+
+
+def test_a_relocalization_reads_the_noise_model_at_its_own_peak(generator):
+    # The vehicle is carried 25 cells right and 12 up onto a patch seen through a larger misfit (noise beyond the
+    # variance given): the relocalized frame's tau^2 is ECR's own on the pair at the place it restarts from.
+    reference = texture(generator, (120, 240))
+    settings = TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=40, coarse_factor=2)
+    score = ECR(bins=16)
+    tracker = Tracker(reference.float(), settings=settings, score=score, shifts=4, yaw_bins=1)
+    tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))
+    x, y, relocalized = 40, 60, []
+    for step in range(12):
+        x += 3
+        if step == 5:
+            x, y = x + 25, y - 12
+        sigma = 1.0 if step < 5 else 4.0
+        frame = cut(reference, x, y) + sigma * torch.randn(1, 1, *FRAME, generator=generator, dtype=torch.float64)
+        output = tracker(frame.float(), torch.tensor([[3.0, 0.0, 0.0]]), 1.0)
+        if bool(output.relocalized[0]):
+            relocalized.append(step)
+            held = tracker.health.held[0]
+            height, width = FRAME
+            section = reference[
+                ..., y - height // 2 : y - height // 2 + height, x - width // 2 : x - width // 2 + width
+            ]
+            pair = (frame.float().double(), section.float().double(), 1.0)
+            expected = (float(score.model_variance_of(*pair)[0]), float(score.response_variance_of(*pair)[0]))
+            assert held is not None and (held.model_variance, held.response_variance) == pytest.approx(expected)
+    assert len(relocalized) == 1 and tracker.health.held[0] is held
+    assert float((output.pose[0, :2] - torch.tensor([x, y], dtype=torch.float64)).abs().max()) < 0.5

@@ -24,20 +24,24 @@ frames instead (:func:`enmi_torch.tracking.calibrate_temperature`), written as `
 (``tensorboard --logdir runs/drive/tensorboard``).
 ``--scene-change S`` renders the frames from the road changed since the map was made (every change of
 :mod:`enmi_torch.data.scene_change` at strength ``S``, the map unchanged); ``--noise-scale`` multiplies the pixel
-noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them. ECR's misfit is
-spatially correlated with the binned response (``ECR(response="binned", misfit="correlated")``, the tracker's
-:func:`~enmi_torch.tracking.default_score`);
-``--misfit independent`` gives it ECR's own default instead.
+noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them, and each row less the
+first, paired drive by drive. ECR runs as each of ``--variants`` (:mod:`~data_tools.experiments.drive.variants`: the
+tracker's default ``held``, ``ECR()`` with its noise model held from a frame it trusts; ``per_frame``; ``binned``,
+the default before; ...), a row each; ``--misfit`` gives every variant that misfit.
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
-window +-8 cells, 5 yaws 1 degree apart). Errors are split along the true heading (longitudinal) and across it
-(lateral); "covered" is the share of frames whose filter 95 % ellipse holds the truth.
+window +-8 cells, 5 yaws 1 degree apart). ``--oracle`` adds oracle gating, a reference no tracker can run: each frame
+searched about the truth, its match taken where it is within one cell of the truth, dead reckoning through the rest.
+Errors are split along the true heading (longitudinal) and across it (lateral); "covered" is the share of frames whose
+filter 95 % ellipse holds the truth.
 
     python -m data_tools.experiments.drive.drive                                     # the tables, ~3 min on 2 cores
     python -m data_tools.experiments.drive.drive --figure docs/images/drive.png      # and the docs' figure
     python -m data_tools.experiments.drive.drive --frames 60 --methods ecr_analytic  # a quick look
     python -m data_tools.experiments.drive.drive --scene-change 0.5 --seeds 0 1 2 --figure runs/drive/changed.png
+    python -m data_tools.experiments.drive.drive --seeds 3 4 5 --methods ecr_analytic --variants held per_frame \
+        binned --oracle                                                              # the tracker's score, paired
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ import torch
 import torch.nn.functional as F
 from skimage import data
 
+from data_tools.experiments.drive.variants import VARIANT_LABELS, VARIANTS, mean_and_error, paired_rows, variant_score
 from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify
 from enmi_torch.data.scene_change import scene_change
 from enmi_torch.geometry.rectify import ground_to_image_homography
@@ -60,9 +65,17 @@ from enmi_torch.localization import NoCandidateError
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
 from enmi_torch.scores.ecr import MISFITS
-from enmi_torch.tracking import CHI2_95_2D, Calibration, Tracker, TrackerSettings, calibrate_temperature, default_score
+from enmi_torch.tracking import (
+    CHI2_95_2D,
+    Calibration,
+    Tracker,
+    TrackerSettings,
+    calibrate_temperature,
+    initial_belief,
+)
 from enmi_torch.tracking.belief import check_mismatch_probability, finite_floor
 from enmi_torch.tracking.health import peak_z_score
+from enmi_torch.tracking.search import FrameSearch
 from enmi_torch.utils.checks import value_checks
 from enmi_torch.variance import empirical_variance
 from enmi_torch.variance.perspective import homography_variance
@@ -97,15 +110,18 @@ LABELS = {
     "ncc": "NCC",
 }
 LOGDIR = Path("runs/drive")
-MISFIT = default_score().misfit  # ECR's misfit in the benchmark: the tracker's
+DEFAULT_VARIANT = "held"  # the tracker's default score and noise model
 
 
-def method_score(method: str, misfit: str = MISFIT) -> tuple[Score, str | None]:
-    """A method's score and variance kind; ECR's with the tracker's response and ``misfit`` (``--misfit``)."""
+def method_score(
+    method: str, variant: str = DEFAULT_VARIANT, misfit: str | None = None
+) -> tuple[Score, str | None, str]:
+    """A method's score, variance kind and noise model: ECR's the ``variant``'s with ``BINS`` bins (and ``misfit``)."""
     score, kind = METHODS[method]
-    if isinstance(score, ECR):
-        score = score.replace(misfit=misfit, response=default_score().response)
-    return score, kind
+    if not isinstance(score, ECR):
+        return score, kind, "per_frame"
+    score, noise_model = variant_score(variant, bins=BINS, misfit=misfit)
+    return score, kind, noise_model
 
 
 def road_map() -> torch.Tensor:
@@ -267,9 +283,13 @@ class Drive:
         return (unit * pixel_noise[:, None, None, None].square()).float()
 
 
-def calibrate(drive: Drive, method: str, misfit: str = MISFIT) -> Calibration:
-    """Temperature and peak z threshold of one method from the held-out frames."""
-    score, kind = method_score(method, misfit)
+def calibrate(drive: Drive, method: str, misfit: str | None = None, variant: str = DEFAULT_VARIANT) -> Calibration:
+    """Temperature and peak z threshold of one method from the held-out frames.
+
+    With a held noise model each frame is searched with the model read at its true cell and yaw bin, as a tracker
+    that trusts that frame would hold it (:meth:`~enmi_torch.tracking.search.FrameSearch.held_fit`).
+    """
+    score, kind, noise_model = method_score(method, variant, misfit)
     variance = drive.variance(kind, drive.held_out_noise)
     generator = torch.Generator().manual_seed(1)
     offsets = torch.randint(-4, 5, (len(drive.held_out_poses), 2), generator=generator)
@@ -282,7 +302,10 @@ def calibrate(drive: Drive, method: str, misfit: str = MISFIT) -> Calibration:
         frame_variance = None if variance is None else variance[index : index + 1]
         frame = drive.held_out_frames[index : index + 1].float()
         yaws = (yaw_centers[index] + torch.arange(-2.0, 3.0) * YAW_STEP).tolist()
-        surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, score)
+        frame_score = score
+        if noise_model == "held":
+            frame_score = held_at_truth(drive, index, frame_variance, score)
+        surface = search(frame, drive.map.float(), frame_variance, drive.valid, centers[index], yaws, frame_score)
         surfaces.append(surface.surface[0].double())
         # The tracker's z-score: over the log-likelihood in nats, its spread at least one nat.
         aligned_z.append(float(peak_z_score(finite_floor(surface.surface[0].double()) * count, min_spread=1.0)))
@@ -297,7 +320,18 @@ def calibrate(drive: Drive, method: str, misfit: str = MISFIT) -> Calibration:
     temperature = calibrate_temperature(torch.stack(surfaces) * count, grid_truth)
     # Aligned frames pass 95 % of the time; wrong windows are caught by the prediction (surprise) instead.
     threshold = float(torch.tensor(aligned_z).quantile(0.05))
-    return Calibration(score.name, temperature, threshold)
+    return Calibration(score.name, temperature, threshold, noise_model)
+
+
+def held_at_truth(drive: Drive, index: int, variance: torch.Tensor | None, score: Score) -> Score:
+    """``score`` with its noise model read on held-out frame ``index`` at its true cell and yaw bin, held."""
+    pose = drive.held_out_poses[index : index + 1].clone()
+    pose[:, :2] = pose[:, :2].round()
+    pose[:, 2] = pose[:, 2].round()
+    belief = initial_belief(pose, shifts=0, yaw_bins=1, yaw_step=YAW_STEP)
+    frame = drive.held_out_frames[index : index + 1].float()
+    found = FrameSearch(frame, drive.map.float(), variance, drive.valid, score)
+    return found.held_fit(0, belief, torch.zeros(1, 1, 1, dtype=torch.float64))
 
 
 def search(frame, reference, variance, valid, center, yaws, score: Score) -> Localization:
@@ -317,12 +351,21 @@ def run_filter(
     refine: bool = False,
     coasting: str = "random_walk",
     uniform_scale: float = 1.0,
-    misfit: str = MISFIT,
+    misfit: str | None = None,
     mismatch_probability: float = 0.0,
+    variant: str = DEFAULT_VARIANT,
 ) -> dict:
     """Poses, covariances, health and relocalization per frame of the filter (uncalibrated without ``calibration``)."""
-    score, kind = method_score(method, misfit)
+    score, kind, noise_model = method_score(method, variant, misfit)
     variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
+    settings = TrackerSettings(
+        motion_noise=drive.motion_noise,
+        coasting=coasting,
+        refine=refine and method != "nmi",
+        mismatch_probability=mismatch_probability,
+    )
+    if calibration is None:  # a calibration sets the noise model it was fitted with
+        settings = settings.replace(noise_model=noise_model)
     tracker = Tracker(
         drive.map.float(),
         calibration=calibration,
@@ -330,12 +373,7 @@ def run_filter(
         shifts=SHIFTS,
         yaw_bins=YAW_BINS,
         yaw_step=YAW_STEP,
-        settings=TrackerSettings(
-            motion_noise=drive.motion_noise,
-            coasting=coasting,
-            refine=refine and method != "nmi",
-            mismatch_probability=mismatch_probability,
-        ),
+        settings=settings,
     )
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances, healthy, relocalized, seconds = [drive.truth[0]], [torch.eye(3) * 0.0], [True], [False], []
@@ -365,9 +403,11 @@ def run_filter(
     }
 
 
-def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
+def run_argmax(
+    drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str | None = None, variant: str = DEFAULT_VARIANT
+) -> dict:
     """Per-frame argmax: search around the previous estimate moved by the odometry, keep the best candidate."""
-    score, kind = method_score(method, misfit)
+    score, kind, _ = method_score(method, variant, misfit)
     variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
@@ -388,6 +428,45 @@ def run_argmax(drive: Drive, method: str, uniform_scale: float = 1.0, misfit: st
             poses.append(guess)
             continue
         poses.append(result.pose[0].double())
+    return {"pose": torch.stack(poses)}
+
+
+def run_oracle_gating(
+    drive: Drive, method: str, uniform_scale: float = 1.0, misfit: str | None = None, variant: str = DEFAULT_VARIANT
+) -> dict:
+    """A reference, not a method: dead reckoning told which frames' best match is right.
+
+    Each frame is searched in the filter's window (``SHIFTS`` cells, ``YAW_BINS`` yaws) about its true cell and yaw;
+    where the best candidate is within one cell of the truth on both map axes it is taken, elsewhere the last pose
+    moved by the odometry. It shows how much of a drive the frames and the odometry leave to be lost even by a filter
+    that never takes a wrong match (not a strict bound: a filter may use a match off by more than a cell).
+    """
+    score, kind, _ = method_score(method, variant, misfit)
+    variance = drive.variance(kind, drive.pixel_noise, uniform_scale)
+    poses = [drive.truth[0]]
+    for index in range(1, len(drive.truth)):
+        truth = drive.truth[index]
+        found = None
+        try:
+            found = (
+                search(
+                    drive.frames[index : index + 1].float(),
+                    drive.map.float(),
+                    None if variance is None else variance[index : index + 1],
+                    drive.valid,
+                    torch.stack([truth[1], truth[0]]).round().long(),
+                    [round(float(truth[2])) + step * YAW_STEP for step in range(-2, 3)],
+                    score,
+                )
+                .pose[0]
+                .double()
+            )
+        except NoCandidateError:
+            pass
+        if found is not None and bool((found[:2] - truth[:2]).abs().max() <= 1):
+            poses.append(found)
+        else:
+            poses.append(_moved(poses[-1], drive.odometry[index]))
     return {"pose": torch.stack(poses)}
 
 
@@ -446,8 +525,8 @@ def print_tables(drive: Drive, results: dict, calibrations: dict) -> list[str]:
 
     rows = [("odometry only", "dead reckoning", summary(drive.truth, dead_reckoning(drive)), None, None)]
     for method, (filtered, argmax) in results.items():
-        rows.append((LABELS[method], "filter", summary(drive.truth, filtered["pose"]), filtered, method))
-        rows.append((LABELS[method], "per-frame argmax", summary(drive.truth, argmax["pose"]), None, method))
+        rows.append((method, "filter", summary(drive.truth, filtered["pose"]), filtered, method))
+        rows.append((method, "per-frame argmax", summary(drive.truth, argmax["pose"]), None, method))
     for label, estimator, stats, filtered, _ in rows:
         covered = f"{coverage(drive.truth, filtered):.3f}" if filtered is not None else "-"
         relocalized = str(int(filtered["relocalized"].sum())) if filtered is not None else "-"
@@ -471,13 +550,11 @@ def print_tables(drive: Drive, results: dict, calibrations: dict) -> list[str]:
                 f"{mine['lateral_rms']:.2f} / {mine['longitudinal_rms']:.2f} "
                 f"({theirs['lateral_rms']:.2f} / {theirs['longitudinal_rms']:.2f})"
             )
-        lines.append(f"| {LABELS[method]} | " + " | ".join(parts) + " |")
+        lines.append(f"| {method} | " + " | ".join(parts) + " |")
     if calibrations:
         lines += ["\nCalibration (held-out frames): temperature, peak z threshold\n"]
     for method, calibration in calibrations.items():
-        lines.append(
-            f"- {LABELS[method]}: T = {calibration.temperature:.3g}, min_peak_z = {calibration.min_peak_z:.2f}"
-        )
+        lines.append(f"- {method}: T = {calibration.temperature:.3g}, min_peak_z = {calibration.min_peak_z:.2f}")
     lines.append(
         f"- odometry noise (RMS increment error du, dv, dyaw): {tuple(round(v, 3) for v in drive.motion_noise)}"
     )
@@ -510,7 +587,7 @@ def plot(drive: Drive, results: dict, path: Path) -> None:
                 color=line[0].get_color(),
                 lw=0.9,
             )
-            line[0].set_label(f"{LABELS[method]}: filter (solid), argmax (dotted)")
+            line[0].set_label(f"{method}: filter (solid), argmax (dotted)")
         for start, stop, label in ((*NOISY, "strong noise"), (*CHANGED, "changed")):
             axis.axvspan(start, stop, color="orange", alpha=0.15)
             axis.text(start, 0.9, label, transform=axis.get_xaxis_transform(), fontsize=7)
@@ -567,7 +644,7 @@ def refined_table(drive: Drive, results: dict) -> list[str]:
         for pose in (filtered["pose"][done], filtered["refined"][done]):
             parts.append(float((pose[:, 2] - truth[:, 2]).square().mean().sqrt()))
         values = " | ".join(f"{value:.3f}" for value in parts)
-        lines.append(f"| {LABELS[method]} | {int(done.sum())} | {values} |")
+        lines.append(f"| {method} | {int(done.sum())} | {values} |")
     return lines
 
 
@@ -577,26 +654,29 @@ def lost_share(truth: torch.Tensor, pose: torch.Tensor) -> float:
 
 
 def across_drives(rows: dict) -> list[str]:
-    """Mean ± standard error over the drives of each method's filter and argmax."""
+    """Mean ± SE over the drives of each row (a method's label and its estimator), and each row less the first."""
     lines = [
         "\nAcross drives: mean ± SE (drives that raised an exception are counted, not averaged)\n",
         "| method | estimator | drives | within 1 cell | lost (> 4 cells) | RMS error (cells) | 95 % ellipse covers "
         "| raised |",
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for (method, estimator), values in rows.items():
+    paired = {}
+    for (label, estimator), values in rows.items():
         done = [value for value in values if value is not None]
         parts = []
-        for key in ("within", "lost", "rms", "covered"):
-            column = torch.tensor([value[key] for value in done if value.get(key) is not None], dtype=torch.float64)
-            if len(column) == 0:
-                parts.append("-")
-                continue
-            spread = f" ± {float(column.std() / len(column) ** 0.5):.3f}" if len(column) > 1 else ""
-            parts.append(f"{float(column.mean()):.3f}{spread}")
+        for key in MEASURES:
+            column = [value[key] for value in done if value.get(key) is not None]
+            parts.append(mean_and_error(column))
+            if len(done) == len(values) and len(column) == len(values):
+                paired.setdefault(f"{label} | {estimator}", {})[key] = column
         raised = len(values) - len(done)
-        lines.append(f"| {LABELS[method]} | {estimator} | {len(values)} | " + " | ".join(parts) + f" | {raised} |")
-    return lines
+        lines.append(f"| {label} | {estimator} | {len(values)} | " + " | ".join(parts) + f" | {raised} |")
+    drives = max((len(values) for values in rows.values()), default=0)
+    return lines + paired_rows(paired, drives, MEASURES)
+
+
+MEASURES = ("within", "lost", "rms", "covered")  # a drive's row: within 1 cell, lost, RMS error, ellipse covers
 
 
 def _drive_row(drive: Drive, result: dict, filtered: bool) -> dict:
@@ -634,11 +714,15 @@ def main(argv=None) -> None:
         help="the uniform variance as this factor times the learned map's mean (default 1: the mean)",
     )
     parser.add_argument(
-        "--misfit",
-        choices=MISFITS,
-        default=MISFIT,
-        help="ECR's misfit: how its model variance is estimated (default: the tracker's, default_score)",
+        "--variants",
+        nargs="+",
+        choices=list(VARIANTS),
+        default=[DEFAULT_VARIANT],
+        help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
+        "tracker's, held)",
     )
+    parser.add_argument("--misfit", choices=MISFITS, help="ECR's misfit in every variant (default: each variant's own)")
+    parser.add_argument("--oracle", action="store_true", help="also oracle gating: each frame searched about the truth")
     parser.add_argument(
         "--mismatch-probability",
         type=float,
@@ -661,18 +745,28 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     if args.uniform_scale != 1:
         print(f"ECR, uniform variance: {args.uniform_scale:g} x the learned map's mean", flush=True)
-    print(f"ECR with misfit={args.misfit!r}; mismatch probability {args.mismatch_probability:g}", flush=True)
+    variants = list(dict.fromkeys(args.variants))
+    shown = ", ".join(VARIANT_LABELS[variant] for variant in variants)
+    misfit = "as each variant" if args.misfit is None else repr(args.misfit)
+    print(f"ECR {shown}; misfit {misfit}; mismatch probability {args.mismatch_probability:g}", flush=True)
     start = time.perf_counter()
-    rows = {(method, estimator): [] for method in args.methods for estimator in ("filter", "per-frame argmax")}
+    runs = [
+        (method, variant) for method in args.methods for variant in (variants if method.startswith("ecr") else [None])
+    ]
+    estimators = ("filter", "per-frame argmax", *(["oracle gating"] if args.oracle else []))
+    rows = {}
     for number, seed in enumerate(args.seeds):
         drive = Drive(args.frames, seed, args.scene_change, args.noise_scale)
-        results, calibrations = {}, {}
-        for method in args.methods:
+        results, calibrations, searched = {}, {}, {}
+        for method, variant in runs:
+            label = LABELS[method] + (f", {VARIANT_LABELS[variant]}" if variant and len(variants) > 1 else "")
+            variant = variant or DEFAULT_VARIANT
+            score = method_score(method, variant, args.misfit)[0]
             # Featureless frames (the photograph's sky) are no error here: their flat surfaces are weak matches.
             with value_checks(False):
-                calibration = calibrate(drive, method, args.misfit) if args.calibrate else None
+                calibration = calibrate(drive, method, args.misfit, variant) if args.calibrate else None
                 if calibration is not None:
-                    calibrations[method] = calibration
+                    calibrations[label] = calibration
                 try:
                     filtered = run_filter(
                         drive,
@@ -683,16 +777,26 @@ def main(argv=None) -> None:
                         args.uniform_scale,
                         args.misfit,
                         args.mismatch_probability,
+                        variant,
                     )
                 except Exception as error:  # a drive that raises is a result, reported as such
-                    print(f"seed {seed} {method}: the filter raised {type(error).__name__}: {error}", flush=True)
+                    print(f"seed {seed} {label}: the filter raised {type(error).__name__}: {error}", flush=True)
                     filtered = None
-                argmax = run_argmax(drive, method, args.uniform_scale, args.misfit)
-            rows[method, "filter"].append(None if filtered is None else _drive_row(drive, filtered, True))
-            rows[method, "per-frame argmax"].append(_drive_row(drive, argmax, False))
+                # Per-frame searches of one score run once: a held noise model is the filter's only.
+                for estimator, run in (("per-frame argmax", run_argmax), ("oracle gating", run_oracle_gating)):
+                    if estimator in estimators and (estimator, method, score) not in searched:
+                        found = run(drive, method, args.uniform_scale, args.misfit, variant)
+                        searched[estimator, method, score] = found
+            rows.setdefault((label, "filter"), []).append(
+                None if filtered is None else _drive_row(drive, filtered, True)
+            )
+            for estimator in estimators[1:]:
+                rows.setdefault((label, estimator), []).append(
+                    _drive_row(drive, searched[estimator, method, score], False)
+                )
             if filtered is not None:
-                results[method] = (filtered, argmax)
-            print(f"drive {number + 1}/{len(args.seeds)} {method}: {time.perf_counter() - start:.0f} s", flush=True)
+                results[label] = (filtered, searched["per-frame argmax", method, score])
+            print(f"drive {number + 1}/{len(args.seeds)} {label}: {time.perf_counter() - start:.0f} s", flush=True)
         print(f"\n## Drive seed {seed}")
         print("\n".join(print_tables(drive, results, calibrations)))
         if args.refine:
@@ -700,13 +804,13 @@ def main(argv=None) -> None:
         if number == 0 and results:
             folder = args.logdir
             folder.mkdir(parents=True, exist_ok=True)
-            for method, calibration in calibrations.items():
-                calibration.save(folder / f"calibration_{method}.json")
+            for (method, variant), calibration in zip(runs, calibrations.values(), strict=False):
+                calibration.save(folder / f"calibration_{method}{'_' + variant if variant else ''}.json")
             if args.figure is not None:
                 plot(drive, results, args.figure)
                 print(f"wrote {args.figure}")
             logged = log_tensorboard(drive, results, folder / "tensorboard")
-            step_ms = {method: 1000 * float(pair[0]["seconds"].median()) for method, pair in results.items()}
+            step_ms = {label: 1000 * float(pair[0]["seconds"].median()) for label, pair in results.items()}
             print(f"\nmedian filter step (ms): {json.dumps({k: round(v, 1) for k, v in step_ms.items()})}")
             if logged:
                 print(f"wrote TensorBoard logs in {logged}")

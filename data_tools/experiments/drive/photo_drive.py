@@ -16,17 +16,20 @@ auto 5 10 30`` adds the filter with hand-set temperatures (``Tracker(..., settin
 beside README's automatic one: a grid of controls, a row "filter, temperature T" each; the best of them, chosen on these
 same drives, is what tuning the temperature could reach.
 
-Methods: ECR (the tracker's default score) with the true per-row variance and with a uniform variance
-(``--uniform-scales`` times the true map's mean: the grid of controls), NMI, NCC. ECR's misfit is spatially correlated
-(``ECR(response="binned", misfit="correlated")``, the tracker's default score); ``--misfit independent`` gives it the
-independent misfit instead. "Within 1 cell": on both axes; "lost": more than 4 cells from the truth; "covers": the
-filter's 95 % ellipse holds the truth; "raised": drives that ended in an exception. A second table pairs each row with
-the first on the same drives; the last line is JSON with every drive's values, pair by pair and seed by seed.
+Methods: ECR with the true per-row variance and with a uniform variance (``--uniform-scales`` times the true map's
+mean: the grid of controls), NMI, NCC. ECR runs as each of ``--variants``
+(:mod:`~data_tools.experiments.drive.variants`: ``held``, the tracker's default, ``ECR()`` with its noise model held
+from a frame it trusts; ``per_frame``, ``ECR()`` re-estimated every frame; ``binned``, ``ECR(response="binned",
+misfit="correlated")`` per frame, the default before), a row each; ``--misfit`` gives every variant that misfit.
+"Within 1 cell": on both axes; "lost": more than 4 cells from the truth; "covers": the filter's 95 % ellipse holds the
+truth; "raised": drives that ended in an exception. A second table pairs each row with the first on the same drives;
+the last line is JSON with every drive's values, pair by pair and seed by seed.
 
     python -m data_tools.experiments.yardstick.prepare_scene_change --dataset levir-cd --source DIR \
         --out runs/pairs --correct
     python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2
-    python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --misfit independent
+    python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --methods ecr_true \
+        --variants held per_frame binned --oracle
     python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --methods ecr_true ncc nmi \
         --oracle
     python -m data_tools.experiments.drive.photo_drive --pairs runs/pairs --seeds 0 1 2 --methods ecr_true \
@@ -38,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -46,10 +48,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from data_tools.experiments.drive.variants import VARIANT_LABELS, VARIANTS, mean_and_error, paired_rows, variant_score
 from enmi_torch import ECR, NCC, NMI, localize
 from enmi_torch.localization import NoCandidateError
 from enmi_torch.scores.ecr import MISFITS
-from enmi_torch.tracking import CHI2_95_2D, Tracker, TrackerSettings, default_score
+from enmi_torch.tracking import CHI2_95_2D, Tracker, TrackerSettings
 from enmi_torch.tracking.belief import check_mismatch_probability
 
 FRAME = 64
@@ -57,7 +60,7 @@ SHIFTS = 8
 YAWS = [-1.0, 0.0, 1.0]  # the filter's yaw bins
 OVER_READ = 1.06
 ODOMETRY_NOISE = 0.3
-MISFIT = default_score().misfit  # ECR's misfit in the benchmark: the tracker's
+DEFAULT_VARIANT = "held"  # the tracker's default score and noise model
 SETTINGS = {"shifts": SHIFTS, "yaw_bins": 3}  # README's Tracker, with motion_noise=(0.5, 0.5, 0.3)
 
 
@@ -127,31 +130,34 @@ def variance_of(drive: PhotoDrive, kind: str | None, uniform_scale: float) -> to
     return drive.variance
 
 
-def method_score(method: str, misfit: str = MISFIT):
-    """A method's score (ECR's with the tracker's response and ``misfit``) and variance kind."""
+def method_score(method: str, variant: str = DEFAULT_VARIANT, misfit: str | None = None):
+    """A method's score (ECR's of the ``variant``, with ``misfit`` where given), variance kind and noise model."""
     _, family, kind = METHODS[method]
-    return (default_score().replace(misfit=misfit) if family is ECR else family()), kind
+    if family is not ECR:
+        return family(), kind, "per_frame"
+    score, noise_model = variant_score(variant, misfit=misfit)
+    return score, kind, noise_model
 
 
 def run_filter(
     drive: PhotoDrive,
     method: str,
     uniform_scale: float = 1.0,
-    misfit: str = MISFIT,
+    misfit: str | None = None,
     mismatch_probability: float = 0.0,
     temperature: float | str = "auto",
+    variant: str = DEFAULT_VARIANT,
 ) -> dict:
-    score, kind = method_score(method, misfit)
+    score, kind, noise_model = method_score(method, variant, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     variance = None if variance is None else variance.float()
-    tracker = Tracker(
-        drive.map.float(),
-        score=score,
-        settings=TrackerSettings(
-            motion_noise=(0.5, 0.5, 0.3), mismatch_probability=mismatch_probability, temperature=temperature
-        ),
-        **SETTINGS,
+    settings = TrackerSettings(
+        motion_noise=(0.5, 0.5, 0.3),
+        mismatch_probability=mismatch_probability,
+        temperature=temperature,
+        noise_model=noise_model,
     )
+    tracker = Tracker(drive.map.float(), score=score, settings=settings, **SETTINGS)
     tracker.start(drive.truth[:1], std=(2.0, 2.0, 1.0))
     poses, covariances = [drive.truth[0]], [torch.zeros(3, 3, dtype=torch.float64)]
     for index in range(1, len(drive.truth)):
@@ -172,8 +178,14 @@ def best_match(drive: PhotoDrive, index: int, center: tuple[int, int], score, va
     return found.pose[0].double()
 
 
-def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
-    score, kind = method_score(method, misfit)
+def run_argmax(
+    drive: PhotoDrive,
+    method: str,
+    uniform_scale: float = 1.0,
+    misfit: str | None = None,
+    variant: str = DEFAULT_VARIANT,
+) -> dict:
+    score, kind, _ = method_score(method, variant, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     poses = [drive.truth[0]]
     for index in range(1, len(drive.truth)):
@@ -184,7 +196,13 @@ def run_argmax(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfi
     return {"pose": torch.stack(poses), "covariance": None}
 
 
-def run_oracle_gating(drive: PhotoDrive, method: str, uniform_scale: float = 1.0, misfit: str = MISFIT) -> dict:
+def run_oracle_gating(
+    drive: PhotoDrive,
+    method: str,
+    uniform_scale: float = 1.0,
+    misfit: str | None = None,
+    variant: str = DEFAULT_VARIANT,
+) -> dict:
     """A reference, not a method: dead reckoning that is told which frames' best match is right.
 
     Each frame is searched in the filter's window (``SHIFTS`` cells, ``YAWS``) centred on its true cell. Where the
@@ -194,7 +212,7 @@ def run_oracle_gating(drive: PhotoDrive, method: str, uniform_scale: float = 1.0
     also estimate the odometry's bias, or use a match that is off by more than one cell. ``"right"``: ``(frames,)``
     bool, the frames whose best match is right (the first, the start, counts as right).
     """
-    score, kind = method_score(method, misfit)
+    score, kind, _ = method_score(method, variant, misfit)
     variance = variance_of(drive, kind, uniform_scale)
     poses, right = [drive.truth[0]], [True]
     for index in range(1, len(drive.truth)):
@@ -262,26 +280,6 @@ def split_by_match(truth: torch.Tensor, result: dict, right: torch.Tensor) -> di
     return split
 
 
-def paired_rows(rows: dict[str, dict[str, list[float]]], drives: int) -> list[str]:
-    """Each row less the first one, drive by drive: mean ± SE of the differences (rows with every drive only)."""
-    complete = {key: values for key, values in rows.items() if len(values.get("lost", [])) == drives}
-    if len(complete) < 2 or drives < 2:
-        return []
-    (first, baseline), *others = complete.items()
-    lines = [
-        f"\nPaired on the same {drives} drives, each row less {first} (mean ± SE of the differences):\n",
-        "| method | estimator | within 1 cell | lost (> 4 cells) |",
-        "| --- | --- | --- | --- |",
-    ]
-    for key, values in others:
-        cells = [
-            mean_and_error([a - b for a, b in zip(values[measure], baseline[measure], strict=True)])
-            for measure in ("within 1 cell", "lost")
-        ]
-        lines.append(f"| {key} | {' | '.join(cells)} |")
-    return lines
-
-
 def split_rows(splits: dict[str, dict[str, dict[str, list[float]]]], estimator: str = "filter") -> list[str]:
     """The filter (``estimator``) over the frames whose best match is right and over the others: frames, mean ± SE."""
     if not splits:
@@ -305,12 +303,6 @@ def split_rows(splits: dict[str, dict[str, dict[str, list[float]]]], estimator: 
     return lines
 
 
-def mean_and_error(values: list[float]) -> str:
-    if len(values) < 2:
-        return f"{values[0]:.3f}" if values else "-"
-    return f"{statistics.fmean(values):.3f} ± {statistics.stdev(values) / math.sqrt(len(values)):.3f}"
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0],
@@ -324,10 +316,17 @@ def main(argv=None) -> None:
     parser.add_argument("--sigma", type=float, default=90.0, help="the frames' noise std, mean over the rows")
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument(
+        "--variants",
+        nargs="+",
+        choices=list(VARIANTS),
+        default=[DEFAULT_VARIANT],
+        help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
+        "tracker's, held)",
+    )
+    parser.add_argument(
         "--misfit",
         choices=MISFITS,
-        default=MISFIT,
-        help="ECR's misfit: how its model variance is estimated (default: the tracker's, default_score)",
+        help="ECR's misfit in every variant (default: each variant's own)",
     )
     parser.add_argument(
         "--uniform-scales",
@@ -391,19 +390,25 @@ def main(argv=None) -> None:
     filters = {filter_name(temperature): temperature for temperature in temperatures}
     split_filter = next(iter(filters))  # the filter that oracle gating's right and wrong frames split
     estimators = [*filters, "per-frame argmax", *(["oracle gating"] if args.oracle else [])]
+    variants = list(dict.fromkeys(args.variants))
     runs = [
-        (method, scale)
+        (method, scale, variant)
         for method in args.methods
         for scale in (args.uniform_scales if method == "ecr_uniform" else [1.0])
+        for variant in (variants if METHODS[method][1] is ECR else [DEFAULT_VARIANT])
     ]
     start = time.perf_counter()
     for name, reference, captured in pairs:
         for seed in args.seeds:
             drive = PhotoDrive(reference, captured, seed, args)
-            for method, scale in runs:
+            searched = {}  # per-frame searches of one score run once (a held model is the filter's only)
+            for method, scale, variant in runs:
                 label = METHODS[method][0] + (
                     f" x {scale:g}" if method == "ecr_uniform" and len(args.uniform_scales) > 1 else ""
                 )
+                if METHODS[method][1] is ECR and len(variants) > 1:
+                    label += f", {VARIANT_LABELS[variant]}"
+                score = method_score(method, variant, args.misfit)[0]
                 results = {}
                 for estimator in estimators:
                     run = run_filter if estimator in filters else ESTIMATORS[estimator]
@@ -414,7 +419,14 @@ def main(argv=None) -> None:
                         else {}
                     )
                     try:
-                        results[estimator] = result = run(drive, method, scale, args.misfit, **options)
+                        if estimator in filters:
+                            result = run(drive, method, scale, args.misfit, variant=variant, **options)
+                        else:
+                            done = (estimator, method, scale, score)
+                            if done not in searched:
+                                searched[done] = run(drive, method, scale, args.misfit, variant=variant)
+                            result = searched[done]
+                        results[estimator] = result
                     except Exception as error:  # a drive that raises is a result, reported as such
                         print(f"{name} seed {seed} {key}: raised {type(error).__name__}: {error}", flush=True)
                         raised[key] = raised.get(key, 0) + 1
@@ -430,8 +442,9 @@ def main(argv=None) -> None:
     drives = len(pairs) * len(args.seeds)
     print(
         f"\n{len(pairs)} pairs x {len(args.seeds)} seeds = {drives} drives of {args.frames} frames, loop radius "
-        f"{args.radius:g} cells, noise std {args.sigma:g} (mean over rows, far rows 10x the near ones), ECR's misfit "
-        f"{args.misfit}, mismatch probability {args.mismatch_probability:g}, filter temperature "
+        f"{args.radius:g} cells, noise std {args.sigma:g} (mean over rows, far rows 10x the near ones), ECR "
+        f"{', '.join(VARIANT_LABELS[variant] for variant in variants)}, ECR's misfit "
+        f"{args.misfit or 'as each variant'}, mismatch probability {args.mismatch_probability:g}, filter temperature "
         f"{', '.join(map(temperature_text, temperatures))}; mean ± SE over the drives\n"
     )
     print("| method | estimator | within 1 cell | lost (> 4 cells) | 95 % ellipse covers | raised |")
@@ -440,7 +453,7 @@ def main(argv=None) -> None:
         values = rows.get(key, {})
         cells = [mean_and_error(values.get(measure, [])) for measure in ("within 1 cell", "lost", "covers")]
         print(f"| {key} | {' | '.join(cells)} | {raised.get(key, 0)} |")
-    print("\n".join(paired_rows(rows, drives)))
+    print("\n".join(paired_rows(rows, drives, ("within 1 cell", "lost", "covers"))))
     print("\n".join(split_rows(splits, split_filter)))
     per_drive = {
         key: {measure: [round(value, 6) for value in values] for measure, values in row.items()}
@@ -449,6 +462,7 @@ def main(argv=None) -> None:
     summary = {
         "pairs": [name for name, _, _ in pairs],
         "seeds": args.seeds,
+        "variants": variants,
         "misfit": args.misfit,
         "mismatch probability": args.mismatch_probability,
         "temperatures": temperatures,
