@@ -71,7 +71,7 @@ def folders(tmp_path_factory) -> dict:
 
 
 def check_output(expected: str, actual: str, what: str) -> None:
-    actual = "\n".join(line.rstrip() for line in actual.splitlines()) + "\n"
+    actual = "".join(line.rstrip() + "\n" for line in actual.splitlines())  # nothing printed: ""
     if not doctest.OutputChecker().check_output(expected, actual, doctest.ELLIPSIS):
         pytest.fail(f"{what} printed\n{actual}\nbut the document says\n{expected}")
 

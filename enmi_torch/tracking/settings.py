@@ -54,14 +54,15 @@ class TrackerSettings:
             :func:`~enmi_torch.tracking.calibration.grid_temperature` (no sharper than one bin), or a number, e.g.
             from :func:`~enmi_torch.tracking.calibrate_temperature` on surveyed frames.
         noise_model: how a score that estimates a noise model from each pair (ECR's ``tau^2`` and ``delta^2``) reads
-            it. ``"held"`` (default): read on the aligned pair at the peak of the first frame the tracker uses in full
-            and held fixed over the frames after it (:meth:`~enmi_torch.scores.Score.held_fit`: for ECR
+            it. ``"per_frame"`` (default): every frame's surface estimates its own, at its first pass's peak.
+            ``"held"``: read on the aligned pair at the peak of the first frame the tracker uses in full and held
+            fixed over the frames after it (:meth:`~enmi_torch.scores.Score.held_fit`: for ECR
             ``score.replace(model_variance=tau2, response_variance=delta2)``), so that every frame's surface is one
-            likelihood on one scale, exact on each aligned pair (no finalist stage); read again at the first frame
-            used after the tracker is lost (the held score dropped when it is), and at a relocalization's peak.
-            Frames before the first used one estimate their own. ``"per_frame"``: every frame's surface estimates its
-            own, at its first pass's peak (all the tracker did before this setting). The same for a score that estimates nothing
-            (NMI, NCC, ECR with fixed numbers).
+            likelihood on one scale, exact on each aligned pair (no finalist stage), at about half the time per frame;
+            read again at the first frame used after the tracker is lost, and at a relocalization's peak. On the
+            drives (``docs/choosing_a_score.md``) the two tie within one standard error but for one simulated drive
+            where the held model drifted, hence the default. The same for a score that estimates nothing (NMI, NCC,
+            ECR with fixed numbers).
         min_peak_z: a surface whose best score's robust z-score is below this is no match.
         max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
             is no match (the prediction rules it out).
@@ -97,7 +98,7 @@ class TrackerSettings:
     coasting: str = "random_walk"
     weak_update: str = "nudge"
     temperature: float | str = "auto"
-    noise_model: str = "held"
+    noise_model: str = "per_frame"
     min_peak_z: float = 2.5
     max_surprise: float = 30.0
     z_drop: float = 0.3

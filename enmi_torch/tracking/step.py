@@ -229,18 +229,17 @@ def check_reference_map(reference: Tensor) -> None:
 
 
 def default_score() -> ECR:
-    """The tracker's score when none is given: ``ECR(response="binned", misfit="correlated")``.
-
-    The binned response, not ECR's shrunk default: the shrunk response reads its ``delta^2`` from each frame, so the
-    spread of a frame's surface about its peak can change by orders of magnitude from one clean frame to the next,
-    which the health rules, comparing a frame's peak with the recent ones', would take for a lost match.
+    """The tracker's score when none is given: ``ECR(response="binned", misfit="correlated")``, not ECR's default.
 
     A filter adds up its frames' evidence, so it needs the evidence's size, not only which placement wins. ECR with
     an independent misfit (its default, and :func:`~enmi_torch.localize`'s) counts every pixel of a changed patch of
     the scene as independent evidence, and the filter then trusts wrong peaks where the scene has changed since the
     map. With the misfit taken as spatially correlated (its excess over the bins' quantisation times the pixels per
     independent misfit, :func:`~enmi_torch.scores.ecr.misfit_extent`) a changed patch counts as one piece of
-    evidence. The drive benchmarks in the documentation compare the two.
+    evidence. Measured on drives over real photographs of two dates (``docs/choosing_a_score.md``, 6 drives):
+    within one cell in 0.500 of the frames against 0.376 with ``ECR()`` (paired -0.124 +- 0.040), lost in 0.236
+    against 0.415; on simulated drives ``ECR()`` is ahead by 0.01 to 0.09, so pass ``score=ECR()`` where the scene
+    does not change.
 
     Example:
         >>> default_score() == ECR(response="binned", misfit="correlated")

@@ -35,7 +35,7 @@ def test_the_photograph_drive_tracks_a_pair_and_reports_every_method(tmp_path, c
     arguments = ["--pairs", str(tmp_path), "--frames", "12", "--radius", "6", "--sigma", "8", "--uniform-scales", "1"]
     oracle = misfit == "correlated"  # the oracle gating rows once
     tool.main([*arguments, "4", "--misfit", misfit, *(["--oracle"] if oracle else [])])
-    assert tool.method_score("ecr_true", misfit)[0].misfit == misfit
+    assert tool.method_score("ecr_true", misfit=misfit)[0].misfit == misfit
     table = {}
     output = capsys.readouterr().out
     assert f"ECR's misfit {misfit}, mismatch probability 0, filter temperature auto;" in output

@@ -15,8 +15,8 @@ PAGE = "docs/score_protocol.md"
 
 def test_the_page_example_prints_what_the_page_shows(tmp_path):
     examples = [param.values[0] for param in readme_examples(PAGE)]
-    assert [language for _, language, _, _ in examples] == ["python"]
-    _, _, code, expected = examples[0]
+    assert [example[1] for example in examples] == ["python"]
+    code, expected = examples[0][2], examples[0][3]
     completed = subprocess.run(
         [sys.executable, "-c", code],
         cwd=tmp_path,
@@ -30,7 +30,7 @@ def test_the_page_example_prints_what_the_page_shows(tmp_path):
 
 
 def test_a_family_without_a_trait_is_refused_by_name_where_one_is_needed(tmp_path):
-    _, _, code, _ = readme_examples(PAGE)[0].values[0]
+    code = readme_examples(PAGE)[0].values[0][2]
     probe = code + (
         "\ntry:\n    Residual().require('least_squares', 'register')\nexcept ValueError as error:\n"
         "    print(str(error).split(';')[0])\n"

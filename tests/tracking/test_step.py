@@ -216,7 +216,7 @@ def test_the_noise_model_is_read_at_the_first_used_frame_and_held_across_the_nex
     # Frames of changing noise (a per-frame estimate would change with them): the first used frame's tau^2 and
     # delta^2 are ECR's own on its pair, and every later frame is scored with them, not its own.
     reference = texture(generator, (80, 140)).float()
-    score, settings = ECR(bins=16), TrackerSettings(motion_noise=(0.5, 0.5, 0.3))
+    score, settings = ECR(bins=16), TrackerSettings(motion_noise=(0.5, 0.5, 0.3), noise_model="held")
     tracker = Tracker(reference, score=score, settings=settings, shifts=(3, 4), yaw_bins=1)
     tracker.start(torch.tensor([[40.0, 40.0, 0.0]]))
     assert tracker.settings.noise_model == "held"
@@ -254,7 +254,7 @@ def test_the_noise_model_is_read_at_the_first_used_frame_and_held_across_the_nex
 
 def test_the_held_noise_model_is_dropped_when_lost_and_read_again_at_the_next_used_frame(generator):
     reference = texture(generator, (80, 140)).float()
-    score, settings = ECR(bins=16), TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2)
+    score, settings = ECR(bins=16), TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, noise_model="held")
     tracker = Tracker(reference, score=score, settings=settings, shifts=3, yaw_bins=1)
     tracker.start(torch.tensor([[40.0, 40.0, 0.0]]))
     blind = torch.zeros(1, 1, *FRAME, dtype=torch.bool)
@@ -292,7 +292,9 @@ def test_a_held_regional_misfit_is_refused_naming_the_setting_that_reads_it_per_
     frame = cut(reference, 45, 30).float() + 1.0
     score = ECR(bins=16, misfit="regional")
     with pytest.raises(ValueError, match=r"misfit='regional'.*TrackerSettings\(noise_model='per_frame'\)"):
-        track_step(belief, frame, reference, torch.zeros(1, 3), 1.0, score=score)
+        track_step(
+            belief, frame, reference, torch.zeros(1, 3), 1.0, score=score, settings=TrackerSettings(noise_model="held")
+        )
     _, output, _ = track_step(
         belief, frame, reference, torch.zeros(1, 3), 1.0, score=score, settings=TrackerSettings(noise_model="per_frame")
     )

@@ -350,8 +350,9 @@ def test_a_tracker_refuses_a_calibration_of_another_score():
         ("per_frame", None, "per_frame"),
         ("held", None, "held"),
         ("per_frame", "per_frame", "per_frame"),
-        ("held", "per_frame", None),
-        (None, "held", "per_frame"),  # "held" is the default: not told apart from no setting, like temperature's
+        ("held", "per_frame", "held"),  # "per_frame" is the default: not told apart from no setting, like temperature's
+        ("per_frame", "held", None),
+        (None, "held", None),
     ],
 )
 def test_a_calibration_sets_the_noise_model_it_was_fitted_with(recorded, given, expected):
@@ -361,8 +362,8 @@ def test_a_calibration_sets_the_noise_model_it_was_fitted_with(recorded, given, 
     if expected is None:
         with pytest.raises(
             ValueError,
-            match=r"calibration was fitted with noise_model='held', got settings with "
-            r"noise_model='per_frame': leave noise_model out",
+            match=r"calibration was fitted with noise_model='per_frame', got settings with "
+            r"noise_model='held': leave noise_model out",
         ):
             Tracker(reference, settings=settings, calibration=calibration)
         return
@@ -415,7 +416,9 @@ def test_a_relocalization_reads_the_noise_model_at_its_own_peak(generator):
     # The vehicle is carried 25 cells right and 12 up onto a patch seen through a larger misfit (noise beyond the
     # variance given): the relocalized frame's tau^2 is ECR's own on the pair at the place it restarts from.
     reference = texture(generator, (120, 240))
-    settings = TrackerSettings(motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=40, coarse_factor=2)
+    settings = TrackerSettings(
+        motion_noise=(0.3, 0.3, 0.1), patience=2, relocalize_shifts=40, coarse_factor=2, noise_model="held"
+    )
     score = ECR(bins=16)
     tracker = Tracker(reference.float(), settings=settings, score=score, shifts=4, yaw_bins=1)
     tracker.start(torch.tensor([[40.0, 60.0, 0.0]]))

@@ -185,7 +185,9 @@ def test_a_pair_is_located_by_the_finalist_localize_chose_not_by_the_surfaces_ma
         assert options["shifts"] == 2 and captured.shape[0] == 3
         finalists = Finalists(placements, torch.zeros(3, 2), chosen)
         zeros = torch.zeros(3)
-        return Localization(torch.zeros(3, 3), zeros, surface, torch.zeros(3, 2, 2), zeros, torch.zeros(1), finalists)
+        return Localization(
+            torch.zeros(3, 3), zeros, surface, torch.zeros(3, 2, 2), zeros, torch.zeros(1), finalists=finalists
+        )
 
     monkeypatch.setattr(held_out, "localize", fake_localize)
     window = torch.rand(3, 1, 10, 12)

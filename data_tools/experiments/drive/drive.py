@@ -26,8 +26,8 @@ frames instead (:func:`enmi_torch.tracking.calibrate_temperature`), written as `
 :mod:`enmi_torch.data.scene_change` at strength ``S``, the map unchanged); ``--noise-scale`` multiplies the pixel
 noise; ``--seeds`` runs one drive per seed and prints the mean and standard error across them, and each row less the
 first, paired drive by drive. ECR runs as each of ``--variants`` (:mod:`~data_tools.experiments.drive.variants`: the
-tracker's default ``held``, ``ECR()`` with its noise model held from a frame it trusts; ``per_frame``; ``binned``,
-the default before; ...), a row each; ``--misfit`` gives every variant that misfit.
+tracker's default ``binned``, ``ECR(response="binned", misfit="correlated")`` per frame; ``held``, ``ECR()`` with its
+noise model held from a frame it trusts; ``per_frame``; ...), a row each; ``--misfit`` gives every variant that misfit.
 
 Methods, each run as the filter and as per-frame argmax (``localize`` around the previous estimate moved by the
 odometry, the best candidate taken): ECR with the analytic, the learned and a uniform variance; NMI; NCC (16 bins,
@@ -110,7 +110,7 @@ LABELS = {
     "ncc": "NCC",
 }
 LOGDIR = Path("runs/drive")
-DEFAULT_VARIANT = "held"  # the tracker's default score and noise model
+DEFAULT_VARIANT = "binned"  # the tracker's default score and noise model
 
 
 def method_score(
@@ -719,7 +719,7 @@ def main(argv=None) -> None:
         choices=list(VARIANTS),
         default=[DEFAULT_VARIANT],
         help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
-        "tracker's, held)",
+        "tracker's, binned)",
     )
     parser.add_argument("--misfit", choices=MISFITS, help="ECR's misfit in every variant (default: each variant's own)")
     parser.add_argument("--oracle", action="store_true", help="also oracle gating: each frame searched about the truth")

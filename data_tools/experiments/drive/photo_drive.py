@@ -18,9 +18,9 @@ same drives, is what tuning the temperature could reach.
 
 Methods: ECR with the true per-row variance and with a uniform variance (``--uniform-scales`` times the true map's
 mean: the grid of controls), NMI, NCC. ECR runs as each of ``--variants``
-(:mod:`~data_tools.experiments.drive.variants`: ``held``, the tracker's default, ``ECR()`` with its noise model held
-from a frame it trusts; ``per_frame``, ``ECR()`` re-estimated every frame; ``binned``, ``ECR(response="binned",
-misfit="correlated")`` per frame, the default before), a row each; ``--misfit`` gives every variant that misfit.
+(:mod:`~data_tools.experiments.drive.variants`: ``binned``, the tracker's default,
+``ECR(response="binned", misfit="correlated")`` per frame; ``held``, ``ECR()`` with its noise model held from a frame
+it trusts; ``per_frame``, ``ECR()`` re-estimated every frame), a row each; ``--misfit`` gives every variant that misfit.
 "Within 1 cell": on both axes; "lost": more than 4 cells from the truth; "covers": the filter's 95 % ellipse holds the
 truth; "raised": drives that ended in an exception. A second table pairs each row with the first on the same drives;
 the last line is JSON with every drive's values, pair by pair and seed by seed.
@@ -60,7 +60,7 @@ SHIFTS = 8
 YAWS = [-1.0, 0.0, 1.0]  # the filter's yaw bins
 OVER_READ = 1.06
 ODOMETRY_NOISE = 0.3
-DEFAULT_VARIANT = "held"  # the tracker's default score and noise model
+DEFAULT_VARIANT = "binned"  # the tracker's default score and noise model
 SETTINGS = {"shifts": SHIFTS, "yaw_bins": 3}  # README's Tracker, with motion_noise=(0.5, 0.5, 0.3)
 
 
@@ -321,7 +321,7 @@ def main(argv=None) -> None:
         choices=list(VARIANTS),
         default=[DEFAULT_VARIANT],
         help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
-        "tracker's, held)",
+        "tracker's, binned)",
     )
     parser.add_argument(
         "--misfit",

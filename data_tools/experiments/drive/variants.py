@@ -8,8 +8,8 @@ A variant is an ECR and the tracker's ``noise_model`` (:class:`~enmi_torch.track
   over the bins' quantisation times the pixels per independent misfit); held, it is ``ECR()`` with that number;
 - ``per_frame``: ``ECR()``, every frame's surface estimating its own (``noise_model="per_frame"``);
 - ``per_frame_correlated``: ``ECR(misfit="correlated")`` per frame;
-- ``binned``: ``ECR(response="binned", misfit="correlated")`` per frame, the tracker's default score before the held
-  noise model;
+- ``binned``: ``ECR(response="binned", misfit="correlated")`` per frame, the tracker's default (its score and
+  ``noise_model``);
 - ``binned_held``: that score with its ``tau^2`` held (the binned response has no ``delta^2``).
 
 Per-frame argmax and oracle gating search each frame alone: a held model is the tracker's, so ``held`` searches as
