@@ -38,9 +38,9 @@ import math
 import sys
 import time
 
-import numpy as np
 import torch
 
+from data_tools.experiments.registration.simpleitk_mattes import mattes_registration
 from data_tools.experiments.yardstick import yardstick
 from enmi_torch import ECR, NCC, localize, register
 from enmi_torch.data.scene_change import scene_change
@@ -142,42 +142,9 @@ def run_register(maps, captured, variance, start, score, uniform: bool) -> tuple
 
 def run_simpleitk(maps, captured, start, rigid: bool) -> tuple[torch.Tensor, float]:
     """SimpleITK's Mattes MI registration of each trial, from the integer peak (translation) or the pose (rigid)."""
-    import SimpleITK as sitk
-
-    poses = []
     began = time.perf_counter()
-    for index, reference in enumerate(maps):
-        fixed = sitk.GetImageFromArray(captured[index, 0].numpy().astype(np.float32))
-        moving = sitk.GetImageFromArray(reference[0, 0].numpy().astype(np.float32))
-        x, y, yaw = start[index].tolist()
-        middle = ((LOCAL - 1) / 2, (LOCAL - 1) / 2)
-        if rigid:
-            transform = sitk.Euler2DTransform()
-            transform.SetCenter(middle)
-            transform.SetAngle(math.radians(yaw))
-            transform.SetTranslation((x - LOCAL // 2, y - LOCAL // 2))
-        else:
-            transform = sitk.TranslationTransform(2, (round(x) - LOCAL // 2, round(y) - LOCAL // 2))
-        method = sitk.ImageRegistrationMethod()
-        method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=32)
-        method.SetMetricSamplingStrategy(method.NONE)
-        method.SetInterpolator(sitk.sitkLinear)
-        method.SetOptimizerAsRegularStepGradientDescent(
-            learningRate=1.0, minStep=1e-4, numberOfIterations=200, gradientMagnitudeTolerance=1e-8
-        )
-        method.SetOptimizerScalesFromPhysicalShift()
-        method.SetShrinkFactorsPerLevel([2, 1])
-        method.SetSmoothingSigmasPerLevel([1, 0])
-        method.SetInitialTransform(transform, inPlace=True)
-        method.Execute(fixed, moving)
-        if rigid:
-            angle = math.degrees(transform.GetAngle())
-            shift_x, shift_y = transform.GetTranslation()
-        else:
-            angle = 0.0
-            shift_x, shift_y = transform.GetOffset()
-        poses.append(torch.tensor([shift_x + LOCAL // 2, shift_y + LOCAL // 2, angle], dtype=torch.float64))
-    return torch.stack(poses), (time.perf_counter() - began) / len(maps)
+    poses = mattes_registration([reference[0, 0] for reference in maps], captured, start, rigid)
+    return poses, (time.perf_counter() - began) / len(maps)
 
 
 def summarise(pose: torch.Tensor, truth: torch.Tensor, found: torch.Tensor, reference: torch.Tensor | None) -> dict:

@@ -13,20 +13,25 @@ from tests.test_readme import ROOT, check_output, readme_examples
 PAGE = "docs/score_protocol.md"
 
 
-def test_the_page_example_prints_what_the_page_shows(tmp_path):
-    examples = [param.values[0] for param in readme_examples(PAGE)]
-    assert [example[1] for example in examples] == ["python"]
-    code, expected = examples[0][2], examples[0][3]
+def _run(code: str, folder) -> str:
+    """What ``code`` prints, run in a Python process of its own in ``folder``; it must exit 0."""
     completed = subprocess.run(
         [sys.executable, "-c", code],
-        cwd=tmp_path,
+        cwd=folder,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert completed.returncode == 0, completed.stderr
-    check_output(expected, completed.stdout, PAGE)
+    return completed.stdout
+
+
+def test_the_page_example_prints_what_the_page_shows(tmp_path):
+    examples = [param.values[0] for param in readme_examples(PAGE)]
+    assert [example[1] for example in examples] == ["python"]
+    code, expected = examples[0][2], examples[0][3]
+    check_output(expected, _run(code, tmp_path), PAGE)
 
 
 def test_a_family_without_a_trait_is_refused_by_name_where_one_is_needed(tmp_path):
@@ -35,16 +40,8 @@ def test_a_family_without_a_trait_is_refused_by_name_where_one_is_needed(tmp_pat
         "\ntry:\n    Residual().require('least_squares', 'register')\nexcept ValueError as error:\n"
         "    print(str(error).split(';')[0])\n"
     )
-    completed = subprocess.run(
-        [sys.executable, "-c", probe],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert completed.returncode == 0, completed.stderr
-    assert completed.stdout.splitlines()[-1].startswith(
+    last = _run(probe, tmp_path).splitlines()[-1]
+    assert last.startswith(
         "register needs a score with the 'least_squares' trait (response_basis and least_squares_fit), got "
         "score=Residual()"
     )

@@ -56,6 +56,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from data_tools.experiments.registration.simpleitk_mattes import mattes_registration
 from enmi_torch import ECR, NCC, localize, register
 from enmi_torch.utils.checks import value_checks
 
@@ -151,32 +152,7 @@ def run_simpleitk(maps: torch.Tensor, captured: torch.Tensor, start: torch.Tenso
     import SimpleITK as sitk
 
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
-    poses = []
-    middle = ((LOCAL - 1) / 2, (LOCAL - 1) / 2)
-    for index in range(len(maps)):
-        fixed = sitk.GetImageFromArray(captured[index, 0].numpy().astype(np.float32))
-        moving = sitk.GetImageFromArray(maps[index, 0].numpy().astype(np.float32))
-        x, y, yaw = start[index].tolist()
-        transform = sitk.Euler2DTransform()  # fixed (captured) pixel -> moving (map) point
-        transform.SetCenter(middle)
-        transform.SetAngle(math.radians(yaw))
-        transform.SetTranslation((x - LOCAL // 2, y - LOCAL // 2))
-        method = sitk.ImageRegistrationMethod()
-        method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=32)
-        method.SetMetricSamplingStrategy(method.NONE)
-        method.SetInterpolator(sitk.sitkLinear)
-        method.SetOptimizerAsRegularStepGradientDescent(
-            learningRate=1.0, minStep=1e-4, numberOfIterations=200, gradientMagnitudeTolerance=1e-8
-        )
-        method.SetOptimizerScalesFromPhysicalShift()
-        method.SetShrinkFactorsPerLevel([2, 1])
-        method.SetSmoothingSigmasPerLevel([1, 0])
-        method.SetInitialTransform(transform, inPlace=True)
-        method.Execute(fixed, moving)
-        shift_x, shift_y = transform.GetTranslation()
-        angle = math.degrees(transform.GetAngle())
-        poses.append([shift_x + LOCAL // 2, shift_y + LOCAL // 2, angle])
-    return torch.tensor(poses, dtype=torch.float64)
+    return mattes_registration(maps[:, 0], captured, start)
 
 
 def register_with(maps, captured, variance, start, method: str, options: dict | None = None) -> torch.Tensor:
