@@ -47,6 +47,7 @@ from enmi_torch.utils.checks import (
     check_same_device,
     check_shifts,
 )
+from enmi_torch.utils.options import signature_defaults
 from enmi_torch.variance.base import VarianceModel, call_variance, check_variance_model
 
 MAX_YAW_DEG = 1e6  # a float32 yaw of 1e6 degrees is exact to 1/16 degree; 1e300 would read as inf
@@ -241,7 +242,17 @@ def _check_search_settings(min_overlap: float, exclusion_radius: int) -> None:
 
 
 def _check_strategy_fits_score(strategy: SearchStrategy, score: Score) -> None:
-    """A two-stage search ranks by the score's rough surface: the score must have one, with more bins than it."""
+    """A two-stage search ranks by the score's rough surface: the score must have one, with more bins than it.
+
+    A finalist count other than the default's and 0 needs a score whose surface is not exact (one that has a finalist
+    stage); 0, no finalist stage, is what such a score's search does anyway.
+    """
+    if strategy.finalists not in (0, signature_defaults(SearchStrategy)["finalists"]) and score.surface_is_exact:
+        raise ValueError(
+            f"finalists={strategy.finalists} has no effect with score={score!r}: its surface is its exact value at "
+            "every placement, so a search has no finalists to rescore; drop finalists, or pass a score that fits a "
+            "model to each pair (ECR())"
+        )
     if strategy.method != "two_stage":
         return
     score.require("two_stage", "search='two_stage'")

@@ -64,7 +64,8 @@ class SearchStrategy:
             its own fit (:meth:`~enmi_torch.scores.Score.finalists`), when the score's surface holds a model fitted
             once (not :attr:`~enmi_torch.scores.Score.surface_is_exact`: ECR's default); the pose is the best of
             them (:class:`~enmi_torch.localization.Finalists`). ``0``: the surface's maximum as it is. The default
-            was chosen by measurement (``docs/results/scores.md``).
+            was chosen by measurement (``docs/results/scores.md``). Another count with a score whose surface is exact
+            is refused by the search (it has no finalist stage).
 
     Example:
         >>> SearchStrategy("two_stage", cheap_bins=8)

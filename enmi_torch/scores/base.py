@@ -263,15 +263,23 @@ class Score:
         """
         return True
 
+    @property
+    def estimates_noise_model(self) -> bool:
+        """Whether this score estimates a noise model from each pair (ECR's ``tau^2`` or ``delta^2``).
+
+        :meth:`held_fit` holds it; ``False`` by default (NMI, ENMI, NCC, the mixture, ECR with both fixed).
+        """
+        return False
+
     def held_fit(
         self, captured: Tensor, reference: Tensor, variance: Tensor | float | None = None, *, valid_mask=None
     ) -> Score:
         """This score with what it estimates from each pair estimated on one aligned pair and held fixed.
 
-        A score that fits a model to each pair (ECR's ``tau^2`` and ``delta^2``) scores every later pair with the
-        model of this one: :class:`~enmi_torch.Tracker` holds it across frames (``TrackerSettings.noise_model``).
-        The default, for a score that estimates nothing from the pair: the score itself. Arguments as
-        :meth:`__call__`'s, one pair.
+        A score that fits a model to each pair (ECR's ``tau^2`` and ``delta^2``: :attr:`estimates_noise_model`)
+        scores every later pair with the model of this one: :class:`~enmi_torch.Tracker` holds it across frames
+        (``TrackerSettings.noise_model``). The default, for a score that estimates nothing from the pair: the score
+        itself. Arguments as :meth:`__call__`'s, one pair.
         """
         self.check_variance(variance)
         return self

@@ -576,6 +576,12 @@ class ECR(ECRTraits, Score):
         return frozenset({"least_squares"} if self.response == "linear" else {"least_squares", "two_stage"})
 
     @property
+    def estimates_noise_model(self) -> bool:
+        """Whether ``tau^2`` is estimated from each pair, or ``delta^2`` (the shrunk response's)."""
+        estimates_delta2 = self.response == "shrunk" and self.response_variance == RESPONSE_VARIANCE_ESTIMATE
+        return self.model_variance == MODEL_VARIANCE_ESTIMATE or estimates_delta2
+
+    @property
     def surface_is_exact(self) -> bool:
         """Whether the surface equals ECR on each aligned pair: ``tau^2`` and ``delta^2`` fixed, no reading censored.
 

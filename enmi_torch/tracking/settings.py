@@ -61,8 +61,8 @@ class TrackerSettings:
             likelihood on one scale, exact on each aligned pair (no finalist stage), at about half the time per frame;
             read again at the first frame used after the tracker is lost, and at a relocalization's peak. On the
             drives (``docs/choosing_a_score.md``) the two tie within one standard error but for one simulated drive
-            where the held model drifted, hence the default. The same for a score that estimates nothing (NMI, NCC,
-            ECR with fixed numbers).
+            where the held model drifted, hence the default. ``"held"`` is refused with a score that estimates no noise
+            model (:attr:`~enmi_torch.scores.Score.estimates_noise_model`: NMI, NCC, ECR with both fixed).
         min_peak_z: a surface whose best score's robust z-score is below this is no match.
         max_surprise: a peak whose predicted log probability is more than this many nats below the prediction's best
             is no match (the prediction rules it out).

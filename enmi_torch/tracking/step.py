@@ -119,6 +119,7 @@ def track_step(
     check_belief(belief)
     settings = check_settings(settings)
     score = default_score() if score is None else as_score(score)
+    check_noise_model(settings, score)
     if settings.refine:
         check_registration_score(score)
     check_floating("captured", captured)
@@ -218,6 +219,15 @@ def check_settings(settings: object) -> TrackerSettings:
     if not isinstance(settings, TrackerSettings):
         raise TypeError(f"settings must be a TrackerSettings or None, got {type(settings).__name__}")
     return settings
+
+
+def check_noise_model(settings: TrackerSettings, score: Score) -> None:
+    """Refuse ``noise_model="held"`` with a score that estimates no noise model: there would be nothing to hold."""
+    if settings.noise_model == "held" and not score.estimates_noise_model:
+        raise ValueError(
+            f"noise_model='held' has no effect with score={score!r}: it estimates no noise model from each frame to "
+            "hold; drop noise_model, or pass a score that estimates one (ECR())"
+        )
 
 
 def check_reference_map(reference: Tensor) -> None:

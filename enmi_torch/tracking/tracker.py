@@ -14,7 +14,14 @@ from enmi_torch.tracking.belief import Belief, check_belief_memory, initial_beli
 from enmi_torch.tracking.calibration import Calibration, checked_calibration
 from enmi_torch.tracking.health import Health
 from enmi_torch.tracking.settings import TrackerSettings, refuse_moved_tracker_keywords
-from enmi_torch.tracking.step import TrackOutput, check_reference_map, check_settings, default_score, track_step
+from enmi_torch.tracking.step import (
+    TrackOutput,
+    check_noise_model,
+    check_reference_map,
+    check_settings,
+    default_score,
+    track_step,
+)
 from enmi_torch.utils.checks import check_floating, check_positive_int, check_shifts
 from enmi_torch.variance.base import VarianceModel, call_variance
 
@@ -99,6 +106,7 @@ class Tracker(nn.Module):
             settings, score = _calibrated(settings, score, calibration)
         self.settings = settings
         self.score = default_score() if score is None else score
+        check_noise_model(settings, self.score)
         self.belief: Belief | None = None
         self.health: Health | None = None
 

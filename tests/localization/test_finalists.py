@@ -1,6 +1,7 @@
 """The search's finalist stage: the surface's best local maxima rescored exactly, each with its own fit."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -115,6 +116,25 @@ def test_a_search_whose_surface_is_exact_has_no_finalist_stage(photo_map, score,
         captured, photo_map, variance if score.uses_variance else None, shifts=4, around=(75, 60), score=score
     )
     assert result.finalists is None
+
+
+@pytest.mark.parametrize(
+    "score",
+    [NMI(), NCC(), ECR(model_variance=100.0, response_variance=50.0, saturation=None)],
+    ids=["nmi", "ncc", "ecr fixed"],
+)
+def test_a_finalist_count_is_refused_naming_the_score_whose_surface_is_exact(photo_map, score, generator):
+    captured, variance = _captured(photo_map, 62, 70, 24, 32, generator, sigma=10.0)
+    variance = variance if score.uses_variance else None
+    options = {"shifts": 4, "around": (75, 60), "score": score}
+    with pytest.raises(ValueError, match=rf"^finalists=3 has no effect with score={re.escape(repr(score))}: its "):
+        localize(captured, photo_map, variance, search=SearchStrategy(finalists=3), **options)
+    with pytest.raises(ValueError, match=r"^finalists=3 has no effect"):
+        Localizer(score=score, shifts=4, search=SearchStrategy(finalists=3))(captured, photo_map, variance)
+    for search in (SearchStrategy(finalists=0), SearchStrategy()):  # no stage, as the search does anyway
+        assert localize(captured, photo_map, variance, search=search, **options).finalists is None
+    # A score that fits a model to each pair takes any count.
+    assert localize(captured, photo_map, 100.0, shifts=4, around=(75, 60), search=SearchStrategy(finalists=3))
 
 
 def test_the_strategies_and_localizer_carry_the_finalist_count(photo_map, generator):

@@ -147,3 +147,30 @@ def test_a_score_that_estimates_nothing_from_the_pair_is_held_as_it_is():
         assert score.held_fit(image, image.mT, variance) is score
     with pytest.raises(ValueError, match="variance is not used by score 'ncc'"):
         NCC().held_fit(image, image, 1.0)
+
+
+@pytest.mark.parametrize(
+    "score",
+    [
+        ECR(),
+        ECR(response="binned"),
+        ECR(response="linear"),
+        ECR(model_variance=100.0),
+        ECR(model_variance=100.0, response="binned"),
+        ECR(response_variance=30.0),
+        ECR(model_variance=100.0, response_variance=30.0),
+        ECR(model_variance=100.0, response_variance=30.0, saturation=None),
+        NMI(),
+        ENMI(),
+        NCC(),
+        Mixture(),
+    ],
+    ids=repr,
+)
+def test_a_score_estimates_a_noise_model_exactly_where_holding_one_changes_it(score):
+    generator = torch.Generator().manual_seed(5)
+    reference = torch.rand(1, 1, 12, 14, generator=generator, dtype=torch.float64) * 256
+    captured = reference + 20 * torch.randn(reference.shape, generator=generator, dtype=torch.float64)
+    held = score.held_fit(captured, reference, 64.0 if score.uses_variance else None)
+    assert score.estimates_noise_model == (held != score)
+    assert not held.estimates_noise_model  # what it held is fixed: nothing left to hold

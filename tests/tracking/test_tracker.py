@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
 from _tracking import FRAME, cut, texture
 
-from enmi_torch import ECR, NMI, ConstantVariance
+from enmi_torch import ECR, NCC, NMI, ConstantVariance
 from enmi_torch.registration import warp_reference
 from enmi_torch.scores import as_score
 from enmi_torch.tracking import (
@@ -442,3 +443,25 @@ def test_a_relocalization_reads_the_noise_model_at_its_own_peak(generator):
             assert held is not None and (held.model_variance, held.response_variance) == pytest.approx(expected)
     assert len(relocalized) == 1 and tracker.health.held[0] is held
     assert float((output.pose[0, :2] - torch.tensor([x, y], dtype=torch.float64)).abs().max()) < 0.5
+
+
+@pytest.mark.parametrize(
+    "score",
+    [NMI(), NCC(), ECR(model_variance=100.0, response_variance=50.0), ECR(response="binned", model_variance=100.0)],
+    ids=repr,
+)
+def test_a_held_noise_model_is_refused_naming_a_score_that_estimates_none(generator, score):
+    reference = texture(generator, (60, 90)).float()
+    settings = TrackerSettings(noise_model="held")
+    message = rf"^noise_model='held' has no effect with score={re.escape(repr(score))}: it estimates no noise model"
+    with pytest.raises(ValueError, match=message):
+        Tracker(reference, score=score, settings=settings)
+    belief = initial_belief(torch.tensor([[45.0, 30.0, 0.0]]), shifts=2, yaw_bins=1)
+    frame = cut(reference, 45, 30).float() + 1.0
+    variance = 1.0 if score.uses_variance else None
+    with pytest.raises(ValueError, match=message):
+        track_step(belief, frame, reference, torch.zeros(1, 3), variance, score=score, settings=settings)
+    assert Tracker(reference, score=score).settings.noise_model == "per_frame"  # the default: nothing to refuse
+    # A score that estimates tau^2 or delta^2 holds it.
+    for held in (ECR(model_variance=100.0), ECR(response="binned"), ECR()):
+        assert Tracker(reference, score=held, settings=settings).settings.noise_model == "held"
