@@ -47,3 +47,11 @@ def test_uncalibrated_filter_ellipses_cover_the_truth_on_the_benchmark_drive():
     filtered, searched = (drive_tools.summary(drive.truth, run["pose"]) for run in (result, argmax))
     assert filtered["lateral_rms"] < searched["lateral_rms"]
     assert filtered["longitudinal_rms"] < searched["longitudinal_rms"]
+
+
+def test_the_default_variant_is_the_trackers_default_score_and_noise_model():
+    from data_tools.experiments.drive.variants import DEFAULT_VARIANT, VARIANTS
+    from enmi_torch.tracking import TrackerSettings
+    from enmi_torch.tracking.step import default_score
+
+    assert VARIANTS[DEFAULT_VARIANT] == (default_score(), TrackerSettings().noise_model)

@@ -57,14 +57,20 @@ import torch
 import torch.nn.functional as F
 from skimage import data
 
-from data_tools.experiments.drive.variants import VARIANT_LABELS, VARIANTS, mean_and_error, paired_rows, variant_score
+from data_tools.experiments.drive.variants import (
+    DEFAULT_VARIANT,
+    VARIANT_LABELS,
+    add_variant_options,
+    mean_and_error,
+    paired_rows,
+    variant_score,
+)
 from enmi_torch import GroundGrid, Localization, RoadCamera, rectify, unrectify
 from enmi_torch.data.scene_change import scene_change
 from enmi_torch.geometry.rectify import ground_to_image_homography
 from enmi_torch.localization import NoCandidateError
 from enmi_torch.localization.search import localize
 from enmi_torch.scores import ECR, NCC, NMI, Score
-from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import (
     CHI2_95_2D,
     Calibration,
@@ -110,7 +116,6 @@ LABELS = {
     "ncc": "NCC",
 }
 LOGDIR = Path("runs/drive")
-DEFAULT_VARIANT = "binned"  # the tracker's default score and noise model
 
 
 def method_score(
@@ -713,15 +718,7 @@ def main(argv=None) -> None:
         default=1.0,
         help="the uniform variance as this factor times the learned map's mean (default 1: the mean)",
     )
-    parser.add_argument(
-        "--variants",
-        nargs="+",
-        choices=list(VARIANTS),
-        default=[DEFAULT_VARIANT],
-        help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
-        "tracker's, binned)",
-    )
-    parser.add_argument("--misfit", choices=MISFITS, help="ECR's misfit in every variant (default: each variant's own)")
+    add_variant_options(parser)
     parser.add_argument("--oracle", action="store_true", help="also oracle gating: each frame searched about the truth")
     parser.add_argument(
         "--mismatch-probability",

@@ -48,10 +48,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data_tools.experiments.drive.variants import VARIANT_LABELS, VARIANTS, mean_and_error, paired_rows, variant_score
+from data_tools.experiments.drive.variants import (
+    DEFAULT_VARIANT,
+    VARIANT_LABELS,
+    add_variant_options,
+    mean_and_error,
+    paired_rows,
+    variant_score,
+)
 from enmi_torch import ECR, NCC, NMI, localize
 from enmi_torch.localization import NoCandidateError
-from enmi_torch.scores.ecr import MISFITS
 from enmi_torch.tracking import CHI2_95_2D, Tracker, TrackerSettings
 from enmi_torch.tracking.belief import check_mismatch_probability
 
@@ -60,7 +66,6 @@ SHIFTS = 8
 YAWS = [-1.0, 0.0, 1.0]  # the filter's yaw bins
 OVER_READ = 1.06
 ODOMETRY_NOISE = 0.3
-DEFAULT_VARIANT = "binned"  # the tracker's default score and noise model
 SETTINGS = {"shifts": SHIFTS, "yaw_bins": 3}  # README's Tracker, with motion_noise=(0.5, 0.5, 0.3)
 
 
@@ -315,19 +320,7 @@ def main(argv=None) -> None:
     parser.add_argument("--radius", type=float, default=60.0, help="the loop's radius in cells")
     parser.add_argument("--sigma", type=float, default=90.0, help="the frames' noise std, mean over the rows")
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
-    parser.add_argument(
-        "--variants",
-        nargs="+",
-        choices=list(VARIANTS),
-        default=[DEFAULT_VARIANT],
-        help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
-        "tracker's, binned)",
-    )
-    parser.add_argument(
-        "--misfit",
-        choices=MISFITS,
-        help="ECR's misfit in every variant (default: each variant's own)",
-    )
+    add_variant_options(parser)
     parser.add_argument(
         "--uniform-scales",
         type=float,

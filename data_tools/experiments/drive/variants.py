@@ -18,10 +18,12 @@ Per-frame argmax and oracle gating search each frame alone: a held model is the 
 
 from __future__ import annotations
 
+import argparse
 import math
 import statistics
 
 from enmi_torch.scores import ECR, Score
+from enmi_torch.scores.ecr import MISFITS
 
 VARIANTS = {
     "held": (ECR(), "held"),
@@ -31,6 +33,7 @@ VARIANTS = {
     "binned": (ECR(response="binned", misfit="correlated"), "per_frame"),
     "binned_held": (ECR(response="binned", misfit="correlated"), "held"),
 }
+DEFAULT_VARIANT = "binned"  # the tracker's default score and noise model
 VARIANT_LABELS = {
     "held": "ECR() held",
     "held_correlated": "ECR() held, tau^2 read correlated",
@@ -77,3 +80,16 @@ def paired_rows(
         ]
         lines.append(f"| {key} | {' | '.join(cells)} |")
     return lines
+
+
+def add_variant_options(parser: argparse.ArgumentParser) -> None:
+    """The drives' ``--variants`` (a row each, default the tracker's) and ``--misfit`` (given to every variant)."""
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        choices=list(VARIANTS),
+        default=[DEFAULT_VARIANT],
+        help="ECR's variants, a row each: its score and how the tracker reads its noise model (default: the "
+        "tracker's, binned)",
+    )
+    parser.add_argument("--misfit", choices=MISFITS, help="ECR's misfit in every variant (default: each variant's own)")
